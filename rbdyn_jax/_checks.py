@@ -1,0 +1,41 @@
+"""Input checks shared by the pure-function layers (PHYSICS.md conventions, STYLE.md §5).
+
+Static mistakes (shapes, strings) raise `ValueError` at trace time naming the argument;
+value-dependent mistakes go through `eqx.error_if`, whose returned value must be used.
+"""
+
+import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike
+
+
+def as_float_array(x: ArrayLike, name: str) -> Array:
+    """`jnp.asarray(x)` promoted to a floating dtype (JAX's default float for ints/bools)."""
+    try:
+        x = jnp.asarray(x)
+    except TypeError as e:
+        raise ValueError(f"`{name}` must be array-like, got {type(x).__name__}.") from e
+    if not jnp.issubdtype(x.dtype, jnp.floating):
+        if jnp.issubdtype(x.dtype, jnp.complexfloating):
+            raise ValueError(f"`{name}` must be real, got dtype {x.dtype}.")
+        x = x.astype(jnp.result_type(float))
+    return x
+
+
+def check_trailing(x: ArrayLike, trailing: tuple[int, ...], name: str) -> Array:
+    """Return `x` as a float array whose trailing axes are `trailing`, else `ValueError`."""
+    x = as_float_array(x, name)
+    n = len(trailing)
+    if x.ndim < n or tuple(x.shape[x.ndim - n :]) != trailing:
+        want = "(*batch, " + ", ".join(map(str, trailing)) + ")"
+        raise ValueError(f"`{name}` must have shape {want}, got {tuple(x.shape)}.")
+    return x
+
+
+def check_batch(x: ArrayLike, name: str) -> Array:
+    """A `*batch` array of scalars (any shape) as a float array."""
+    return as_float_array(x, name)
+
+
+def sqrt_eps(dtype) -> float:
+    """√(machine epsilon) of `dtype`: the relative tolerance of value checks."""
+    return float(jnp.sqrt(jnp.finfo(dtype).eps))

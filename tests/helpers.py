@@ -1,0 +1,43 @@
+"""Comparators and reference constructions shared by the tests."""
+
+import numpy as np
+
+
+def assert_quat_equal(q1, q2, atol):
+    """Quaternions equal up to the sign ambiguity q ≡ −q (both represent one rotation)."""
+    q1 = np.asarray(q1)
+    q2 = np.asarray(q2)
+    s = np.sign(np.sum(q1 * q2, axis=-1, keepdims=True))
+    s = np.where(s == 0, 1.0, s)
+    np.testing.assert_allclose(q1, s * q2, atol=atol, rtol=0)
+
+
+def wxyz_to_xyzw(q):
+    q = np.asarray(q)
+    return np.concatenate([q[..., 1:], q[..., :1]], axis=-1)
+
+
+def xyzw_to_wxyz(q):
+    q = np.asarray(q)
+    return np.concatenate([q[..., 3:], q[..., :3]], axis=-1)
+
+
+def skew(w):
+    """[w]× such that skew(w) @ v = w × v (NumPy, independent of the package)."""
+    w = np.asarray(w)
+    z = np.zeros_like(w[..., 0])
+    return np.stack(
+        [
+            np.stack([z, -w[..., 2], w[..., 1]], -1),
+            np.stack([w[..., 2], z, -w[..., 0]], -1),
+            np.stack([-w[..., 1], w[..., 0], z], -1),
+        ],
+        -2,
+    )
+
+
+def random_rotation_matrices(rng, n):
+    """Uniform random rotations from scipy (an independent implementation)."""
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.random(n, random_state=rng).as_matrix()
