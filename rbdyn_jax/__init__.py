@@ -6,6 +6,6 @@ Conventions (PHYSICS.md §1): quaternions are Hamilton, scalar first `[w, x, y, 
 The library never switches on float64: call `jax.config.update("jax_enable_x64", True)`.
 """
 
-from . import rotation as rotation
+from . import dynamics as dynamics, inertia as inertia, rotation as rotation
 
 __version__ = "0.1.0"

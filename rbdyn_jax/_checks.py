@@ -37,5 +37,6 @@ def check_batch(x: ArrayLike, name: str) -> Array:
 
 
 def sqrt_eps(dtype) -> float:
-    """√(machine epsilon) of `dtype`: the relative tolerance of value checks."""
-    return float(jnp.sqrt(jnp.finfo(dtype).eps))
+    """√(machine epsilon) of `dtype` as a Python float (safe under `jit`): the relative
+    tolerance of value checks."""
+    return float(jnp.finfo(dtype).eps) ** 0.5

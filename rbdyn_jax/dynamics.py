@@ -1,0 +1,103 @@
+"""Right-hand sides of Euler's dynamic equations, absolute and relative (PHYSICS.md §4–5).
+
+Pure functions on arrays: no diffrax, no state classes. Every vector is in **body
+components**; `J` is the full (possibly non-diagonal) inertia tensor about the fixed point
+or the centre of mass. All functions accept leading `*batch` axes (broadcast between
+arguments) and are safe under `jit`, `vmap` and `grad`.
+"""
+
+import jax.numpy as jnp
+
+from ._checks import check_trailing
+from ._custom_types import Matrix, MatrixLike, Vector, VectorLike
+from .inertia import planar
+
+
+def _matvec(J, v):
+    return jnp.einsum("...ij,...j->...i", J, v)
+
+
+def _prepare(J, vectors: dict[str, VectorLike]) -> tuple[Matrix, list[Vector]]:
+    """Validate shapes and broadcast the batch axes of `J` (…, 3, 3) and the vectors."""
+    J = check_trailing(J, (3, 3), "J")
+    vs = [check_trailing(v, (3,), name) for name, v in vectors.items()]
+    batch = jnp.broadcast_shapes(J.shape[:-2], *(v.shape[:-1] for v in vs))
+    return jnp.broadcast_to(J, batch + (3, 3)), [jnp.broadcast_to(v, batch + (3,)) for v in vs]
+
+
+def _solve(J, rhs):
+    return jnp.linalg.solve(J, rhs[..., None])[..., 0]
+
+
+def euler_rhs(J: MatrixLike, omega: VectorLike, moment: VectorLike) -> Vector:
+    """Angular acceleration from Euler's equations `J ω' = J ω × ω + M` (PHYSICS.md §4).
+
+    For a diagonal `J = diag(A, B, C)` this is `A p' = (B − C) q r + Mx` and cyclic.
+
+    **Arguments:**
+    - `J`: `(*batch, 3, 3)` inertia tensor (symmetric positive definite).
+    - `omega`: `(*batch, 3)` absolute angular velocity, body components.
+    - `moment`: `(*batch, 3)` external moment about the same point, body components.
+
+    **Returns:** `(*batch, 3)` the body-component derivative `dω/dt`.
+    """
+    J, (omega, moment) = _prepare(J, {"omega": omega, "moment": moment})
+    return _solve(J, jnp.cross(_matvec(J, omega), omega) + moment)
+
+
+def transport_moment(J: MatrixLike, omega_e: VectorLike, eps_e: VectorLike) -> Vector:
+    """Transport inertia moment `M_e = −J ε_e + J ω_e × ω_e` (PHYSICS.md §5, 000 eq. 2).
+
+    **Arguments:** `J` `(*batch, 3, 3)`; `omega_e`, `eps_e`: the transport frame's absolute
+    angular velocity and acceleration, both in body components.
+    """
+    J, (omega_e, eps_e) = _prepare(J, {"omega_e": omega_e, "eps_e": eps_e})
+    return -_matvec(J, eps_e) + jnp.cross(_matvec(J, omega_e), omega_e)
+
+
+def coriolis_moment(J: MatrixLike, omega_r: VectorLike, omega_e: VectorLike) -> Vector:
+    """Coriolis inertia moment by the theorem of 000 eq. (5): `M_c = 2 ω_r × J' ω_e`.
+
+    Equal to the three-term form `J ω_r × ω_e + J ω_e × ω_r − J (ω_e × ω_r)` of 000 eq. (2),
+    with `J' = ½ tr(J) I − J` the planar inertia tensor (PHYSICS.md §3, §5).
+    """
+    J, (omega_r, omega_e) = _prepare(J, {"omega_r": omega_r, "omega_e": omega_e})
+    return 2.0 * jnp.cross(omega_r, _matvec(planar(J), omega_e))
+
+
+def relative_rhs(
+    J: MatrixLike,
+    omega_r: VectorLike,
+    omega_e: VectorLike,
+    eps_e: VectorLike,
+    moment: VectorLike,
+) -> Vector:
+    """Relative angular acceleration by the compact form, 000 eq. (11) (PHYSICS.md §5):
+
+        J ε_r = J ω_r × ω_r − J ε_e + J ω_e × ω_e + 2 ω_r × J' ω_e + M
+
+    with ε_r the time derivative of the body components of ω_r.
+
+    **Arguments:**
+    - `J`: `(*batch, 3, 3)` inertia tensor.
+    - `omega_r`: body rate relative to the transport frame O1, body components.
+    - `omega_e`, `eps_e`: O1's absolute angular velocity and acceleration, body components
+      (`ω_e = R_rᵀ ω_e¹`, `ε_e = R_rᵀ dω_e¹/dt`).
+    - `moment`: external moment, body components.
+
+    **Returns:** `(*batch, 3)` `dω_r/dt` in body components.
+    """
+    J, (omega_r, omega_e, eps_e, moment) = _prepare(
+        J, {"omega_r": omega_r, "omega_e": omega_e, "eps_e": eps_e, "moment": moment}
+    )
+    rhs = (
+        jnp.cross(_matvec(J, omega_r), omega_r)
+        - _matvec(J, eps_e)
+        + jnp.cross(_matvec(J, omega_e), omega_e)
+        + 2.0 * jnp.cross(omega_r, _matvec(planar(J), omega_e))
+        + moment
+    )
+    return _solve(J, rhs)
+
+
+__all__ = ["coriolis_moment", "euler_rhs", "relative_rhs", "transport_moment"]

@@ -1,0 +1,182 @@
+"""rbdyn_jax.dynamics against independent formulations (PHYSICS.md §4–5).
+
+- the principal-axis scalar equations (000 eq. 12) written out by hand, rotated to a
+  general frame with scipy rotations (so J has products of inertia);
+- the three-term Coriolis moment of 000 eq. (2) vs the compact theorem, eq. (5);
+- relative vs absolute motion: ε = ε_r + ε_e + ω_e × ω_r with ε from the absolute
+  equations at ω = ω_r + ω_e;
+- the energy theorem dT/dt = ω·M, and Euler–Poinsot special cases.
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from jax.test_util import check_grads
+from scipy.spatial.transform import Rotation
+
+from rbdyn_jax import dynamics, inertia
+
+# A handful of float64 operations and one 3×3 solve of a well-conditioned J (cond ≲ 10):
+# agreement to ~1e-13 is rounding; 1e-11 leaves margin and still catches any sign error.
+TOL = 1e-11
+
+
+def random_body(rng, n=None):
+    """(J, C, moments): physical principal moments A ≤ B ≤ C rotated by random axes."""
+    shape = () if n is None else (n,)
+    m = np.sort(rng.uniform(1.0, 3.0, shape + (3,)), axis=-1)
+    m[..., 2] = np.minimum(m[..., 2], m[..., 0] + m[..., 1] - 0.1)  # triangle inequality
+    C = Rotation.random(None if n is None else n, random_state=rng).as_matrix()
+    J = np.einsum("...ij,...j,...kj->...ik", C, m, C)
+    return J, C, m
+
+
+def principal_euler(m, w, M):
+    """A p' = (B − C) q r + Mx and cyclic (PHYSICS.md §4), by hand."""
+    A, B, C = m[..., 0], m[..., 1], m[..., 2]
+    p, q, r = w[..., 0], w[..., 1], w[..., 2]
+    return np.stack(
+        [((B - C) * q * r + M[..., 0]) / A, ((C - A) * r * p + M[..., 1]) / B,
+         ((A - B) * p * q + M[..., 2]) / C], -1)
+
+
+def principal_relative(m, w_r, w_e, eps_e, M):
+    """000 eq. (12) by hand, with planar moments A' = (B + C − A)/2, …"""
+    A, B, C = m[..., 0], m[..., 1], m[..., 2]
+    Ap, Bp, Cp = (B + C - A) / 2, (C + A - B) / 2, (A + B - C) / 2
+    p, q, r = w_r[..., 0], w_r[..., 1], w_r[..., 2]
+    pe, qe, re = w_e[..., 0], w_e[..., 1], w_e[..., 2]
+    ex, ey, ez = eps_e[..., 0], eps_e[..., 1], eps_e[..., 2]
+    dp = ((B - C) * q * r - A * ex + (B - C) * qe * re + 2 * (Cp * q * re - Bp * r * qe)
+          + M[..., 0]) / A
+    dq = ((C - A) * r * p - B * ey + (C - A) * re * pe + 2 * (Ap * r * pe - Cp * p * re)
+          + M[..., 1]) / B
+    dr = ((A - B) * p * q - C * ez + (A - B) * pe * qe + 2 * (Bp * p * qe - Ap * q * pe)
+          + M[..., 2]) / C
+    return np.stack([dp, dq, dr], -1)
+
+
+def to_principal(C, v):
+    return np.einsum("...ji,...j->...i", C, v)
+
+
+def to_body(C, v):
+    return np.einsum("...ij,...j->...i", C, v)
+
+
+def test_euler_rhs_matches_principal_form_in_a_general_frame(rng):
+    J, C, m = random_body(rng, 50)
+    w, M = rng.normal(size=(2, 50, 3))
+    ours = dynamics.euler_rhs(J, w, M)
+    ref = to_body(C, principal_euler(m, to_principal(C, w), to_principal(C, M)))
+    np.testing.assert_allclose(ours, ref, atol=TOL)
+
+
+def test_euler_rhs_energy_and_momentum_theorems(rng):
+    J, _, _ = random_body(rng, 50)
+    w, M = rng.normal(size=(2, 50, 3))
+    wdot = np.asarray(dynamics.euler_rhs(J, w, M))
+    # dT/dt = ωᵀ J ω' = ω · M  (the gyroscopic term does no work)
+    np.testing.assert_allclose(np.einsum("ni,nij,nj->n", w, J, wdot), np.sum(w * M, -1),
+                               atol=TOL)
+    # torque-free: d|L|²/dt = 2 L · (J ω') = 2 L · (L × ω) = 0
+    wdot0 = np.asarray(dynamics.euler_rhs(J, w, np.zeros_like(w)))
+    L = np.einsum("nij,nj->ni", J, w)
+    np.testing.assert_allclose(np.sum(L * np.einsum("nij,nj->ni", J, wdot0), -1), 0.0,
+                               atol=TOL)
+
+
+def test_euler_poinsot_special_cases():
+    """PHYSICS.md §4: spherical body keeps ω; symmetric body keeps r and (p, q) turns at
+    (C − A) r / A in the body."""
+    w = jnp.array([0.3, -0.7, 1.9])
+    np.testing.assert_allclose(dynamics.euler_rhs(2.5 * jnp.eye(3), w, jnp.zeros(3)), 0.0,
+                               atol=TOL)
+    A, Cm = 2.0, 3.5
+    wdot = np.asarray(dynamics.euler_rhs(jnp.diag(jnp.array([A, A, Cm])), w, jnp.zeros(3)))
+    lam = (Cm - A) * w[2] / A
+    np.testing.assert_allclose(wdot, [-lam * w[1], lam * w[0], 0.0], atol=TOL)
+
+
+def test_coriolis_theorem_equals_three_term_form(rng):
+    """000 eq. (5): J ω_r × ω_e + J ω_e × ω_r − J (ω_e × ω_r) = 2 ω_r × J' ω_e."""
+    J, _, _ = random_body(rng, 50)
+    w_r, w_e = rng.normal(size=(2, 50, 3))
+    Jw_r, Jw_e = np.einsum("nij,nj->ni", J, w_r), np.einsum("nij,nj->ni", J, w_e)
+    three = np.cross(Jw_r, w_e) + np.cross(Jw_e, w_r) - np.einsum("nij,nj->ni", J,
+                                                                   np.cross(w_e, w_r))
+    np.testing.assert_allclose(dynamics.coriolis_moment(J, w_r, w_e), three, atol=TOL)
+
+
+def test_transport_moment_by_hand(rng):
+    J, _, _ = random_body(rng, 20)
+    w_e, eps_e = rng.normal(size=(2, 20, 3))
+    ref = -np.einsum("nij,nj->ni", J, eps_e) + np.cross(np.einsum("nij,nj->ni", J, w_e), w_e)
+    np.testing.assert_allclose(dynamics.transport_moment(J, w_e, eps_e), ref, atol=TOL)
+
+
+def test_relative_rhs_matches_principal_form_eq12(rng):
+    J, C, m = random_body(rng, 50)
+    w_r, w_e, eps_e, M = rng.normal(size=(4, 50, 3))
+    ours = dynamics.relative_rhs(J, w_r, w_e, eps_e, M)
+    ref = to_body(C, principal_relative(m, *(to_principal(C, v) for v in (w_r, w_e, eps_e, M))))
+    np.testing.assert_allclose(ours, ref, atol=TOL)
+
+
+def test_relative_rhs_agrees_with_absolute_motion(rng):
+    """PHYSICS.md §5: ω = ω_r + ω_e, ε = ε_r + ε_e + ω_e × ω_r, with ε from eq. (1)."""
+    J, _, _ = random_body(rng, 50)
+    w_r, w_e, eps_e, M = rng.normal(size=(4, 50, 3))
+    eps_r = np.asarray(dynamics.relative_rhs(J, w_r, w_e, eps_e, M))
+    eps = np.asarray(dynamics.euler_rhs(J, w_r + w_e, M))
+    np.testing.assert_allclose(eps_r + eps_e + np.cross(w_e, w_r), eps, atol=TOL)
+
+
+def test_balanced_transport_conserves_relative_energy(rng):
+    """000 §4: with M = J ε_e − J ω_e × ω_e, dT_r/dt = ω_rᵀ J ε_r = 0 for any transport."""
+    J, _, _ = random_body(rng, 50)
+    w_r, w_e, eps_e = rng.normal(size=(3, 50, 3))
+    M = -np.asarray(dynamics.transport_moment(J, w_e, eps_e))
+    eps_r = np.asarray(dynamics.relative_rhs(J, w_r, w_e, eps_e, M))
+    np.testing.assert_allclose(np.einsum("ni,nij,nj->n", w_r, J, eps_r), 0.0, atol=TOL)
+
+
+def test_batching_broadcast_jit_vmap_and_grad(rng):
+    J, _, _ = random_body(rng)
+    w = rng.normal(size=(4, 5, 3))
+    M = rng.normal(size=3)
+    batched = dynamics.euler_rhs(J, w, M)  # J and M broadcast against a (4, 5) batch
+    assert batched.shape == (4, 5, 3)
+    loop = np.stack([[np.asarray(dynamics.euler_rhs(J, w[i, j], M)) for j in range(5)]
+                     for i in range(4)])
+    np.testing.assert_allclose(batched, loop, atol=1e-14)
+    np.testing.assert_allclose(jax.jit(dynamics.relative_rhs)(J, w, w[::-1], w, M),
+                               jax.vmap(dynamics.relative_rhs, (None, 0, 0, 0, None))(
+                                   J, w, w[::-1], w, M), atol=1e-14)
+    w1, w2, w3, M1 = rng.normal(size=(4, 3))
+    for f, args in [
+        (dynamics.euler_rhs, (J, w1, M1)),
+        (dynamics.transport_moment, (J, w1, w2)),
+        (dynamics.coriolis_moment, (J, w1, w2)),
+        (dynamics.relative_rhs, (J, w1, w2, w3, M1)),
+    ]:
+        check_grads(f, args, order=2, modes=("fwd", "rev"), atol=1e-6, rtol=1e-6, eps=1e-5)
+
+
+def test_shapes_are_checked():
+    with pytest.raises(ValueError, match="`J`"):
+        dynamics.euler_rhs(jnp.eye(2), jnp.zeros(3), jnp.zeros(3))
+    with pytest.raises(ValueError, match="`omega_e`"):
+        dynamics.relative_rhs(jnp.eye(3), jnp.zeros(3), jnp.zeros(4), jnp.zeros(3),
+                              jnp.zeros(3))
+    with pytest.raises(ValueError, match="`moment`"):
+        dynamics.euler_rhs(jnp.eye(3), jnp.zeros(3), jnp.zeros((2, 2)))
+
+
+def test_inertia_planar_is_the_one_used(rng):
+    """The Coriolis theorem uses J' of PHYSICS.md §3 (shared with rbdyn_jax.inertia)."""
+    J, _, _ = random_body(rng)
+    w_r, w_e = rng.normal(size=(2, 3))
+    np.testing.assert_allclose(dynamics.coriolis_moment(J, w_r, w_e),
+                               2 * np.cross(w_r, np.asarray(inertia.planar(J)) @ w_e), atol=TOL)
