@@ -63,7 +63,7 @@ def demo(n_steps: int = 5, duration: float = 10.0) -> int:
     omega = 2.0 * axes[:, 2]
     q0 = rotation.dcm_to_quat(axes)
     ts = jnp.linspace(0.0, duration, n_steps + 1)
-    qs = rotation.quat_multiply(q0, rotation.quat_from_rotvec(ts[:, None] * omega))
+    qs = rotation.quat_multiply(q0, rotation.quat_from_rotvec(ts[:, None] * omega[None, :]))
     L_inertial = rotation.quat_rotate(qs, inertia.angular_momentum(J, omega))
     T = inertia.kinetic_energy(J, omega)
     print(f"\n  steady spin |ω| = 2 rad/s about the major axis for {duration:g} s:")
