@@ -1,0 +1,106 @@
+"""First integrals and other conserved quantities along a trajectory (PHYSICS.md §4–7).
+
+Pure functions of `(model, trajectory)`, evaluated at every saved time (the leading axis of
+`trajectory.ys`); each returns an array with that time axis. They use the model's own
+`kinematics`, so they work for every state form that carries what they need.
+"""
+
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from . import rotation
+from .integrate import Trajectory
+from .models import AbstractRigidBody
+from .torques import GravityGradient, SumTorque
+
+
+def _kinematics(model: AbstractRigidBody, traj: Trajectory):
+    return jax.vmap(model.kinematics)(traj.ts, traj.ys)
+
+
+def _quad(J, v):
+    return jnp.einsum("...i,ij,...j->...", v, J, v)
+
+
+def kinetic_energy(model: AbstractRigidBody, traj: Trajectory) -> Float[Array, " n"]:
+    """Absolute kinetic energy `T = ½ ωᵀ J ω`, ω = ω_r + ω_e (PHYSICS.md §3)."""
+    kin = _kinematics(model, traj)
+    return 0.5 * _quad(model.inertia, kin.omega)
+
+
+def energy(model: AbstractRigidBody, traj: Trajectory) -> Float[Array, " n"]:
+    """Total energy `T + V` of an absolute model with conservative torques: the heavy top
+    (`V = mg r_c·γ₀`), the constant-k restoring moment (`V = k cosθ`), the gravity gradient
+    (`V = ½ ε γᵀ J γ`, PHYSICS.md §7). Raises `NotImplementedError` for a torque with no
+    potential."""
+    kin = _kinematics(model, traj)
+    V = jax.vmap(lambda k: model.torque.potential(k, model.inertia))(kin)
+    return 0.5 * _quad(model.inertia, kin.omega) + V
+
+
+def angular_momentum_inertial(model: AbstractRigidBody, traj: Trajectory) -> Float[Array, "n 3"]:
+    """Angular momentum `L = R(q) J ω` in inertial (O0) components; constant for a
+    torque-free body (PHYSICS.md §4). Needs the attitude (not the Poisson form)."""
+    kin = _kinematics(model, traj)
+    if kin.quat_inertial is None:
+        raise ValueError("`angular_momentum_inertial` needs the attitude; the Poisson form "
+                         "only carries γ.")
+    L_body = jnp.einsum("ij,nj->ni", model.inertia, kin.omega)
+    return rotation.quat_rotate(kin.quat_inertial, L_body)
+
+
+def area_integral(model: AbstractRigidBody, traj: Trajectory) -> Float[Array, " n"]:
+    """Area integral `(J ω)·γ`: the angular momentum about the parent z-axis, conserved
+    under torques symmetric about it (heavy top, gravity gradient; PHYSICS.md §6–7)."""
+    kin = _kinematics(model, traj)
+    return jnp.einsum("ij,nj,ni->n", model.inertia, kin.omega, kin.gamma)
+
+
+def gamma_norm(model: AbstractRigidBody, traj: Trajectory) -> Float[Array, " n"]:
+    """|γ|, which is 1 for the Poisson vector (PHYSICS.md §7)."""
+    return jnp.linalg.norm(_kinematics(model, traj).gamma, axis=-1)
+
+
+def relative_kinetic_energy(model: AbstractRigidBody, traj: Trajectory) -> Float[Array, " n"]:
+    """`T_r = ½ ω_rᵀ J ω_r` (PHYSICS.md §5), conserved under `BalancingTransport`."""
+    return 0.5 * _quad(model.inertia, _kinematics(model, traj).omega_r)
+
+
+def _gravity_gradient_eps(model: AbstractRigidBody) -> Array:
+    torques = model.torque.torques if isinstance(model.torque, SumTorque) else (model.torque,)
+    gg = [t for t in torques if isinstance(t, GravityGradient)]
+    if len(gg) != 1:
+        raise ValueError("`gg_integrable_integrals` needs a model with one GravityGradient.")
+    return gg[0].eps
+
+
+def gg_integrable_integrals(model: AbstractRigidBody, traj: Trajectory):
+    """The four integrals of the integrable case A = B = m C of PHYSICS.md §7:
+
+        r,   γ² + γ'² + γ''²,   C1 = p² + q² + ε n γ''²,   C2 = γ p + γ' q + r (n + 1) γ'',
+
+    with n = (1 − m)/m and the inertia taken from the model's (diagonal) J.
+
+    **Returns:** a tuple `(r, gamma_sq, C1, C2)` of `(n,)` arrays.
+    """
+    kin = _kinematics(model, traj)
+    A, C = model.inertia[0, 0], model.inertia[2, 2]
+    n = (C - A) / A  # (1 − m)/m with m = A / C
+    eps = _gravity_gradient_eps(model)
+    p, q, r = kin.omega[:, 0], kin.omega[:, 1], kin.omega[:, 2]
+    g, g1, g2 = kin.gamma[:, 0], kin.gamma[:, 1], kin.gamma[:, 2]
+    C1 = p**2 + q**2 + eps * n * g2**2
+    C2 = g * p + g1 * q + r * (n + 1) * g2
+    return r, g**2 + g1**2 + g2**2, C1, C2
+
+
+__all__ = [
+    "angular_momentum_inertial",
+    "area_integral",
+    "energy",
+    "gamma_norm",
+    "gg_integrable_integrals",
+    "kinetic_energy",
+    "relative_kinetic_energy",
+]

@@ -1,0 +1,221 @@
+"""Rigid-body models: pytrees whose leaves are their parameters, with `vector_field(t, y, args)`.
+
+- `RigidBody(inertia, torque)`: absolute motion, Euler's equations (PHYSICS.md §4) with
+  quaternion kinematics (§2); state `State(omega, quat)`.
+- `RelativeRigidBody(inertia, frame, torque)`: motion relative to a transport frame O1 by
+  the compact form, 000 eq. (11) (§5); state `State(omega_r, quat_r)`.
+- `EulerAngleRigidBody(inertia, torque)`: the same equations with ZXZ angles as the
+  attitude (the top of §6 as the seed writes it); state `EulerState(omega, angles)`.
+- `PoissonRigidBody(inertia, torque)`: the same equations with the Poisson vector γ
+  (§7); state `PoissonState(omega, gamma)`.
+
+All share `dynamics.euler_rhs` / `relative_rhs` and the torques of `torques.py`. The
+inertia is checked (symmetric, physical) when the model is built.
+"""
+
+import abc
+
+import equinox as eqx
+import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike, Float, PyTree
+
+from . import rotation
+from ._checks import check_trailing
+from .dynamics import euler_rhs, relative_rhs
+from .frames import AbstractFrame, Inertial
+from .inertia import check_inertia
+from .state import EulerState, Kinematics, PoissonState, State
+from .torques import AbstractTorque, NoTorque
+
+
+def _inertia(J: Float[ArrayLike, "3 3"]) -> Float[Array, "3 3"]:
+    J = check_trailing(J, (3, 3), "inertia")
+    if J.ndim != 2:
+        raise ValueError(
+            f"`inertia` must be one 3×3 tensor, got shape {J.shape}; batch models with "
+            "`jax.vmap` / `simulate_batch(..., batch_model=True)` instead."
+        )
+    return J
+
+
+def _absolute_kinematics(t, omega, quat, gamma):
+    zero = jnp.zeros_like(omega)
+    return Kinematics(t=jnp.asarray(t), omega=omega, omega_r=omega, omega_e=zero, eps_e=zero,
+                      gamma=gamma, gamma_inertial=gamma, quat=quat, quat_inertial=quat)
+
+
+def _z_in_body(quat):
+    """Body components of the parent z-axis: R(q)ᵀ e_z."""
+    return rotation.quat_rotate(rotation.quat_conjugate(quat), jnp.array([0.0, 0.0, 1.0],
+                                                                          dtype=quat.dtype))
+
+
+class AbstractRigidBody(eqx.Module):
+    """A model: `vector_field(t, y, args)` for diffrax, plus how to tidy its output."""
+
+    inertia: eqx.AbstractVar[Float[Array, "3 3"]]
+    torque: eqx.AbstractVar[AbstractTorque]
+
+    @abc.abstractmethod
+    def vector_field(self, t, y, args) -> PyTree:
+        """dy/dt at time t."""
+
+    @abc.abstractmethod
+    def kinematics(self, t, y) -> Kinematics:
+        """The `Kinematics` record of state `y` at time `t` (what torques see)."""
+
+    @abc.abstractmethod
+    def normalise(self, y) -> tuple[PyTree, Float[Array, ""]]:
+        """Project `y` back on its constraint (unit quaternion, |γ| = 1) and return the
+        largest violation that was removed (0 where there is none)."""
+
+
+class RigidBody(AbstractRigidBody):
+    """Absolute rotation about a fixed point or the centre of mass (PHYSICS.md §4):
+
+        J ω' = J ω × ω + M,    q' = ½ q ⊗ (0, ω),
+
+    with `State(omega, quat)`: ω in body components, q the attitude body → O0.
+
+    **Fields:** `inertia` (3×3 J, checked symmetric and physical), `torque` (default
+    `NoTorque()`).
+    """
+
+    inertia: Float[Array, "3 3"]
+    torque: AbstractTorque
+
+    def __init__(self, inertia: Float[ArrayLike, "3 3"], torque: AbstractTorque | None = None):
+        self.inertia = check_inertia(_inertia(inertia), "inertia")
+        self.torque = NoTorque() if torque is None else torque
+
+    def kinematics(self, t, y: State) -> Kinematics:
+        return _absolute_kinematics(t, y.omega, y.quat, _z_in_body(y.quat))
+
+    def vector_field(self, t, y: State, args) -> State:
+        M = self.torque(self.kinematics(t, y), self.inertia)
+        return State(omega=euler_rhs(self.inertia, y.omega, M),
+                     quat=rotation.quat_derivative(y.quat, y.omega))
+
+    def normalise(self, y: State):
+        n = jnp.linalg.norm(y.quat, axis=-1)
+        return State(y.omega, y.quat / n[..., None]), jnp.max(jnp.abs(n - 1.0))
+
+
+class RelativeRigidBody(AbstractRigidBody):
+    """Rotation relative to a moving transport frame O1 (PHYSICS.md §5, 000 eq. (11)):
+
+        J ε_r = J ω_r × ω_r − J ε_e + J ω_e × ω_e + 2 ω_r × J' ω_e + M,
+        q_r' = ½ q_r ⊗ (0, ω_r),
+
+    with `State(omega=ω_r, quat=q_r)`: ω_r the angular velocity relative to O1 in body
+    components and q_r the attitude body → O1. ω_e = R_rᵀ ω_e¹ and ε_e = R_rᵀ dω_e¹/dt
+    come from the `frame`; the absolute attitude is q_e ⊗ q_r.
+
+    **Fields:** `inertia`, `frame` (an `AbstractFrame`, default `Inertial()`), `torque`.
+    """
+
+    inertia: Float[Array, "3 3"]
+    frame: AbstractFrame
+    torque: AbstractTorque
+
+    def __init__(
+        self,
+        inertia: Float[ArrayLike, "3 3"],
+        frame: AbstractFrame | None = None,
+        torque: AbstractTorque | None = None,
+    ):
+        self.inertia = check_inertia(_inertia(inertia), "inertia")
+        self.frame = Inertial() if frame is None else frame
+        self.torque = NoTorque() if torque is None else torque
+
+    def kinematics(self, t, y: State) -> Kinematics:
+        q_e, w_e1, e_e1 = self.frame(t)
+        to_body = rotation.quat_conjugate(y.quat)
+        omega_e = rotation.quat_rotate(to_body, w_e1)
+        eps_e = rotation.quat_rotate(to_body, e_e1)
+        q_abs = rotation.quat_multiply(q_e, y.quat)
+        return Kinematics(t=jnp.asarray(t), omega=y.omega + omega_e, omega_r=y.omega,
+                          omega_e=omega_e, eps_e=eps_e, gamma=_z_in_body(y.quat),
+                          gamma_inertial=_z_in_body(q_abs), quat=y.quat, quat_inertial=q_abs)
+
+    def vector_field(self, t, y: State, args) -> State:
+        kin = self.kinematics(t, y)
+        M = self.torque(kin, self.inertia)
+        return State(omega=relative_rhs(self.inertia, y.omega, kin.omega_e, kin.eps_e, M),
+                     quat=rotation.quat_derivative(y.quat, y.omega))
+
+    def normalise(self, y: State):
+        n = jnp.linalg.norm(y.quat, axis=-1)
+        return State(y.omega, y.quat / n[..., None]), jnp.max(jnp.abs(n - 1.0))
+
+
+class EulerAngleRigidBody(AbstractRigidBody):
+    """Absolute motion with ZXZ Euler angles (ψ, θ, φ) as the attitude, as the top of
+    PHYSICS.md §6 is written: Euler's equations and the inverse kinematic map of §2,
+    `ψ' = (p sinφ + q cosφ)/sinθ`, `θ' = p cosφ − q sinφ`, `φ' = r − (p sinφ + q cosφ) cotθ`.
+    Singular at sinθ = 0: keep θ away from 0 and π (`rotation.gimbal_lock_distance`).
+
+    **Fields:** `inertia`, `torque`.
+    """
+
+    inertia: Float[Array, "3 3"]
+    torque: AbstractTorque
+
+    def __init__(self, inertia: Float[ArrayLike, "3 3"], torque: AbstractTorque | None = None):
+        self.inertia = check_inertia(_inertia(inertia), "inertia")
+        self.torque = NoTorque() if torque is None else torque
+
+    def kinematics(self, t, y: EulerState) -> Kinematics:
+        psi, theta, phi = y.angles[0], y.angles[1], y.angles[2]
+        gamma = jnp.stack([jnp.sin(theta) * jnp.sin(phi), jnp.sin(theta) * jnp.cos(phi),
+                           jnp.cos(theta)])  # 004 eq. (4)
+        return _absolute_kinematics(t, y.omega, rotation.euler_to_quat(y.angles, "ZXZ"), gamma)
+
+    def vector_field(self, t, y: EulerState, args) -> EulerState:
+        M = self.torque(self.kinematics(t, y), self.inertia)
+        return EulerState(omega=euler_rhs(self.inertia, y.omega, M),
+                          angles=rotation.omega_to_euler_rates(y.angles, y.omega, "ZXZ"))
+
+    def normalise(self, y: EulerState):
+        return y, jnp.zeros((), dtype=y.omega.dtype)
+
+
+class PoissonRigidBody(AbstractRigidBody):
+    """Absolute motion in the Poisson form (PHYSICS.md §7, 004 eqs. (2)–(3)):
+
+        J ω' = J ω × ω + M,    γ' = γ × ω,
+
+    with γ the body components of the parent z-axis. Only torques that depend on γ and ω
+    can be used (gravity gradient, uniform gravity, constant-k restoring moment, body
+    torques); one that needs the full attitude raises a `ValueError` at trace time.
+
+    **Fields:** `inertia`, `torque`.
+    """
+
+    inertia: Float[Array, "3 3"]
+    torque: AbstractTorque
+
+    def __init__(self, inertia: Float[ArrayLike, "3 3"], torque: AbstractTorque | None = None):
+        self.inertia = check_inertia(_inertia(inertia), "inertia")
+        self.torque = NoTorque() if torque is None else torque
+
+    def kinematics(self, t, y: PoissonState) -> Kinematics:
+        return _absolute_kinematics(t, y.omega, None, y.gamma)
+
+    def vector_field(self, t, y: PoissonState, args) -> PoissonState:
+        M = self.torque(self.kinematics(t, y), self.inertia)
+        return PoissonState(omega=euler_rhs(self.inertia, y.omega, M),
+                            gamma=rotation.poisson(y.gamma, y.omega))
+
+    def normalise(self, y: PoissonState):
+        n = jnp.linalg.norm(y.gamma, axis=-1)
+        return PoissonState(y.omega, y.gamma / n[..., None]), jnp.max(jnp.abs(n - 1.0))
+
+
+__all__ = [
+    "AbstractRigidBody",
+    "EulerAngleRigidBody",
+    "PoissonRigidBody",
+    "RelativeRigidBody",
+    "RigidBody",
+]

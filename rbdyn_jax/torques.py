@@ -1,0 +1,246 @@
+"""Torque models (PHYSICS.md §4–7): `eqx.Module`s whose parameters are pytree leaves.
+
+A torque is called as `torque(kin, inertia)` with the `Kinematics` record of `state.py`
+(time, body rates, attitudes, the parent frame's rates) and the 3×3 inertia tensor, and
+returns the moment about the fixed point / centre of mass in **body components**. The same
+torque works in absolute and relative models. Torques compose with `+` into a `SumTorque`.
+
+Conservative torques also give their potential energy (`potential(kin, inertia)`), used by
+`invariants.energy`.
+"""
+
+import abc
+from collections.abc import Callable
+
+import equinox as eqx
+import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike, Float
+
+from . import rotation
+from ._checks import as_float_array, check_trailing
+from .dynamics import transport_moment
+from .state import Kinematics
+
+_E_Z = (0.0, 0.0, 1.0)
+
+
+def _e_z(like: Array) -> Array:
+    return jnp.asarray(_E_Z, dtype=like.dtype)
+
+
+def _need(kin: Kinematics, field: str, torque: str):
+    value = getattr(kin, field)
+    if value is None:
+        raise ValueError(
+            f"`{torque}` needs the attitude `{field}`, which this state form does not carry "
+            "(the Poisson form knows only γ); use a quaternion or Euler-angle model."
+        )
+    return value
+
+
+class AbstractTorque(eqx.Module):
+    """A moment acting on the body, in body components (see the module docstring)."""
+
+    @abc.abstractmethod
+    def __call__(self, kin: Kinematics, inertia: Float[Array, "3 3"]) -> Float[Array, "3"]:
+        """The moment in body components at the instant described by `kin`."""
+
+    def potential(self, kin: Kinematics, inertia: Float[Array, "3 3"]) -> Float[Array, ""]:
+        """Potential energy whose negative gradient is this torque; conservative torques
+        override it."""
+        raise NotImplementedError(f"{type(self).__name__} has no potential energy.")
+
+    def __add__(self, other: "AbstractTorque") -> "SumTorque":
+        if not isinstance(other, AbstractTorque):
+            return NotImplemented
+        return SumTorque(self, other)
+
+
+class SumTorque(AbstractTorque):
+    """The sum of several torques (a container, like diffrax's `MultiTerm`)."""
+
+    torques: tuple[AbstractTorque, ...]
+
+    def __init__(self, *torques: AbstractTorque):
+        flat = []
+        for t in torques:
+            if not isinstance(t, AbstractTorque):
+                raise ValueError(f"`SumTorque` takes torques, got {type(t).__name__}.")
+            flat.extend(t.torques if isinstance(t, SumTorque) else (t,))
+        self.torques = tuple(flat)
+
+    def __call__(self, kin, inertia):
+        total = jnp.zeros_like(kin.omega)
+        for t in self.torques:
+            total = total + t(kin, inertia)
+        return total
+
+    def potential(self, kin, inertia):
+        total = jnp.zeros_like(kin.t)
+        for t in self.torques:
+            total = total + t.potential(kin, inertia)
+        return total
+
+
+class NoTorque(AbstractTorque):
+    """Zero moment (Euler–Poinsot motion, PHYSICS.md §4)."""
+
+    def __call__(self, kin, inertia):
+        return jnp.zeros_like(kin.omega)
+
+    def potential(self, kin, inertia):
+        return jnp.zeros_like(kin.t)
+
+
+class BodyTorque(AbstractTorque):
+    """A constant moment fixed in the body axes (e.g. the perturbing M1, M2, M3 of §6)."""
+
+    moment: Float[Array, "3"]
+
+    def __init__(self, moment: Float[ArrayLike, "3"]):
+        self.moment = check_trailing(moment, (3,), "moment")
+
+    def __call__(self, kin, inertia):
+        return jnp.broadcast_to(self.moment, kin.omega.shape).astype(kin.omega.dtype)
+
+
+class InertialTorque(AbstractTorque):
+    """A constant moment fixed in the inertial frame O0, given by its O0 components."""
+
+    moment: Float[Array, "3"]
+
+    def __init__(self, moment: Float[ArrayLike, "3"]):
+        self.moment = check_trailing(moment, (3,), "moment")
+
+    def __call__(self, kin, inertia):
+        q = _need(kin, "quat_inertial", "InertialTorque")
+        return rotation.quat_rotate(rotation.quat_conjugate(q), self.moment)
+
+
+class UniformGravity(AbstractTorque):
+    """Weight in a uniform field along −z0 acting at the centre of mass (heavy top).
+
+    `M = r_c × (−mg γ₀) = mg γ₀ × r_c` with γ₀ the body components of the inertial z0-axis
+    and `r_c` the centre-of-mass offset from the fixed point, body components. For
+    `r_c = (0, 0, l)` this is the Lagrange top of PHYSICS.md §6 with `k = m g l`:
+    `M = k sinθ (cos φ, −sin φ, 0)`. Potential `V = mg r_c · γ₀` (height of the centre of
+    mass times the weight).
+
+    **Fields:** `weight` (m g, a scalar) and `com` (r_c, 3 body components).
+    """
+
+    weight: Float[Array, ""]
+    com: Float[Array, "3"]
+
+    def __init__(self, weight: Float[ArrayLike, ""], com: Float[ArrayLike, "3"]):
+        self.weight = check_trailing(weight, (), "weight")
+        self.com = check_trailing(com, (3,), "com")
+
+    def __call__(self, kin, inertia):
+        return self.weight * jnp.cross(kin.gamma_inertial, self.com)
+
+    def potential(self, kin, inertia):
+        return self.weight * jnp.dot(self.com, kin.gamma_inertial)
+
+
+class PolynomialSinPsi(eqx.Module):
+    """The restoring-moment coefficient `k(τ, ψ) = ε K(τ) sin ψ` with K a polynomial,
+    `K(τ) = Σ_i coeffs[i] τ^i` (PHYSICS.md §6). Its `coeffs` and `eps` are leaves."""
+
+    coeffs: Float[Array, " n"]
+    eps: Float[Array, ""]
+
+    def __init__(self, coeffs: Float[ArrayLike, " n"], eps: Float[ArrayLike, ""]):
+        self.coeffs = check_trailing(coeffs, (jnp.shape(coeffs)[-1],), "coeffs")
+        self.eps = check_trailing(eps, (), "eps")
+
+    def K(self, tau):
+        return jnp.polyval(self.coeffs[::-1], tau)
+
+    def __call__(self, tau, psi):
+        return self.eps * self.K(tau) * jnp.sin(psi)
+
+
+class RestoringMoment(AbstractTorque):
+    """Non-stationary restoring moment of PHYSICS.md §6 (seed 002):
+
+        M = k(τ, ψ) sinθ (cos φ, −sin φ, 0) = k(τ, ψ) γ × e_z,   τ = ε t,
+
+    with (ψ, θ, φ) the ZXZ angles of the body relative to its parent frame and γ the
+    parent z-axis in body components. `k` is a number (a leaf, the heavy top's `m g l`), or
+    any differentiable callable `k(tau, psi)` — an `eqx.Module` such as `PolynomialSinPsi`
+    keeps its coefficients as leaves. The constant perturbing moments of §6 are added as
+    `+ BodyTorque(M)`.
+    """
+
+    k: Float[Array, ""] | Callable
+    eps: Float[Array, ""]
+
+    def __init__(self, k, eps: Float[ArrayLike, ""] = 1.0):
+        self.k = k if callable(k) else check_trailing(k, (), "k")
+        self.eps = check_trailing(eps, (), "eps")
+
+    def __call__(self, kin, inertia):
+        lever = jnp.cross(kin.gamma, _e_z(kin.gamma))  # sinθ (cos φ, −sin φ, 0)
+        if callable(self.k):
+            q = _need(kin, "quat", "RestoringMoment with k(τ, ψ)")
+            psi = rotation.quat_to_euler(q, "ZXZ")[..., 0]
+            k = self.k(self.eps * kin.t, psi)
+        else:
+            k = self.k
+        return k * lever
+
+    def potential(self, kin, inertia):
+        if callable(self.k):
+            return super().potential(kin, inertia)
+        return self.k * kin.gamma[..., 2]  # k cosθ: the heavy top's mgl cosθ
+
+
+class GravityGradient(AbstractTorque):
+    """Gravity-gradient torque `M = ε γ × J γ` (PHYSICS.md §7, seed 004), ε = 3μ/R³.
+
+    γ is the body components of the parent frame's z-axis: the direction of the attracting
+    centre — O0's z0 for `RigidBody`, the nadir z1 under a `CircularOrbit` frame. Potential
+    `V = ½ ε γᵀ J γ`.
+    """
+
+    eps: Float[Array, ""]
+
+    def __init__(self, eps: Float[ArrayLike, ""]):
+        self.eps = check_trailing(eps, (), "eps")
+
+    @classmethod
+    def from_orbit_rate(cls, n: Float[ArrayLike, ""]) -> "GravityGradient":
+        """ε = 3 n² for a circular orbit of rate n (PHYSICS.md §7)."""
+        n = as_float_array(n, "n")
+        return cls(eps=3.0 * n * n)
+
+    def __call__(self, kin, inertia):
+        g = kin.gamma
+        return self.eps * jnp.cross(g, inertia @ g)
+
+    def potential(self, kin, inertia):
+        g = kin.gamma
+        return 0.5 * self.eps * jnp.dot(g, inertia @ g)
+
+
+class BalancingTransport(AbstractTorque):
+    """The special moment of PHYSICS.md §5 that balances the transport inertia moment,
+    `M = J ε_e − J ω_e × ω_e`; under it the relative kinetic energy is conserved."""
+
+    def __call__(self, kin, inertia):
+        return -transport_moment(inertia, kin.omega_e, kin.eps_e)
+
+
+__all__ = [
+    "AbstractTorque",
+    "BalancingTransport",
+    "BodyTorque",
+    "GravityGradient",
+    "InertialTorque",
+    "NoTorque",
+    "PolynomialSinPsi",
+    "RestoringMoment",
+    "SumTorque",
+    "UniformGravity",
+]
