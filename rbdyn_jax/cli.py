@@ -2,8 +2,8 @@
 
 `rbdyn demo` is the main job for now: the shipped default body — a rigid cloud of point
 masses with products of inertia — its inertia, principal axes and planar moments
-(PHYSICS.md §3), and a short steady rotation about its major axis propagated exactly by
-the quaternion exponential map, with the first integrals it must keep (PHYSICS.md §4).
+(PHYSICS.md §3), then a torque-free spin near its intermediate axis solved with diffrax,
+with the intermediate-axis flips and the drift of the first integrals (PHYSICS.md §4).
 Later issues grow this into the Monte Carlo sweep and the identification demo.
 """
 
@@ -30,7 +30,7 @@ def _default_body():
     return masses, positions
 
 
-def demo(n_steps: int = 5, duration: float = 10.0) -> int:
+def demo(n_steps: int = 5, duration: float = 100.0) -> int:
     import jax
 
     jax.config.update("jax_enable_x64", True)
@@ -58,21 +58,40 @@ def demo(n_steps: int = 5, duration: float = 10.0) -> int:
     angles = rotation.dcm_to_euler(axes, "ZXZ")
     print(f"  principal frame as ZXZ angles (ψ, θ, φ) [deg]: {np.round(np.degrees(angles), 3)}")
 
-    # Steady rotation about the major axis is an exact torque-free motion (PHYSICS.md §4):
-    # ω constant in the body, q(t) = q0 ⊗ exp(ω t). Its integrals: T and L_inertial.
-    omega = 2.0 * axes[:, 2]
-    q0 = rotation.dcm_to_quat(axes)
-    ts = jnp.linspace(0.0, duration, n_steps + 1)
-    qs = rotation.quat_multiply(q0, rotation.quat_from_rotvec(ts[:, None] * omega[None, :]))
-    L_inertial = rotation.quat_rotate(qs, inertia.angular_momentum(J, omega))
-    T = inertia.kinetic_energy(J, omega)
-    print(f"\n  steady spin |ω| = 2 rad/s about the major axis for {duration:g} s:")
-    print("      t [s]   ψ, θ, φ [deg]                      |L_inertial − L(0)|")
-    eul = np.degrees(np.asarray(rotation.quat_to_euler(qs, "ZXZ")))
-    for t, e, L in zip(np.asarray(ts), eul, np.asarray(L_inertial)):
-        drift = np.linalg.norm(L - np.asarray(L_inertial[0]))
-        print(f"    {t:7.2f}   {e[0]:9.3f} {e[1]:9.3f} {e[2]:9.3f}        {drift:.2e}")
-    print(f"  kinetic energy T = {float(T):.6f} J, |L| = {float(jnp.linalg.norm(L_inertial[0])):.6f}")
+    # The default scenario: torque-free spin started 1° off the intermediate principal axis,
+    # which flips again and again (Euler–Poinsot, PHYSICS.md §4), solved with diffrax.
+    from . import invariants
+    from .integrate import RESULTS, simulate
+    from .models import RigidBody
+    from .state import State
+
+    tilt = np.radians(1.0)
+    omega0 = 2.0 * (np.cos(tilt) * axes[:, 1] + np.sin(tilt) * axes[:, 0])
+    body = RigidBody(J)
+    y0 = State(omega=jnp.asarray(omega0), quat=rotation.dcm_to_quat(axes))
+    ts = jnp.linspace(0.0, duration, n_steps * 100 + 1)
+    t1 = time.perf_counter()
+    traj = simulate(body, y0, ts, rtol=1e-10, atol=1e-10)
+    jax.block_until_ready(traj)
+    t_first = time.perf_counter() - t1
+    t1 = time.perf_counter()
+    jax.block_until_ready(simulate(body, y0, ts, rtol=1e-10, atol=1e-10))
+    t_again = time.perf_counter() - t1
+    T = np.asarray(invariants.kinetic_energy(body, traj))
+    L = np.asarray(invariants.angular_momentum_inertial(body, traj))
+    along_b = np.asarray(traj.ys.omega) @ np.asarray(axes[:, 1])
+    flips = int(np.sum(np.diff(np.sign(along_b)) != 0))
+    print(f"\n  torque-free spin |ω| = 2 rad/s, 1° off the intermediate axis, t ∈ [0, {duration:g}] s")
+    print(f"    result: {RESULTS[traj.result] or 'successful'}, "
+          f"{int(traj.stats['num_steps'])} steps (Tsit5, rtol = atol = 1e-10)")
+    print(f"    intermediate-axis flips: {flips}")
+    print(f"    energy drift max|T − T0|/T0:       {np.max(np.abs(T - T[0])) / T[0]:.2e}")
+    print(f"    momentum drift max|L − L0|/|L0|:   "
+          f"{np.max(np.linalg.norm(L - L[:1], axis=-1)) / np.linalg.norm(L[0]):.2e}")
+    print(f"    quaternion norm drift removed:     {float(traj.stats['norm_drift']):.2e}")
+    print(f"    time: first call {t_first:.2f} s (with compilation), again {t_again * 1e3:.1f} ms")
+    for t, w in zip(np.asarray(ts)[:: 100], np.asarray(traj.ys.omega)[:: 100]):
+        print(f"    t = {t:7.2f} s   ω_body = ({w[0]:+.4f}, {w[1]:+.4f}, {w[2]:+.4f}) rad/s")
     print(f"done in {time.perf_counter() - t0:.2f} s")
     return 0
 
@@ -82,9 +101,9 @@ def main(argv: list[str] | None = None) -> int:
         prog="rbdyn", description="Rotational dynamics of rigid bodies in JAX."
     )
     sub = parser.add_subparsers(dest="command", required=True)
-    p_demo = sub.add_parser("demo", help="summarise and spin the shipped default body")
+    p_demo = sub.add_parser("demo", help="summarise and simulate the shipped default body")
     p_demo.add_argument("--steps", type=int, default=5, help="output steps (default 5)")
-    p_demo.add_argument("--duration", type=float, default=10.0, help="seconds (default 10)")
+    p_demo.add_argument("--duration", type=float, default=100.0, help="seconds (default 100)")
     args = parser.parse_args(argv)
     if args.command == "demo":
         if args.steps < 1:
