@@ -8,49 +8,107 @@ The library never switches on float64: call `jax.config.update("jax_enable_x64",
 
 from . import (
     dynamics as dynamics,
+)
+from . import (
     frames as frames,
+)
+from . import (
     inertia as inertia,
+)
+from . import (
     invariants as invariants,
+)
+from . import (
     models as models,
+)
+from . import (
     rotation as rotation,
+)
+from . import (
     torques as torques,
 )
 from .frames import (
     AbstractFrame as AbstractFrame,
+)
+from .frames import (
     CircularOrbit as CircularOrbit,
+)
+from .frames import (
     ConstantRate as ConstantRate,
+)
+from .frames import (
     EulerAngleFrame as EulerAngleFrame,
+)
+from .frames import (
     Inertial as Inertial,
 )
 from .integrate import (
     RESULTS as RESULTS,
+)
+from .integrate import (
     Trajectory as Trajectory,
+)
+from .integrate import (
     simulate as simulate,
+)
+from .integrate import (
     simulate_batch as simulate_batch,
 )
 from .models import (
     AbstractRigidBody as AbstractRigidBody,
+)
+from .models import (
     EulerAngleRigidBody as EulerAngleRigidBody,
+)
+from .models import (
     PoissonRigidBody as PoissonRigidBody,
+)
+from .models import (
     RelativeRigidBody as RelativeRigidBody,
+)
+from .models import (
     RigidBody as RigidBody,
 )
 from .state import (
     EulerState as EulerState,
+)
+from .state import (
     Kinematics as Kinematics,
+)
+from .state import (
     PoissonState as PoissonState,
+)
+from .state import (
     State as State,
 )
 from .torques import (
     AbstractTorque as AbstractTorque,
+)
+from .torques import (
     BalancingTransport as BalancingTransport,
+)
+from .torques import (
     BodyTorque as BodyTorque,
+)
+from .torques import (
     GravityGradient as GravityGradient,
+)
+from .torques import (
     InertialTorque as InertialTorque,
+)
+from .torques import (
     NoTorque as NoTorque,
+)
+from .torques import (
     PolynomialSinPsi as PolynomialSinPsi,
+)
+from .torques import (
     RestoringMoment as RestoringMoment,
+)
+from .torques import (
     SumTorque as SumTorque,
+)
+from .torques import (
     UniformGravity as UniformGravity,
 )
 

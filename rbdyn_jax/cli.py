@@ -81,7 +81,8 @@ def demo(n_steps: int = 5, duration: float = 100.0) -> int:
     L = np.asarray(invariants.angular_momentum_inertial(body, traj))
     along_b = np.asarray(traj.ys.omega) @ np.asarray(axes[:, 1])
     flips = int(np.sum(np.diff(np.sign(along_b)) != 0))
-    print(f"\n  torque-free spin |ω| = 2 rad/s, 1° off the intermediate axis, t ∈ [0, {duration:g}] s")
+    print("\n  torque-free spin |ω| = 2 rad/s, 1° off the intermediate axis, "
+          f"t ∈ [0, {duration:g}] s")
     print(f"    result: {RESULTS[traj.result] or 'successful'}, "
           f"{int(traj.stats['num_steps'])} steps (Tsit5, rtol = atol = 1e-10)")
     print(f"    intermediate-axis flips: {flips}")

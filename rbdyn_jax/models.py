@@ -166,7 +166,7 @@ class EulerAngleRigidBody(AbstractRigidBody):
         self.torque = NoTorque() if torque is None else torque
 
     def kinematics(self, t, y: EulerState) -> Kinematics:
-        psi, theta, phi = y.angles[0], y.angles[1], y.angles[2]
+        theta, phi = y.angles[1], y.angles[2]
         gamma = jnp.stack([jnp.sin(theta) * jnp.sin(phi), jnp.sin(theta) * jnp.cos(phi),
                            jnp.cos(theta)])  # 004 eq. (4)
         return _absolute_kinematics(t, y.omega, rotation.euler_to_quat(y.angles, "ZXZ"), gamma)

@@ -12,7 +12,7 @@ Every function is pure, accepts leading `*batch` axes and is safe under `jit`, `
 
 import equinox as eqx
 import jax.numpy as jnp
-from jaxtyping import Array, ArrayLike
+from jaxtyping import Array
 
 from ._checks import check_trailing
 from ._custom_types import (
