@@ -3,7 +3,9 @@
 A frame gives, at time t, its attitude relative to O0 (a quaternion, O1 → O0 components)
 and its absolute angular velocity and acceleration **in O1 components**, ω_e¹ and dω_e¹/dt.
 (Because O1 turns with ω_e, the derivative of its O1 components equals that of its O0
-components expressed in O1.) Each frame coincides with O0 at t = 0 unless given `quat0`.
+components expressed in O1.) `Inertial`, `ConstantRate` and `CircularOrbit` coincide with
+O0 at t = 0 unless given `quat0` (normalised); an `EulerAngleFrame` starts at the attitude
+of its angles at t = 0 (times `quat0` if given).
 """
 
 import abc
@@ -21,7 +23,7 @@ from ._checks import check_trailing
 def _quat0(quat0, dtype=None) -> Array:
     if quat0 is None:
         return jnp.array([1.0, 0.0, 0.0, 0.0], dtype=dtype)
-    return check_trailing(quat0, (4,), "quat0")
+    return rotation.quat_normalize(check_trailing(quat0, (4,), "quat0"))
 
 
 class AbstractFrame(eqx.Module):

@@ -5,11 +5,13 @@ Pure functions of `(model, trajectory)`, evaluated at every saved time (the lead
 `kinematics`, so they work for every state form that carries what they need.
 """
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from . import rotation
+from ._checks import sqrt_eps
 from .integrate import Trajectory
 from .models import AbstractRigidBody
 from .torques import GravityGradient, SumTorque
@@ -84,8 +86,15 @@ def gg_integrable_integrals(model: AbstractRigidBody, traj: Trajectory):
 
     **Returns:** a tuple `(r, gamma_sq, C1, C2)` of `(n,)` arrays.
     """
+    J = model.inertia
+    off = jnp.abs(J - jnp.diag(jnp.diagonal(J)))
+    not_axisymmetric = (jnp.max(off) + jnp.abs(J[0, 0] - J[1, 1])) > sqrt_eps(J.dtype) * jnp.max(
+        jnp.abs(J)
+    )
+    J = eqx.error_if(J, not_axisymmetric,
+                     "`gg_integrable_integrals` needs a principal J = diag(A, A, C).")
     kin = _kinematics(model, traj)
-    A, C = model.inertia[0, 0], model.inertia[2, 2]
+    A, C = J[0, 0], J[2, 2]
     n = (C - A) / A  # (1 − m)/m with m = A / C
     eps = _gravity_gradient_eps(model)
     p, q, r = kin.omega[:, 0], kin.omega[:, 1], kin.omega[:, 2]

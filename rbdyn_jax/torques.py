@@ -171,13 +171,18 @@ class RestoringMoment(AbstractTorque):
     any differentiable callable `k(tau, psi)` — an `eqx.Module` such as `PolynomialSinPsi`
     keeps its coefficients as leaves. The constant perturbing moments of §6 are added as
     `+ BodyTorque(M)`.
+
+    `eps` (the slow-time scale ε of τ = ε t) defaults to `k.eps` when `k` has one (as
+    `PolynomialSinPsi` does), else to 1.
     """
 
     k: Float[Array, ""] | Callable
     eps: Float[Array, ""]
 
-    def __init__(self, k, eps: Float[ArrayLike, ""] = 1.0):
+    def __init__(self, k, eps: Float[ArrayLike, ""] | None = None):
         self.k = k if callable(k) else check_trailing(k, (), "k")
+        if eps is None:
+            eps = getattr(k, "eps", 1.0)
         self.eps = check_trailing(eps, (), "eps")
 
     def __call__(self, kin, inertia):
