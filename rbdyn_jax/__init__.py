@@ -7,6 +7,7 @@ The library never switches on float64: call `jax.config.update("jax_enable_x64",
 """
 
 from . import (
+    analytic as analytic,
     dynamics as dynamics,
 )
 from . import (
