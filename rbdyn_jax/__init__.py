@@ -8,6 +8,8 @@ The library never switches on float64: call `jax.config.update("jax_enable_x64",
 
 from . import (
     analytic as analytic,
+)
+from . import (
     dynamics as dynamics,
 )
 from . import (

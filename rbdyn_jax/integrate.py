@@ -6,6 +6,8 @@ compiled once per model *structure* (`eqx.filter_jit`): changing parameter value
 conditions, times or tolerances reuses the compiled solve.
 """
 
+import numbers
+
 import diffrax
 import equinox as eqx
 import jax
@@ -102,16 +104,20 @@ def _prepare(model, ts, rtol, atol, max_steps, dt0):
     ts = as_float_array(ts, "ts")
     if ts.ndim != 1 or ts.shape[0] < 2:
         raise ValueError(f"`ts` must be a 1-D array of at least 2 times, got shape {ts.shape}.")
-    if not isinstance(max_steps, int) or max_steps < 1:
+    if not isinstance(max_steps, numbers.Integral) or isinstance(max_steps, bool) or max_steps < 1:
         raise ValueError(f"`max_steps` must be a positive int, got {max_steps!r}.")
+    tols = []
     for name, tol in (("rtol", rtol), ("atol", atol)):
-        if jnp.ndim(tol) != 0 or not float(tol) > 0:
+        if jnp.ndim(tol) != 0:
+            raise ValueError(f"`{name}` must be a scalar, got shape {jnp.shape(tol)}.")
+        if isinstance(tol, jax.core.Tracer):  # value known only at run time
+            tol = eqx.error_if(tol, ~(tol > 0), f"`{name}` must be positive.")
+        elif not float(tol) > 0:
             raise ValueError(f"`{name}` must be a positive number, got {tol!r}.")
+        tols.append(jnp.asarray(tol, dtype=ts.dtype))
     ts = eqx.error_if(ts, jnp.any(jnp.diff(ts) <= 0), "`ts` must be strictly increasing.")
-    controller = diffrax.PIDController(
-        rtol=jnp.asarray(rtol, dtype=ts.dtype), atol=jnp.asarray(atol, dtype=ts.dtype)
-    )
-    return ts, controller
+    controller = diffrax.PIDController(rtol=tols[0], atol=tols[1])
+    return ts, controller, int(max_steps)
 
 
 def simulate(
@@ -135,8 +141,8 @@ def simulate(
     - `ts`: strictly increasing output times; the solve runs from `ts[0]` to `ts[-1]`.
     - `solver`, `adjoint`: diffrax objects, passed through unchanged (adaptive step
       control by `diffrax.PIDController(rtol, atol)`).
-    - `rtol`, `atol`: tolerances of the step-size controller (traced: changing them does
-      not recompile).
+    - `rtol`, `atol`: tolerances of the step-size controller, positive scalars (passed to the
+      compiled solve as arrays: changing them does not recompile; they may be traced).
     - `max_steps`: the most steps the solver may take.
     - `dt0`: initial step; `None` lets diffrax choose.
     - `throw`: raise a runtime error when the result is not `RESULTS.successful`;
@@ -144,7 +150,7 @@ def simulate(
 
     **Returns:** a `Trajectory`.
     """
-    ts, controller = _prepare(model, ts, rtol, atol, max_steps, dt0)
+    ts, controller, max_steps = _prepare(model, ts, rtol, atol, max_steps, dt0)
     traj = _solve_jit(model, y0, ts, solver, controller, adjoint, max_steps, dt0)
     if throw:
         traj = traj.result.error_if(traj, traj.result != RESULTS.successful)
@@ -179,7 +185,7 @@ def simulate_batch(
     **Returns:** a `Trajectory` with a leading batch axis on every leaf (including `ts`,
     `stats` and `result`).
     """
-    ts, controller = _prepare(model, ts, rtol, atol, max_steps, dt0)
+    ts, controller, max_steps = _prepare(model, ts, rtol, atol, max_steps, dt0)
     traj = _solve_batch(model, y0s, ts, solver, controller, adjoint, max_steps, dt0, model_axes)
     if throw:
         traj = traj.result.error_if(traj, jnp.any(traj.result != RESULTS.successful))

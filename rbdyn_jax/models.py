@@ -32,8 +32,9 @@ def _inertia(J: Float[ArrayLike, "3 3"]) -> Float[Array, "3 3"]:
     J = check_trailing(J, (3, 3), "inertia")
     if J.ndim != 2:
         raise ValueError(
-            f"`inertia` must be one 3×3 tensor, got shape {J.shape}; batch models with "
-            "`jax.vmap` / `simulate_batch(..., batch_model=True)` instead."
+            f"`inertia` must be one 3×3 tensor, got shape {J.shape}; build a batch of models "
+            "with `eqx.filter_vmap(lambda J: RigidBody(J, torque))(Js)` and pass it to "
+            "`simulate_batch(..., model_axes=0)`."
         )
     return J
 
