@@ -84,7 +84,9 @@ def gg_integrable_integrals(model: AbstractRigidBody, traj: Trajectory):
 
     with n = (1 − m)/m and the inertia taken from the model's (diagonal) J.
 
-    **Returns:** a tuple `(r, gamma_sq, C1, C2)` of `(n,)` arrays.
+    **Returns:** a tuple `(C1, C2, r, gamma_sq)` of `(n,)` arrays (the order of
+    `analytic.gg_integrable_case_integrals`). `simulate` renormalises γ on output, so the
+    drift of |γ|² it removed is in `trajectory.stats["norm_drift"]`, not in `gamma_sq`.
     """
     J = model.inertia
     off = jnp.abs(J - jnp.diag(jnp.diagonal(J)))
@@ -101,7 +103,7 @@ def gg_integrable_integrals(model: AbstractRigidBody, traj: Trajectory):
     g, g1, g2 = kin.gamma[:, 0], kin.gamma[:, 1], kin.gamma[:, 2]
     C1 = p**2 + q**2 + eps * n * g2**2
     C2 = g * p + g1 * q + r * (n + 1) * g2
-    return r, g**2 + g1**2 + g2**2, C1, C2
+    return C1, C2, r, g**2 + g1**2 + g2**2
 
 
 __all__ = [

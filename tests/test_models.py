@@ -656,7 +656,7 @@ def test_gravity_gradient_integrable_case(rng):
     A, C = 2.0, 3.0
     model = rb.PoissonRigidBody(jnp.diag(jnp.array([A, A, C])), gravity(eps=1.5))
     traj = solve(model, _poisson_state(np.array([0.7, -0.4, 1.1]), random_quat(rng)), GG_T)
-    r, g2, C1, C2 = invariant("gg_integrable_integrals", model, traj)
+    C1, C2, r, g2 = invariant("gg_integrable_integrals", model, traj)
     # independent recomputation of C1, C2 from the state (n = (1 − m)/m, m = A/C)
     n = (1 - A / C) / (A / C)
     w, g = np.asarray(traj.ys.omega), np.asarray(traj.ys.gamma)
