@@ -373,7 +373,10 @@ def quat_to_euler(
     else:
         out = [jnp.where(locked, locked_angle, third), second, jnp.where(locked, 0.0, first)]
     angles = jnp.stack(out, axis=-1)
-    angles = jnp.remainder(angles + jnp.pi, 2.0 * jnp.pi) - jnp.pi
+    # Into [−π, π] as scipy does: only values outside move, so an exact ±π keeps its sign.
+    two_pi = 2.0 * jnp.pi
+    angles = jnp.where(angles > jnp.pi, angles - two_pi,
+                       jnp.where(angles < -jnp.pi, angles + two_pi, angles))
     if return_gimbal_lock:
         return angles, locked
     return angles

@@ -62,8 +62,7 @@ _offset = st.one_of(
 
 
 @st.composite
-def seq_and_angles(draw, n=6):
-    seq = draw(st.sampled_from(SEQS))
+def angles_for(draw, seq, n=6):
     rows = []
     for _ in range(n):
         a, c = draw(_outer), draw(_outer)
@@ -76,7 +75,7 @@ def seq_and_angles(draw, n=6):
         else:
             b = hi - draw(_offset)
         rows.append([a, b, c])
-    return seq, np.array(rows)
+    return np.array(rows)
 
 
 # ------------------------------------------------------------------------------------------
@@ -84,10 +83,16 @@ def seq_and_angles(draw, n=6):
 # ------------------------------------------------------------------------------------------
 
 
-@settings(max_examples=60, deadline=None)
-@given(seq_and_angles())
-def test_euler_to_quat_matches_scipy(case):
-    seq, angles = case
+def _per_sequence(test):
+    """Every sequence, each with its own hypothesis search over angles."""
+    return pytest.mark.parametrize("seq", SEQS)(
+        settings(max_examples=12, deadline=None)(
+            given(data=st.data())(test)))
+
+
+@_per_sequence
+def test_euler_to_quat_matches_scipy(seq, data):
+    angles = data.draw(angles_for(seq))
     q = rot.euler_to_quat(angles, seq)
     assert_quat_equal(q, scipy_euler(seq, angles).as_quat(scalar_first=True), atol=TIGHT)
     np.testing.assert_allclose(
@@ -95,10 +100,9 @@ def test_euler_to_quat_matches_scipy(case):
     )
 
 
-@settings(max_examples=60, deadline=None)
-@given(seq_and_angles())
-def test_quat_to_euler_matches_scipy_including_gimbal_lock(case):
-    seq, angles = case
+@_per_sequence
+def test_quat_to_euler_matches_scipy_including_gimbal_lock(seq, data):
+    angles = data.draw(angles_for(seq))
     r = scipy_euler(seq, angles)
     q = r.as_quat(scalar_first=True)
     ours, locked = rot.quat_to_euler(q, seq, return_gimbal_lock=True)
@@ -118,6 +122,21 @@ def test_quat_to_euler_matches_scipy_including_gimbal_lock(case):
     back = rot.euler_to_dcm(ours, seq)
     tol = np.where(np.asarray(locked), 2e-7, TIGHT)[:, None, None]
     assert np.all(np.abs(np.asarray(back) - r.as_matrix()) <= tol)
+
+
+@pytest.mark.parametrize("seq", SEQS)
+def test_quat_to_euler_exact_half_turns_match_scipy(seq):
+    """Half turns about each axis and pairs of axes: angles exactly ±π keep scipy's sign and
+    the documented ranges (second angle in [0, π] proper, [−π/2, π/2] Tait–Bryan)."""
+    q = np.array([[0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1], [0, 1, 1, 0], [0, 0, 1, 1],
+                  [1, 0, 0, 0]], float)
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    ours = np.array(rot.quat_to_euler(q, seq))
+    theirs = scipy_as_euler(Rotation.from_quat(q, scalar_first=True), seq)
+    np.testing.assert_allclose(ours, theirs, atol=TIGHT)
+    lo, hi = (0.0, np.pi) if is_proper(seq) else (-np.pi / 2, np.pi / 2)
+    assert np.all((ours[:, 1] >= lo - TIGHT) & (ours[:, 1] <= hi + TIGHT))
+    assert np.all(np.abs(ours) <= np.pi)
 
 
 @pytest.mark.parametrize("seq", SEQS)
