@@ -76,6 +76,8 @@ class EulerAngleFrame(AbstractFrame):
 
     def __check_init__(self):
         rotation._parse_seq(self.seq)  # ValueError naming `seq` for a bad string
+        if self.quat0 is not None and jnp.shape(self.quat0)[-1:] != (4,):
+            raise ValueError(f"`quat0` must have shape (4,), got {jnp.shape(self.quat0)}.")
         if not callable(self.angles_fn):
             raise ValueError("`angles_fn` must be a callable t -> (3,) angles.")
 
@@ -89,7 +91,7 @@ class EulerAngleFrame(AbstractFrame):
         omega_e, eps_e = jax.jvp(omega_of, (t,), (jnp.ones_like(t),))
         q = rotation.euler_to_quat(self.angles_fn(t), self.seq)
         if self.quat0 is not None:
-            q = rotation.quat_multiply(self.quat0, q)
+            q = rotation.quat_multiply(rotation.quat_normalize(self.quat0), q)
         return q, omega_e, eps_e
 
 

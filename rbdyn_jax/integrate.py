@@ -23,8 +23,8 @@ class RESULTS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
     of ours. The text of each item is its error message."""
 
     nonfinite_state = (
-        "The state is not finite (NaN or inf): check the initial condition and the "
-        "model's parameters."
+        "The state or its derivative is not finite (NaN or inf, or a zero quaternion): "
+        "check the initial condition and the model's parameters."
     )
 
 
@@ -54,14 +54,24 @@ def _all_finite(tree) -> Array:
     return jnp.all(jnp.stack(leaves))
 
 
+def _where_tree(pred, tree, fill):
+    return jax.tree_util.tree_map(lambda x: jnp.where(pred, x, jnp.full_like(x, fill)), tree)
+
+
 def _solve(model, y0, ts, solver, controller, adjoint, max_steps, dt0) -> Trajectory:
     # A non-finite initial state would make the step controller reject step after step
     # until `max_steps` (and hold a whole vmapped batch in its loop): integrate a harmless
     # stand-in instead and report the trajectory as non-finite.
+    # The initial attitude is normalised (the torques assume a unit quaternion; a zero one
+    # becomes NaN and is reported as non-finite). A state whose derivative is already
+    # non-finite (NaN parameters, a singular inertia) is caught here too.
+    y0, _ = model.normalise(y0)
     ok0 = _all_finite(y0)
-    y0_run = jax.tree_util.tree_map(lambda x: jnp.where(ok0, x, jnp.ones_like(x)), y0)
+    ok0 = ok0 & _all_finite(model.vector_field(ts[0], _where_tree(ok0, y0, 1.0), None))
+    y0_run = _where_tree(ok0, y0, 1.0)
     sol = diffrax.diffeqsolve(
-        diffrax.ODETerm(model.vector_field),
+        # A bad lane integrates dy/dt = 0 (a few steps) instead of stalling its batch.
+        diffrax.ODETerm(lambda t, y, args: _where_tree(ok0, model.vector_field(t, y, args), 0.0)),
         solver,
         t0=ts[0],
         t1=ts[-1],
@@ -74,7 +84,7 @@ def _solve(model, y0, ts, solver, controller, adjoint, max_steps, dt0) -> Trajec
         throw=False,
     )
     ys, drift = model.normalise(sol.ys)
-    ys = jax.tree_util.tree_map(lambda x: jnp.where(ok0, x, jnp.nan), ys)
+    ys = _where_tree(ok0, ys, jnp.nan)
     result = RESULTS.promote(sol.result)
     bad_state = ~ok0 | ((result == RESULTS.successful) & ~_all_finite(ys))
     result = RESULTS.where(bad_state, RESULTS.nonfinite_state, result)
@@ -137,7 +147,8 @@ def simulate(
 
     **Arguments:**
     - `model`: a rigid-body model (`RigidBody`, `RelativeRigidBody`, …).
-    - `y0`: its initial state (`State(omega, quat)` for the quaternion models).
+    - `y0`: its initial state (`State(omega, quat)` for the quaternion models); its
+      quaternion (γ in the Poisson form) is normalised first.
     - `ts`: strictly increasing output times; the solve runs from `ts[0]` to `ts[-1]`.
     - `solver`, `adjoint`: diffrax objects, passed through unchanged (adaptive step
       control by `diffrax.PIDController(rtol, atol)`).

@@ -2,8 +2,12 @@
 
 Pure functions of `(model, trajectory)`, evaluated at every saved time (the leading axis of
 `trajectory.ys`); each returns an array with that time axis. They use the model's own
-`kinematics`, so they work for every state form that carries what they need.
+`kinematics`, so they work for every state form that carries what they need. A trajectory
+from `simulate_batch` (leading batch axes before time) gives results with those axes too,
+for a model shared by the batch (with a batched model, `jax.vmap` over both yourself).
 """
+
+import functools
 
 import equinox as eqx
 import jax
@@ -12,9 +16,22 @@ from jaxtyping import Array, Float
 
 from . import rotation
 from ._checks import sqrt_eps
+from .frames import Inertial
 from .integrate import Trajectory
-from .models import AbstractRigidBody
+from .models import AbstractRigidBody, RelativeRigidBody
 from .torques import GravityGradient, SumTorque
+
+
+def _over_batch(f):
+    """Map `f(model, traj)` over the leading batch axes of a batched trajectory."""
+
+    @functools.wraps(f)
+    def wrapper(model, traj):
+        if traj.ts.ndim > 1:
+            return jax.vmap(lambda tr: wrapper(model, tr))(traj)
+        return f(model, traj)
+
+    return wrapper
 
 
 def _kinematics(model: AbstractRigidBody, traj: Trajectory):
@@ -25,22 +42,29 @@ def _quad(J, v):
     return jnp.einsum("...i,ij,...j->...", v, J, v)
 
 
+@_over_batch
 def kinetic_energy(model: AbstractRigidBody, traj: Trajectory) -> Float[Array, " n"]:
     """Absolute kinetic energy `T = ½ ωᵀ J ω`, ω = ω_r + ω_e (PHYSICS.md §3)."""
     kin = _kinematics(model, traj)
     return 0.5 * _quad(model.inertia, kin.omega)
 
 
+@_over_batch
 def energy(model: AbstractRigidBody, traj: Trajectory) -> Float[Array, " n"]:
     """Total energy `T + V` of an absolute model with conservative torques: the heavy top
     (`V = mg r_c·γ₀`), the constant-k restoring moment (`V = k cosθ`), the gravity gradient
     (`V = ½ ε γᵀ J γ`, PHYSICS.md §7). Raises `NotImplementedError` for a torque with no
-    potential."""
+    potential. For a relative model in a moving frame this sum is not an integral (use the
+    frame's own integral, e.g. the Jacobi integral of a circular orbit): a `ValueError`."""
+    if isinstance(model, RelativeRigidBody) and not isinstance(model.frame, Inertial):
+        raise ValueError("`energy` is the absolute-motion energy; a RelativeRigidBody in a "
+                         "moving frame does not conserve it.")
     kin = _kinematics(model, traj)
     V = jax.vmap(lambda k: model.torque.potential(k, model.inertia))(kin)
     return 0.5 * _quad(model.inertia, kin.omega) + V
 
 
+@_over_batch
 def angular_momentum_inertial(model: AbstractRigidBody, traj: Trajectory) -> Float[Array, "n 3"]:
     """Angular momentum `L = R(q) J ω` in inertial (O0) components; constant for a
     torque-free body (PHYSICS.md §4). Needs the attitude (not the Poisson form)."""
@@ -52,6 +76,7 @@ def angular_momentum_inertial(model: AbstractRigidBody, traj: Trajectory) -> Flo
     return rotation.quat_rotate(kin.quat_inertial, L_body)
 
 
+@_over_batch
 def area_integral(model: AbstractRigidBody, traj: Trajectory) -> Float[Array, " n"]:
     """Area integral `(J ω)·γ`: the angular momentum about the parent z-axis, conserved
     under torques symmetric about it (heavy top, gravity gradient; PHYSICS.md §6–7)."""
@@ -59,11 +84,13 @@ def area_integral(model: AbstractRigidBody, traj: Trajectory) -> Float[Array, " 
     return jnp.einsum("ij,nj,ni->n", model.inertia, kin.omega, kin.gamma)
 
 
+@_over_batch
 def gamma_norm(model: AbstractRigidBody, traj: Trajectory) -> Float[Array, " n"]:
     """|γ|, which is 1 for the Poisson vector (PHYSICS.md §7)."""
     return jnp.linalg.norm(_kinematics(model, traj).gamma, axis=-1)
 
 
+@_over_batch
 def relative_kinetic_energy(model: AbstractRigidBody, traj: Trajectory) -> Float[Array, " n"]:
     """`T_r = ½ ω_rᵀ J ω_r` (PHYSICS.md §5), conserved under `BalancingTransport`."""
     return 0.5 * _quad(model.inertia, _kinematics(model, traj).omega_r)
@@ -77,6 +104,7 @@ def _gravity_gradient_eps(model: AbstractRigidBody) -> Array:
     return gg[0].eps
 
 
+@_over_batch
 def gg_integrable_integrals(model: AbstractRigidBody, traj: Trajectory):
     """The four integrals of the integrable case A = B = m C of PHYSICS.md §7:
 

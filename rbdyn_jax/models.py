@@ -16,11 +16,12 @@ inertia is checked (symmetric, physical) when the model is built.
 import abc
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float, PyTree
 
 from . import rotation
-from ._checks import check_trailing
+from ._checks import check_trailing, sqrt_eps
 from .dynamics import euler_rhs, relative_rhs
 from .frames import AbstractFrame, Inertial
 from .inertia import check_inertia
@@ -29,6 +30,8 @@ from .torques import AbstractTorque, NoTorque
 
 
 def _inertia(J: Float[ArrayLike, "3 3"]) -> Float[Array, "3 3"]:
+    """The model's inertia: one 3×3, symmetric, physical and positive definite (Euler's
+    equations solve J ω' = …; a rod's singular J is physical but has no dynamics)."""
     J = check_trailing(J, (3, 3), "inertia")
     if J.ndim != 2:
         raise ValueError(
@@ -36,7 +39,11 @@ def _inertia(J: Float[ArrayLike, "3 3"]) -> Float[Array, "3 3"]:
             "with `eqx.filter_vmap(lambda J: RigidBody(J, torque))(Js)` and pass it to "
             "`simulate_batch(..., model_axes=0)`."
         )
-    return J
+    J = check_inertia(J, "inertia")
+    smallest = jnp.linalg.eigvalsh(jax.lax.stop_gradient(0.5 * (J + J.T)))[0]
+    singular = ~(smallest > sqrt_eps(J.dtype) * jnp.max(jnp.abs(jax.lax.stop_gradient(J))))
+    return eqx.error_if(J, singular, "`inertia` must be positive definite (a principal "
+                        "moment is zero: a rod or a point has no rotational dynamics).")
 
 
 def _absolute_kinematics(t, omega, quat, gamma):
@@ -86,7 +93,7 @@ class RigidBody(AbstractRigidBody):
     torque: AbstractTorque
 
     def __init__(self, inertia: Float[ArrayLike, "3 3"], torque: AbstractTorque | None = None):
-        self.inertia = check_inertia(_inertia(inertia), "inertia")
+        self.inertia = _inertia(inertia)
         self.torque = NoTorque() if torque is None else torque
 
     def kinematics(self, t, y: State) -> Kinematics:
@@ -125,7 +132,7 @@ class RelativeRigidBody(AbstractRigidBody):
         frame: AbstractFrame | None = None,
         torque: AbstractTorque | None = None,
     ):
-        self.inertia = check_inertia(_inertia(inertia), "inertia")
+        self.inertia = _inertia(inertia)
         self.frame = Inertial() if frame is None else frame
         self.torque = NoTorque() if torque is None else torque
 
@@ -163,7 +170,7 @@ class EulerAngleRigidBody(AbstractRigidBody):
     torque: AbstractTorque
 
     def __init__(self, inertia: Float[ArrayLike, "3 3"], torque: AbstractTorque | None = None):
-        self.inertia = check_inertia(_inertia(inertia), "inertia")
+        self.inertia = _inertia(inertia)
         self.torque = NoTorque() if torque is None else torque
 
     def kinematics(self, t, y: EulerState) -> Kinematics:
@@ -197,7 +204,7 @@ class PoissonRigidBody(AbstractRigidBody):
     torque: AbstractTorque
 
     def __init__(self, inertia: Float[ArrayLike, "3 3"], torque: AbstractTorque | None = None):
-        self.inertia = check_inertia(_inertia(inertia), "inertia")
+        self.inertia = _inertia(inertia)
         self.torque = NoTorque() if torque is None else torque
 
     def kinematics(self, t, y: PoissonState) -> Kinematics:

@@ -456,8 +456,11 @@ def test_gradient_matches_finite_differences(adjoint, top_fd):
     assert np.linalg.norm(g - top_fd) <= 1e-6 * np.linalg.norm(top_fd)
 
 
-def test_batched_gradient_equals_sum_of_single_gradients():
-    adjoint = diffrax.RecursiveCheckpointAdjoint()
+@pytest.mark.parametrize(
+    "adjoint", [diffrax.RecursiveCheckpointAdjoint(), diffrax.BacksolveAdjoint()],
+    ids=["recursive_checkpoint", "backsolve"],
+)
+def test_batched_gradient_equals_sum_of_single_gradients(adjoint):
     p = top_params()
     y0s = state(TOP_W0S, np.broadcast_to(TOP_Q0, (TOP_W0S.shape[0], 4)))
     # Different spin rates: the lanes take different numbers of steps.
@@ -472,8 +475,9 @@ def test_batched_gradient_equals_sum_of_single_gradients():
         ravel_pytree(top_grad(p, lane(y0s, i), adjoint, GRAD_RTOL))[0]
         for i in range(TOP_W0S.shape[0])
     )
-    # The same discrete solves differentiated lane by lane: agreement to rounding
-    # (measured 2e-13 per component, 2e-14 as a vector); a lane whose gradient was lost
+    # The same discrete solves differentiated lane by lane (for Backsolve, the same
+    # adjoint solves): agreement to rounding (measured 2e-13 per component, 2e-14 as a
+    # vector, for RecursiveCheckpointAdjoint); a lane whose gradient was lost
     # or mixed with another would be off by O(1).
     np.testing.assert_allclose(g_batch, g_sum, rtol=1e-8, atol=1e-8 * np.linalg.norm(g_sum))
 
@@ -524,3 +528,36 @@ def test_max_steps_positive_int(fn, max_steps):
 def test_not_a_model(fn, model):
     with pytest.raises(ValueError, match="`model`"):
         fn(model, y0_for(fn), TS)
+
+
+# ---------------------------------------------------------------------------------------
+# 9. Initial states and models that cannot be integrated.
+
+
+def test_initial_quaternion_is_normalised():
+    """A non-unit y0 quaternion is the rotation of its direction: same trajectory."""
+    model = gen_model()
+    w0 = np.array([0.3, -0.5, 1.1])
+    q_unit = Rotation.from_rotvec([0.2, 0.4, -0.1]).as_quat(scalar_first=True)
+    a = rb.simulate(model, state(w0, q_unit), TS, rtol=1e-10, atol=1e-10)
+    b = rb.simulate(model, state(w0, 2.5 * q_unit), TS, rtol=1e-10, atol=1e-10)
+    # identical up to the rounding of q/|q| (both runs take the same steps)
+    assert max_abs_diff(a.ys, b.ys) < 1e-12
+
+
+def test_nonfinite_parameter_is_reported_without_running_to_max_steps():
+    """A NaN torque makes the derivative non-finite from the start: its own code at once,
+    not `max_steps_reached` after spending every step."""
+    J = rb.inertia.from_principal(np.array([2.0, 3.0, 4.0]))
+    bad = rb.RigidBody(J, rb.BodyTorque(np.array([np.nan, 0.0, 0.0])))
+    traj = rb.simulate(bad, state([0.1, 0.2, 0.3], [1.0, 0, 0, 0]), TS, throw=False)
+    assert traj.result == rb.RESULTS.nonfinite_state
+    assert int(traj.stats["num_steps"]) < 10
+    zero_q = rb.simulate(gen_model(), state([0.1, 0.2, 0.3], [0.0, 0, 0, 0]), TS, throw=False)
+    assert zero_q.result == rb.RESULTS.nonfinite_state
+
+
+def test_singular_inertia_is_rejected_by_the_model():
+    """A rod (a zero principal moment) is physical but has no Euler dynamics."""
+    with pytest.raises(eqx.EquinoxRuntimeError, match="positive definite"):
+        rb.RigidBody(np.diag([1.0, 1.0, 0.0]))

@@ -844,3 +844,31 @@ def test_poisson_form_rejects_attitude_torques_at_trace_time():
 def test_euler_angle_frame_bad_seq(seq):
     with pytest.raises(ValueError, match="`seq`"):
         rb.EulerAngleFrame(PolyAngles(jnp.asarray(FRAME_C)), seq=seq)
+
+
+def test_invariants_of_a_batched_trajectory_equal_per_trajectory():
+    """Invariants map over the leading batch axes of `simulate_batch` output."""
+    J = rb.inertia.from_principal(np.array([1.0, 2.0, 2.5]))
+    model = rb.RigidBody(J, rb.UniformGravity(1.0, np.array([0.0, 0.0, 0.1])))
+    w = np.array([[0.1, 1.0, 0.1], [0.2, -1.0, 0.3]])
+    q = np.array([[1.0, 0.0, 0.0, 0.0], [0.9, 0.3, 0.0, 0.1]])
+    q = q / np.linalg.norm(q, axis=1, keepdims=True)
+    ts = np.linspace(0.0, 2.0, 5)
+    batch = rb.simulate_batch(model, rb.State(jnp.asarray(w), jnp.asarray(q)), ts)
+    E = np.asarray(rb.invariants.energy(model, batch))
+    L = np.asarray(rb.invariants.angular_momentum_inertial(model, batch))
+    assert E.shape == (2, 5) and L.shape == (2, 5, 3)
+    for i in range(2):
+        one = rb.simulate(model, rb.State(jnp.asarray(w[i]), jnp.asarray(q[i])), ts)
+        np.testing.assert_allclose(E[i], rb.invariants.energy(model, one), atol=1e-12)
+        np.testing.assert_allclose(L[i], rb.invariants.angular_momentum_inertial(model, one),
+                                   atol=1e-12)
+
+
+def test_energy_of_a_relative_model_in_a_moving_frame_is_refused():
+    model = rb.RelativeRigidBody(np.diag([1.0, 2.0, 2.5]), rb.CircularOrbit(0.1),
+                                 rb.GravityGradient.from_orbit_rate(0.1))
+    traj = rb.simulate(model, rb.State(jnp.zeros(3), jnp.array([1.0, 0, 0, 0])),
+                       np.linspace(0.0, 1.0, 3))
+    with pytest.raises(ValueError, match="moving frame"):
+        rb.invariants.energy(model, traj)
