@@ -16,6 +16,9 @@ from . import (
     frames as frames,
 )
 from . import (
+    identify as identify,
+)
+from . import (
     inertia as inertia,
 )
 from . import (
