@@ -58,6 +58,17 @@ def _where_tree(pred, tree, fill):
     return jax.tree_util.tree_map(lambda x: jnp.where(pred, x, jnp.full_like(x, fill)), tree)
 
 
+class _Guarded(eqx.Module):
+    """The model's vector field, or dy/dt = 0 for a lane flagged bad (`args` = ok flag), so
+    a bad lane takes a few steps instead of stalling its batch. A module, not a closure, so
+    adjoints (BacksolveAdjoint) see the model's parameters as inputs."""
+
+    model: AbstractRigidBody
+
+    def __call__(self, t, y, ok):
+        return _where_tree(ok, self.model.vector_field(t, y, None), 0.0)
+
+
 def _solve(model, y0, ts, solver, controller, adjoint, max_steps, dt0) -> Trajectory:
     # A non-finite initial state would make the step controller reject step after step
     # until `max_steps` (and hold a whole vmapped batch in its loop): integrate a harmless
@@ -70,13 +81,13 @@ def _solve(model, y0, ts, solver, controller, adjoint, max_steps, dt0) -> Trajec
     ok0 = ok0 & _all_finite(model.vector_field(ts[0], _where_tree(ok0, y0, 1.0), None))
     y0_run = _where_tree(ok0, y0, 1.0)
     sol = diffrax.diffeqsolve(
-        # A bad lane integrates dy/dt = 0 (a few steps) instead of stalling its batch.
-        diffrax.ODETerm(lambda t, y, args: _where_tree(ok0, model.vector_field(t, y, args), 0.0)),
+        diffrax.ODETerm(_Guarded(model)),
         solver,
         t0=ts[0],
         t1=ts[-1],
         dt0=dt0,
         y0=y0_run,
+        args=ok0,
         saveat=diffrax.SaveAt(ts=ts),
         stepsize_controller=controller,
         adjoint=adjoint,
