@@ -76,6 +76,7 @@ def _solve(model, y0, ts, solver, controller, adjoint, max_steps, dt0) -> Trajec
     # The initial attitude is normalised (the torques assume a unit quaternion; a zero one
     # becomes NaN and is reported as non-finite). A state whose derivative is already
     # non-finite (NaN parameters, a singular inertia) is caught here too.
+    ts = eqx.error_if(ts, jnp.any(jnp.diff(ts) <= 0), "`ts` must be strictly increasing.")
     y0, _ = model.normalise(y0)
     ok0 = _all_finite(y0)
     ok0 = ok0 & _all_finite(model.vector_field(ts[0], _where_tree(ok0, y0, 1.0), None))
@@ -119,7 +120,7 @@ def _solve_batch(model, y0s, ts, solver, controller, adjoint, max_steps, dt0, mo
     return eqx.filter_vmap(one, in_axes=(model_axes, 0))(model, y0s)
 
 
-def _prepare(model, ts, rtol, atol, max_steps, dt0):
+def _prepare(model, ts, rtol, atol, max_steps):
     if not isinstance(model, AbstractRigidBody):
         raise ValueError(f"`model` must be a rigid-body model, got {type(model).__name__}.")
     ts = as_float_array(ts, "ts")
@@ -136,7 +137,6 @@ def _prepare(model, ts, rtol, atol, max_steps, dt0):
         elif not float(tol) > 0:
             raise ValueError(f"`{name}` must be a positive number, got {tol!r}.")
         tols.append(jnp.asarray(tol, dtype=ts.dtype))
-    ts = eqx.error_if(ts, jnp.any(jnp.diff(ts) <= 0), "`ts` must be strictly increasing.")
     controller = diffrax.PIDController(rtol=tols[0], atol=tols[1])
     return ts, controller, int(max_steps)
 
@@ -172,7 +172,7 @@ def simulate(
 
     **Returns:** a `Trajectory`.
     """
-    ts, controller, max_steps = _prepare(model, ts, rtol, atol, max_steps, dt0)
+    ts, controller, max_steps = _prepare(model, ts, rtol, atol, max_steps)
     traj = _solve_jit(model, y0, ts, solver, controller, adjoint, max_steps, dt0)
     if throw:
         traj = traj.result.error_if(traj, traj.result != RESULTS.successful)
@@ -207,7 +207,7 @@ def simulate_batch(
     **Returns:** a `Trajectory` with a leading batch axis on every leaf (including `ts`,
     `stats` and `result`).
     """
-    ts, controller, max_steps = _prepare(model, ts, rtol, atol, max_steps, dt0)
+    ts, controller, max_steps = _prepare(model, ts, rtol, atol, max_steps)
     traj = _solve_batch(model, y0s, ts, solver, controller, adjoint, max_steps, dt0, model_axes)
     if throw:
         traj = traj.result.error_if(traj, jnp.any(traj.result != RESULTS.successful))

@@ -58,6 +58,11 @@ def _z_in_body(quat):
                                                                           dtype=quat.dtype))
 
 
+def _normalise_quat(y: State):
+    n = jnp.linalg.norm(y.quat, axis=-1)
+    return State(y.omega, y.quat / n[..., None]), jnp.max(jnp.abs(n - 1.0))
+
+
 class AbstractRigidBody(eqx.Module):
     """A model: `vector_field(t, y, args)` for diffrax, plus how to tidy its output."""
 
@@ -105,8 +110,7 @@ class RigidBody(AbstractRigidBody):
                      quat=rotation.quat_derivative(y.quat, y.omega))
 
     def normalise(self, y: State):
-        n = jnp.linalg.norm(y.quat, axis=-1)
-        return State(y.omega, y.quat / n[..., None]), jnp.max(jnp.abs(n - 1.0))
+        return _normalise_quat(y)
 
 
 class RelativeRigidBody(AbstractRigidBody):
@@ -153,8 +157,7 @@ class RelativeRigidBody(AbstractRigidBody):
                      quat=rotation.quat_derivative(y.quat, y.omega))
 
     def normalise(self, y: State):
-        n = jnp.linalg.norm(y.quat, axis=-1)
-        return State(y.omega, y.quat / n[..., None]), jnp.max(jnp.abs(n - 1.0))
+        return _normalise_quat(y)
 
 
 class EulerAngleRigidBody(AbstractRigidBody):

@@ -143,6 +143,17 @@ class UniformGravity(AbstractTorque):
         return self.weight * jnp.dot(self.com, kin.gamma_inertial)
 
 
+def _precession_angle(q):
+    """ZXZ precession angle ψ from a unit quaternion without the full Euler conversion
+    (this runs in every right-hand-side evaluation): the body z-axis in the parent frame is
+    R[:, 2] = (sinψ sinθ, −cosψ sinθ, cosθ), so ψ = atan2(R02, −R12). At θ = 0 (where the
+    restoring moment's lever sinθ vanishes) it returns 0, with a finite gradient."""
+    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    s, c = x * z + w * y, w * x - y * z  # R02 / 2, −R12 / 2
+    origin = (s == 0) & (c == 0)
+    return jnp.where(origin, 0.0, jnp.arctan2(s, jnp.where(origin, 1.0, c)))
+
+
 class PolynomialSinPsi(eqx.Module):
     """The restoring-moment coefficient `k(τ, ψ) = ε K(τ) sin ψ` with K a polynomial,
     `K(τ) = Σ_i coeffs[i] τ^i` (PHYSICS.md §6). Its `coeffs` and `eps` are leaves."""
@@ -189,7 +200,7 @@ class RestoringMoment(AbstractTorque):
         lever = jnp.cross(kin.gamma, _e_z(kin.gamma))  # sinθ (cos φ, −sin φ, 0)
         if callable(self.k):
             q = _need(kin, "quat", "RestoringMoment with k(τ, ψ)")
-            psi = rotation.quat_to_euler(q, "ZXZ")[..., 0]
+            psi = _precession_angle(q)
             k = self.k(self.eps * kin.t, psi)
         else:
             k = self.k
