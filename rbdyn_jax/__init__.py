@@ -31,6 +31,9 @@ from . import (
     rotation as rotation,
 )
 from . import (
+    sweep as sweep,
+)
+from . import (
     torques as torques,
 )
 from .frames import (
@@ -44,6 +47,9 @@ from .frames import (
 )
 from .frames import (
     EulerAngleFrame as EulerAngleFrame,
+)
+from .frames import (
+    HarmonicAngles as HarmonicAngles,
 )
 from .frames import (
     Inertial as Inertial,

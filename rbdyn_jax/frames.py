@@ -95,6 +95,28 @@ class EulerAngleFrame(AbstractFrame):
         return q, omega_e, eps_e
 
 
+class HarmonicAngles(eqx.Module):
+    """Euler angles `offset + rate·t + amplitude·sin(frequency·t + phase)` (componentwise),
+    an `angles_fn` for `EulerAngleFrame` whose coefficients are leaves (sweeps disperse
+    them; a platform turning at a constant rate with a nodding axis, PHYSICS.md §5)."""
+
+    offset: Float[Array, "3"]
+    rate: Float[Array, "3"]
+    amplitude: Float[Array, "3"]
+    frequency: Float[Array, "3"]
+    phase: Float[Array, "3"]
+
+    def __init__(self, offset=None, rate=None, amplitude=None, frequency=None, phase=None):
+        vals = [jnp.zeros(3) if v is None else check_trailing(v, (3,), name) for v, name in (
+            (offset, "offset"), (rate, "rate"), (amplitude, "amplitude"),
+            (frequency, "frequency"), (phase, "phase"))]
+        self.offset, self.rate, self.amplitude, self.frequency, self.phase = vals
+
+    def __call__(self, t):
+        return (self.offset + self.rate * t
+                + self.amplitude * jnp.sin(self.frequency * t + self.phase))
+
+
 class CircularOrbit(AbstractFrame):
     """Orbital (LVLH) frame of a circular orbit of rate `n` (PHYSICS.md §7): x1 along-track,
     y1 = −orbit normal, z1 = nadir; it turns about the orbit normal, `ω_e¹ = (0, −n, 0)`.
@@ -114,4 +136,11 @@ class CircularOrbit(AbstractFrame):
         return q, omega_e, jnp.zeros_like(omega_e)
 
 
-__all__ = ["AbstractFrame", "CircularOrbit", "ConstantRate", "EulerAngleFrame", "Inertial"]
+__all__ = [
+    "AbstractFrame",
+    "CircularOrbit",
+    "ConstantRate",
+    "EulerAngleFrame",
+    "HarmonicAngles",
+    "Inertial",
+]
