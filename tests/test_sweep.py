@@ -1,0 +1,396 @@
+"""Monte Carlo sweeps (rbdyn_jax.sweep): scenarios, determinism, streaming, resume, isolation.
+
+The solves are checked against `simulate` run directly on the stored samples, the samplers
+against their distributions (scipy's uniform rotations for SO(3)), and the shipped
+scenarios against their first integrals.
+"""
+
+import os
+import pathlib
+import signal
+import subprocess
+import sys
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import scipy.stats
+import xarray as xr
+import zarr
+from scipy.spatial.transform import Rotation
+
+import rbdyn_jax as rb
+from rbdyn_jax import sweep
+from rbdyn_jax.sweep import Scenario, ScenarioError
+
+ROOT = pathlib.Path(__file__).parents[1]
+
+
+def small(**over) -> dict:
+    """A small torque-free scenario: dispersed inertia, rates and attitude."""
+    d = {
+        "name": "small",
+        "model": {"kind": "rigid_body",
+                  "inertia": {"principal": [1.0, 2.0, 2.5], "log_cholesky_sigma": 0.05}},
+        "initial": {"omega": {"dist": "normal", "mean": [0.1, 1.0, 0.1], "std": 0.3},
+                    "attitude": {"dist": "uniform_so3"}},
+        "time": {"t1": 4.0, "n": 9},
+        "solver": {"rtol": 1e-9, "atol": 1e-9},
+        "outputs": {"summaries": ["energy_drift", "max_abs_omega", "first_flip_time"]},
+    }
+    for k, v in over.items():
+        d[k] = v
+    return d
+
+
+def load(path, names=("omega", "quat", "inertia", "status", "num_steps", "energy_drift",
+                      "max_abs_omega", "first_flip_time")):
+    g = zarr.open_group(str(path), mode="r")
+    return {k: g[k][:] for k in names if k in g}
+
+
+def assert_same(a: dict, b: dict):
+    assert a.keys() == b.keys()
+    for k in a:
+        assert np.array_equal(a[k], b[k], equal_nan=True), k
+
+
+# --------------------------------------------------------------------------------------
+# Scenario validation
+# --------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "edit, key, words",
+    [
+        (lambda d: d["model"].update(colour="red"), "model.colour", "unknown key"),
+        (lambda d: d.update(extra=1), "extra", "unknown key"),
+        (lambda d: d["model"]["inertia"].update(principal="heavy"), "model.inertia.principal",
+         "list of shape [3]"),
+        (lambda d: d["model"]["inertia"].update(principal=[1.0, 1.0, 3.0]),
+         "model.inertia.principal", "physical inertia"),
+        (lambda d: d["model"]["inertia"].update(principal=[1.0, 2.0]),
+         "model.inertia.principal", "shape [3]"),
+        (lambda d: d["solver"].update(rtol=-1e-8), "solver.rtol", "positive"),
+        (lambda d: d["solver"].update(max_steps=10.5), "solver.max_steps", "integer"),
+        (lambda d: d["time"].update(n=1), "time.n", "≥ 2"),
+        (lambda d: d["time"].update(t1=-1.0), "time.t1", "after t0"),
+        (lambda d: d["initial"].update(omega={"dist": "gaussian"}), "initial.omega.dist",
+         "one of"),
+        (lambda d: d["initial"].update(omega={"dist": "normal", "mean": [0, 1, 0]}),
+         "initial.omega.std", "missing"),
+        (lambda d: d["initial"].update(omega={"dist": "normal", "mean": 0, "std": -1}),
+         "initial.omega.std", "≥ 0"),
+        (lambda d: d["initial"].update(attitude={"quat": [1.0, 1.0, 0.0, 0.0]}),
+         "initial.attitude.quat", "unit quaternion"),
+        (lambda d: d["outputs"].update(summaries=["max_fun"]), "outputs.summaries",
+         "names from"),
+        (lambda d: d["model"].update(torques=[{"kind": "magnet"}]), "model.torques[0].kind",
+         "one of"),
+        (lambda d: d["model"].update(torques=[{"kind": "body"}]), "model.torques[0].moment",
+         "missing"),
+        (lambda d: d["model"].update(frame={"kind": "inertial"}), "model.frame", "no frame"),
+    ],
+)
+def test_bad_scenarios_name_the_key(edit, key, words):
+    d = small()
+    edit(d)
+    with pytest.raises(ScenarioError) as e:
+        Scenario.from_dict(d)
+    msg = str(e.value)
+    assert f"`{key}`" in msg and words in msg, msg
+
+
+def test_bad_toml_file_names_the_key(tmp_path):
+    f = tmp_path / "bad.toml"
+    f.write_text('[model]\nkind = "rigid_body"\n[model.inertia]\nprincipal = [1, 2, 2.5]\n'
+                 'wobble = 3\n[initial]\nomega = [0, 1, 0]\n[time]\nt1 = 1\nn = 3\n')
+    with pytest.raises(ScenarioError, match=r"`model\.inertia\.wobble`: unknown key"):
+        Scenario.from_toml(f)
+    f.write_text("[model\n")
+    with pytest.raises(ScenarioError, match="not valid TOML"):
+        Scenario.from_toml(f)
+
+
+def test_summary_that_does_not_apply_is_rejected():
+    d = small()
+    d["model"]["torques"] = [{"kind": "restoring_moment", "coeffs": [1.0, 0.5], "eps": 0.1}]
+    with pytest.raises(ScenarioError, match="energy_drift"):
+        Scenario.from_dict(d)  # k(τ, ψ) has no potential: no energy integral
+
+
+@pytest.mark.parametrize("name", sweep.list_scenarios())
+def test_shipped_scenarios_validate(name):
+    sc = Scenario.load(name)
+    model, y0 = sc.build(sc.nominal())
+    assert isinstance(model, rb.AbstractRigidBody)
+    assert sc.ts[0] == sc.t0 and sc.ts[-1] == sc.t1
+    assert len(sweep.list_scenarios()) >= 5
+
+
+# --------------------------------------------------------------------------------------
+# Samplers
+# --------------------------------------------------------------------------------------
+
+
+def draws(sc: Scenario, n: int, seed: int = 0) -> dict:
+    idx = jnp.arange(n)
+    return jax.jit(jax.vmap(lambda i: sc.sample(sc.dists, jax.random.key(seed), i)))(idx)
+
+
+def test_uniform_so3_matches_scipy_random_rotations():
+    """The rotation angle of a Haar-uniform rotation has density (1 − cos a)/π; compare
+    with scipy's `Rotation.random` by a two-sample KS test, and E[R] = 0."""
+    q = np.asarray(draws(Scenario.from_dict(small()), 4000)["initial.attitude"])
+    assert np.allclose(np.linalg.norm(q, axis=-1), 1.0, atol=1e-14) and np.all(q[:, 0] >= 0)
+    angle = 2 * np.arccos(np.clip(q[:, 0], -1, 1))
+    ref = Rotation.random(4000, random_state=1).magnitude()
+    assert scipy.stats.ks_2samp(angle, ref).pvalue > 1e-3
+    R = Rotation.from_quat(q[:, [1, 2, 3, 0]]).as_matrix()
+    assert np.abs(R.mean(0)).max() < 5 / np.sqrt(4000)  # E[R] = 0, |R_ij| ≤ 1
+
+
+def test_dispersed_inertia_is_physical_with_the_asked_spread():
+    d = small()
+    d["model"]["inertia"] = {"matrix": [[2.0, 0.1, 0.0], [0.1, 3.0, -0.2], [0.0, -0.2, 4.0]],
+                             "log_cholesky_sigma": 0.05}
+    J = np.asarray(draws(Scenario.from_dict(d), 2000)["model.inertia"])
+    assert bool(np.all(rb.inertia.is_physical(jnp.asarray(J))))
+    assert np.all(np.linalg.eigvalsh(J) > 0) and np.allclose(J, np.swapaxes(J, -1, -2))
+    # planar moments of J' = L Lᵀ: log L_ii ~ N(log L_ii⁰, σ²) exactly
+    theta = np.asarray(jax.vmap(rb.inertia.to_log_cholesky)(jnp.asarray(J)))
+    assert np.allclose(theta[:, :3].std(0), 0.05, rtol=0.1)  # 2000 draws: ±3 % (1σ)
+    assert np.allclose(np.median(J, axis=0), d["model"]["inertia"]["matrix"], atol=0.05)
+
+
+def test_normal_uniform_lognormal_moments_and_independent_keys():
+    d = small()
+    d["initial"]["omega"] = {"dist": "lognormal", "median": [1.0, 2.0, 3.0], "sigma": 0.1}
+    d["model"]["torques"] = [{"kind": "body", "moment": {"dist": "uniform", "low": -1.0,
+                                                          "high": [1.0, 2.0, 3.0]}}]
+    d["outputs"]["summaries"] = ["max_abs_omega"]  # a body torque has no potential energy
+    x = draws(Scenario.from_dict(d), 4000)
+    w, m = np.asarray(x["initial.omega"]), np.asarray(x["model.torques[0].moment"])
+    assert np.allclose(np.median(w, 0), [1, 2, 3], rtol=0.01)  # ± ~0.4 % (1σ)
+    assert np.allclose(np.log(w).std(0), 0.1, rtol=0.05)
+    assert np.all(m >= -1) and np.all(m < [1, 2, 3])
+    assert np.allclose(m.mean(0), [0, 0.5, 1.0], atol=0.06)  # σ/√n ≈ 0.02–0.03
+    # adding a random quantity does not change the draws of the others (path-keyed)
+    before = draws(Scenario.from_dict(small()), 50)
+    after = draws(Scenario.from_dict(d), 50)
+    assert np.array_equal(before["model.inertia"], after["model.inertia"])
+    assert np.array_equal(before["initial.attitude"], after["initial.attitude"])
+
+
+# --------------------------------------------------------------------------------------
+# Running: determinism, dataset, isolation, resume
+# --------------------------------------------------------------------------------------
+
+N = 14
+
+
+@pytest.fixture(scope="module")
+def reference_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("sweep") / "ref.zarr"
+    sweep.run(Scenario.from_dict(small()), N, out, chunk=N, seed=3, lanes=8)
+    return out
+
+
+@pytest.mark.parametrize("chunk", [1, 7])
+def test_same_seed_same_bits_for_any_chunk(reference_run, tmp_path, chunk):
+    out = sweep.run(Scenario.from_dict(small()), N, tmp_path / "s.zarr", chunk=chunk, seed=3,
+                    lanes=8)
+    assert_same(load(reference_run), load(out))
+    other = sweep.run(Scenario.from_dict(small()), N, tmp_path / "o.zarr", chunk=chunk,
+                      seed=4, lanes=8)
+    assert not np.array_equal(load(other)["omega"], load(out)["omega"])
+
+
+def test_two_devices_give_the_same_bits(reference_run, tmp_path):
+    """A fresh process with two XLA host devices, each taking half of every chunk."""
+    code = (
+        "import jax; jax.config.update('jax_enable_x64', True)\n"
+        "assert len(jax.devices()) == 2, jax.devices()\n"
+        "from rbdyn_jax import sweep\n"
+        f"sweep.run(sweep.Scenario.from_dict({small()!r}), {N}, {str(tmp_path / 'd2.zarr')!r},"
+        " chunk=7, seed=3, lanes=8, devices=2)\n"
+    )
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
+    subprocess.run([sys.executable, "-c", code], check=True, env=env, timeout=300)
+    assert_same(load(reference_run), load(tmp_path / "d2.zarr"))
+
+
+def test_dataset_opens_with_xarray_and_equals_simulate(reference_run):
+    ds = xr.open_zarr(reference_run)
+    assert ds.omega.dims == ("trajectory", "time", "axis")
+    assert ds.quat.dims == ("trajectory", "time", "quat_component")
+    assert ds.sizes == {"trajectory": N, "time": 9, "axis": 3, "quat_component": 4,
+                        "row": 3, "col": 3}
+    assert ds.attrs["seed"] == 3 and ds.attrs["complete"]
+    assert ds.attrs["rbdyn_jax_version"] == rb.__version__
+    assert "[w, x, y, z]" in ds.attrs["conventions"]
+    assert Scenario.from_dict(__import__("json").loads(ds.attrs["scenario"])).name == "small"
+    assert np.all(ds.status.values == 0)
+    ts = ds.time.values
+    assert np.allclose(ts, np.linspace(0, 4, 9))
+    for i in range(N):
+        body = rb.RigidBody(jnp.asarray(ds.inertia.values[i]))
+        y0 = rb.State(omega=jnp.asarray(ds.omega.values[i, 0]),
+                      quat=jnp.asarray(ds.quat.values[i, 0]))
+        traj = rb.simulate(body, y0, jnp.asarray(ts), rtol=1e-9, atol=1e-9)
+        # the same solver and tolerances, another compiled program: agreement to a few
+        # rounding-amplified steps of rtol 1e-9, far below the solution's own error
+        np.testing.assert_allclose(ds.omega.values[i], traj.ys.omega, rtol=0, atol=1e-10)
+        np.testing.assert_allclose(ds.quat.values[i], traj.ys.quat, rtol=0, atol=1e-10)
+        E = np.asarray(rb.invariants.energy(body, traj))
+        assert ds.energy_drift.values[i] == pytest.approx(np.max(np.abs(E - E[0])) / E[0],
+                                                          rel=1e-3, abs=1e-15)
+        assert ds.max_abs_omega.values[i] == pytest.approx(
+            np.linalg.norm(traj.ys.omega, axis=-1).max(), rel=1e-10)
+        assert ds.num_steps.values[i] > 0
+    stats = sweep.summarize(reference_run)
+    assert stats["status"] == {"successful": N}
+    e = ds.energy_drift.values
+    assert stats["summaries"]["energy_drift"]["mean"] == pytest.approx(e.mean(), rel=1e-12)
+    assert stats["summaries"]["energy_drift"]["q50"] == pytest.approx(np.median(e), rel=1e-12)
+
+
+def test_first_flip_time_against_the_elliptic_solution():
+    """Intermediate-axis spin: the first zero of ω₂ in the Jacobi elliptic solution."""
+    J = np.array([1.0, 2.0, 2.5])
+    w0 = jnp.array([0.05, 1.0, 0.02])
+    ts = jnp.linspace(0.0, 30.0, 3001)
+    w = np.asarray(rb.analytic.torque_free_elliptic(jnp.asarray(J), w0, ts))
+    k = np.argmax(np.sign(w[1:, 1]) != np.sign(w[0, 1]))
+    fine = np.linspace(float(ts[k]), float(ts[k + 1]), 1001)
+    wf = np.asarray(rb.analytic.torque_free_elliptic(jnp.asarray(J), w0, jnp.asarray(fine)))
+    t_true = fine[np.argmax(np.sign(wf[:, 1]) != np.sign(wf[0, 1]))]
+    coarse = ts[::10]
+    got = sweep._first_flip(coarse, jnp.asarray(w[::10]), jnp.diag(jnp.asarray(J)))
+    # linear interpolation over Δt = 0.1 where ω₂ is nearly linear: error ≪ Δt
+    assert abs(float(got) - t_true) < 2e-3
+    never = sweep._first_flip(coarse[:5], jnp.asarray(w[:50:10]), jnp.diag(jnp.asarray(J)))
+    assert np.isnan(float(never))
+
+
+def test_nan_and_max_steps_are_isolated(tmp_path):
+    """Lognormal rates with a huge spread: some overflow to inf (non-finite state), some are
+    so fast the solver runs out of steps; the others equal `simulate` run directly."""
+    d = small(initial={"omega": {"dist": "lognormal", "median": [0.3, 1.0, 0.2],
+                                 "sigma": [0.0, 300.0, 0.0]}})
+    d["solver"]["max_steps"] = 400
+    out = sweep.run(Scenario.from_dict(d), 40, tmp_path / "f.zarr", chunk=16, seed=0, lanes=8)
+    ds = xr.open_zarr(out)
+    status = ds.status.values
+    nonfinite, maxed = (int(rb.RESULTS.nonfinite_state._value),
+                        int(rb.RESULTS.max_steps_reached._value))
+    assert np.sum(status == nonfinite) >= 1 and np.sum(status == maxed) >= 1
+    assert np.sum(status == 0) >= 10
+    assert set(np.unique(status)) <= {0, nonfinite, maxed}
+    bad = status != 0
+    assert np.all(np.isnan(ds.omega.values[bad])) and np.all(np.isnan(ds.energy_drift.values[bad]))
+    stats = sweep.summarize(out)
+    assert stats["status"]["nonfinite_state"] == np.sum(status == nonfinite)
+    assert stats["summaries"]["energy_drift"]["count"] == np.sum(status == 0)
+    ts = jnp.asarray(ds.time.values)
+    for i in np.nonzero(status == 0)[0]:
+        body = rb.RigidBody(jnp.asarray(ds.inertia.values[i]))
+        y0 = rb.State(jnp.asarray(ds.omega.values[i, 0]), jnp.asarray(ds.quat.values[i, 0]))
+        traj = rb.simulate(body, y0, ts, rtol=1e-9, atol=1e-9, max_steps=400)
+        scale = np.abs(ds.omega.values[i]).max()
+        np.testing.assert_allclose(ds.omega.values[i], traj.ys.omega, rtol=0,
+                                   atol=1e-9 * max(scale, 1.0))
+
+
+def test_resume_after_kill_equals_uninterrupted(tmp_path):
+    """A real `rbdyn sweep` process is killed (SIGKILL) after some chunks are written; the
+    run resumed in this process equals an uninterrupted one, nothing lost or duplicated."""
+    scenario = tmp_path / "slow.toml"
+    scenario.write_text(
+        'name = "slow"\n[model]\nkind = "rigid_body"\n[model.inertia]\n'
+        'principal = [1.0, 2.0, 2.5]\nlog_cholesky_sigma = 0.05\n'
+        '[initial]\nomega = { dist = "normal", mean = [0.1, 1.0, 0.1], std = 0.3 }\n'
+        '[time]\nt1 = 150.0\nn = 5\n[solver]\nrtol = 1e-8\natol = 1e-8\n'
+        '[outputs]\nsummaries = ["energy_drift"]\n'
+    )
+    n, chunk = 64, 8
+    out = tmp_path / "killed.zarr"
+    cmd = [sys.executable, "-m", "rbdyn_jax.cli", "sweep", str(scenario), "--n", str(n),
+           "--out", str(out), "--chunk", str(chunk), "--lanes", "8", "--seed", "5"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    done = 0
+    deadline = time.time() + 240
+    try:
+        while time.time() < deadline and proc.poll() is None:
+            time.sleep(0.02)
+            try:
+                done = int(np.sum(zarr.open_group(str(out), mode="r")["status"][:] >= 0))
+            except Exception:  # store not created yet
+                continue
+            if done >= chunk:
+                break
+        proc.send_signal(signal.SIGKILL)
+    finally:
+        proc.wait()
+    status = zarr.open_group(str(out), mode="r")["status"][:]
+    assert 0 < np.sum(status >= 0) < n, "the kill did not land mid-run"
+    assert not zarr.open_group(str(out), mode="r").attrs["complete"]
+    seen = []
+    sweep.run(Scenario.from_toml(scenario), n, out, chunk=chunk, seed=5, lanes=8, resume=True,
+              progress=lambda p: seen.append(p.solved_now))
+    assert sum(seen) == np.sum(status < 0)  # only the missing ones were solved
+    assert np.all(zarr.open_group(str(out), mode="r")["status"][:] == 0)
+    ref = sweep.run(Scenario.from_toml(scenario), n, tmp_path / "ref.zarr", chunk=chunk,
+                    seed=5, lanes=8)
+    names = ("omega", "quat", "inertia", "status", "energy_drift")
+    assert_same(load(out, names), load(ref, names))
+    assert zarr.open_group(str(out), mode="r").attrs["complete"]
+
+
+def test_resume_refuses_a_different_run(reference_run, tmp_path):
+    with pytest.raises(ValueError, match="cannot resume"):
+        sweep.run(Scenario.from_dict(small()), N, reference_run, chunk=N, seed=4, lanes=8,
+                  resume=True)
+    (tmp_path / "x").mkdir()
+    (tmp_path / "x" / "file").write_text("data")
+    with pytest.raises(ValueError, match="not a sweep store"):
+        sweep.run(Scenario.from_dict(small()), N, tmp_path / "x", chunk=N, lanes=8)
+
+
+def test_run_argument_errors(tmp_path):
+    sc = Scenario.from_dict(small())
+    for kw in ({"chunk": 0}, {"lanes": -1}, {"seed": -2}, {"devices": 99}):
+        with pytest.raises(ValueError):
+            sweep.run(sc, 4, tmp_path / "e.zarr", **kw)
+    with pytest.raises(ScenarioError, match="no scenario file"):
+        sweep.run("no_such_scenario", 4, tmp_path / "e.zarr")
+
+
+# --------------------------------------------------------------------------------------
+# Shipped scenarios: their first integrals hold across the sweep
+# --------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "name, summary, bound",
+    [
+        ("rotating_platform", "relative_energy_drift", 1e-7),  # §5: T_r integral, rtol 1e-9
+        ("gg_axisymmetric", "energy_drift", 1e-7),  # §7: T + V, rtol 1e-9
+    ],
+)
+def test_shipped_scenario_first_integrals(tmp_path, name, summary, bound):
+    out = sweep.run(name, 16, tmp_path / f"{name}.zarr", chunk=16, lanes=8)
+    stats = sweep.summarize(out)
+    assert stats["status"] == {"successful": 16}
+    assert stats["summaries"][summary]["max"] < bound
+    if name == "rotating_platform":  # |ω_r| between sqrt(2T_r/C) and sqrt(2T_r/A) (000 eq. 18)
+        ds = xr.open_zarr(out)
+        w = ds.omega.values
+        J = ds.inertia.values
+        Tr = 0.5 * np.einsum("ni,nij,nj->n", w[:, 0], J, w[:, 0])
+        lam = np.linalg.eigvalsh(J)
+        speed = np.linalg.norm(w, axis=-1)
+        assert np.all(speed.min(1) >= np.sqrt(2 * Tr / lam[:, 2]) * (1 - 1e-7))
+        assert np.all(speed.max(1) <= np.sqrt(2 * Tr / lam[:, 0]) * (1 + 1e-7))
