@@ -1,0 +1,264 @@
+"""`rbdyn_jax._plots.plot_sweep` on small sweep stores built here with zarr directly.
+
+The store mimics the layout of `rbdyn_jax.sweep`: torque-free rotations (J ω' = Jω × ω with the
+quaternion kinematics q' = ½ q ⊗ (0, ω), PHYSICS.md §2 and §4) solved with scipy, one failed
+trajectory whose summaries are 1e6 outliers and whose rates turn to NaN, and one not run yet.
+"""
+
+import functools
+import json
+import sys
+
+import numpy as np
+import pytest
+from helpers import wxyz_to_xyzw
+from scipy.integrate import solve_ivp
+from scipy.spatial.transform import Rotation
+
+from rbdyn_jax import _plots
+
+xr = pytest.importorskip("xarray")
+zarr = pytest.importorskip("zarr")
+matplotlib = pytest.importorskip("matplotlib")
+
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+FOUR = ["summaries.png", "trajectories.png", "polhodes.png", "status.png"]
+STATUS_CODES = {"-1": "not_run", "0": "successful", "1": "max_steps_reached", "2": "nonfinite"}
+SUMMARIES = ["max_nutation", "energy_drift", "first_flip_time", "min_abs_omega", "max_abs_omega"]
+J_DIAG = np.diag([1.0, 2.0, 3.0])
+# A rotated body: principal moments (1, 2, 3) with products of inertia.
+R_TILT = Rotation.from_rotvec([0.3, -0.2, 0.5]).as_matrix()
+J_ROTATED = R_TILT @ J_DIAG @ R_TILT.T
+
+
+def rhs(t, y, J):
+    """Torque-free Euler equations and quaternion kinematics, state [ω, q_wxyz]."""
+    w, q = y[:3], y[3:]
+    dw = np.linalg.solve(J, np.cross(J @ w, w))
+    qw, qv = q[0], q[1:]
+    dq = 0.5 * np.concatenate([[-qv @ w], qw * w + np.cross(qv, w)])
+    return np.concatenate([dw, dq])
+
+
+TIME = np.linspace(0.0, 20.0, 81)
+STARTS = [  # near the intermediate axis (flips), near the major and minor axes, a generic one
+    (J_DIAG, [0.01, 1.0, 0.01]),
+    (J_DIAG, [0.1, 0.05, 1.0]),
+    (J_DIAG, [1.0, 0.1, 0.05]),
+    (J_ROTATED, R_TILT @ np.array([0.02, 1.0, 0.03])),
+    (J_DIAG, [0.4, 0.5, 0.6]),
+]
+
+
+@functools.cache
+def solve(i):
+    """(J, ω(t), q(t)) of STARTS[i] on TIME, from a 5.7° tilt about x (solved once per session)."""
+    J, w0 = STARTS[i]
+    q0 = np.array([np.cos(0.05), np.sin(0.05), 0.0, 0.0])
+    y0 = np.concatenate([w0, q0])
+    sol = solve_ivp(rhs, TIME[[0, -1]], y0, t_eval=TIME, args=(J,), rtol=1e-10, atol=1e-12)
+    return J, sol.y[:3].T, sol.y[3:].T
+
+
+def make_dataset(status):
+    """Arrays of a sweep with len(status) trajectories on TIME (sweep layout)."""
+    time, T = TIME, len(TIME)
+    N = len(status)
+    omega, quat = np.full((N, T, 3), np.nan), np.full((N, T, 4), np.nan)
+    inertia = np.empty((N, 3, 3))
+    summaries = {name: np.full(N, np.nan) for name in SUMMARIES}
+    for k, s in enumerate(status):
+        J, omega_k, quat_k = solve(k % len(STARTS))
+        inertia[k] = J
+        if s == -1:
+            continue
+        omega[k], quat[k] = omega_k, quat_k
+        energy = 0.5 * np.einsum("ti,ij,tj->t", omega[k], J, omega[k])
+        nutation = _plots._nutation_deg(quat[k])
+        w_principal = omega[k] @ np.linalg.eigh(J)[1]
+        flips = np.flatnonzero(np.diff(np.sign(w_principal[:, 1])) != 0)
+        speed = np.linalg.norm(omega[k], axis=-1)
+        summaries["max_nutation"][k] = nutation.max()
+        summaries["energy_drift"][k] = np.abs(energy / energy[0] - 1).max()
+        summaries["first_flip_time"][k] = time[flips[0] + 1] if len(flips) else np.nan
+        summaries["min_abs_omega"][k] = speed.min()
+        summaries["max_abs_omega"][k] = speed.max()
+        if s != 0:  # a failure: rates stop half-way, summaries are absurd outliers
+            omega[k, T // 2 :] = np.nan
+            for values in summaries.values():
+                values[k] = 1e6
+    return time, omega, quat, inertia, np.asarray(status, np.int32), summaries
+
+
+def write_store(path, status, *, model_kind="rigid_body", summaries=True):
+    """Write a sweep-layout zarr v3 group at `path`; return `path`."""
+    time, omega, quat, inertia, status, values = make_dataset(status)
+    g = zarr.open_group(str(path), mode="w", zarr_format=3)
+
+    def put(name, data, dims):
+        a = g.create_array(
+            name, shape=data.shape, chunks=data.shape, dtype=data.dtype, dimension_names=dims
+        )
+        a[...] = data
+
+    N = len(status)
+    put("trajectory", np.arange(N, dtype=np.int64), ["trajectory"])
+    put("time", time, ["time"])
+    put("omega", omega, ["trajectory", "time", "axis"])
+    put("quat", quat, ["trajectory", "time", "quat_component"])
+    put("inertia", inertia, ["trajectory", "row", "col"])
+    put("status", status, ["trajectory"])
+    put("num_steps", np.full(N, 100, dtype=np.int64), ["trajectory"])
+    for name, v in values.items():
+        put(name, v, ["trajectory"])
+    g.attrs.update(
+        {
+            "summaries": SUMMARIES if summaries else [],
+            "status_codes": json.dumps(STATUS_CODES),
+            "model_kind": model_kind,
+            "scenario_name": "test_scenario",
+            "rtol": 1e-10,
+        }
+    )
+    return path
+
+
+@pytest.fixture
+def store(tmp_path):
+    """Six trajectories: four successful, #3 failed (status 1), #5 not run (status -1)."""
+    return write_store(tmp_path / "sweep.zarr", [0, 0, 0, 1, 0, -1])
+
+
+@pytest.fixture
+def suptitles(monkeypatch):
+    """The figure titles `plot_sweep` sets, recorded."""
+    from matplotlib.figure import Figure
+
+    seen, original = [], Figure.suptitle
+
+    def spy(self, t, **kwargs):
+        seen.append(t)
+        return original(self, t, **kwargs)
+
+    monkeypatch.setattr(Figure, "suptitle", spy)
+    return seen
+
+
+def assert_png(path):
+    """A PNG file that matplotlib reads back as a non-blank image."""
+    import matplotlib.image
+
+    assert path.read_bytes()[:8] == PNG_SIGNATURE
+    image = matplotlib.image.imread(path)
+    assert image.ndim == 3 and image.shape[0] > 200 and image.shape[1] > 200
+    assert np.ptp(image[..., :3]) > 0.5  # ink on paper, not a blank canvas
+
+
+def test_store_opens_with_xarray(store):
+    ds = xr.open_zarr(store, consolidated=False)
+    assert dict(ds.sizes) == {
+        "trajectory": 6,
+        "time": 81,
+        "axis": 3,
+        "quat_component": 4,
+        "row": 3,
+        "col": 3,
+    }
+    assert ds["status"].dtype == np.int32 and ds["trajectory"].dtype == np.int64
+    assert ds.attrs["summaries"] == SUMMARIES
+    np.testing.assert_array_equal(_plots._successful(ds), [0, 1, 2, 4])
+
+
+def test_writes_four_pngs(store, suptitles):
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    open_figures = plt.get_fignums()
+    written = _plots.plot_sweep(store)
+    assert plt.get_fignums() == open_figures  # nothing left open in pyplot
+    out_dir = store.with_name("sweep.zarr_plots")
+    assert written == [out_dir / name for name in FOUR]
+    assert sorted(p.name for p in out_dir.iterdir()) == sorted(FOUR)
+    for path in written:
+        assert_png(path)
+    assert "test_scenario: polhode on the energy ellipsoid" in suptitles
+    assert not any("hodograph" in t for t in suptitles)
+
+
+def test_failed_trajectories_are_excluded(tmp_path):
+    ds = xr.open_zarr(write_store(tmp_path / "s.zarr", [1, 0, -1, 0, 2]), consolidated=False)
+    ok = _plots._successful(ds)
+    np.testing.assert_array_equal(ok, [1, 3])
+    values = ds["max_abs_omega"].values
+    assert np.nanmax(values) == 1e6 and np.all(values[ok] < 10)  # outliers only where failed
+    assert np.all(np.isfinite(ds["omega"].values[ok]))
+
+
+def test_all_failed_writes_only_status(tmp_path, suptitles):
+    store = write_store(tmp_path / "s.zarr", [1, -1, 2])
+    out_dir = tmp_path / "out"
+    assert _plots.plot_sweep(store, out_dir) == [out_dir / "status.png"]
+    assert [p.name for p in out_dir.iterdir()] == ["status.png"]
+    assert_png(out_dir / "status.png")
+    assert suptitles == ["test_scenario: status of 3 trajectories"]
+
+
+def test_relative_dataset_is_a_hodograph(tmp_path, suptitles):
+    store = write_store(tmp_path / "r.zarr", [0, 0], model_kind="relative_rigid_body")
+    written = _plots.plot_sweep(store, tmp_path / "out", n_sample=1)
+    assert [p.name for p in written] == FOUR
+    assert "test_scenario: hodograph of ω_r" in suptitles
+    assert not any("polhode" in t for t in suptitles)
+    assert "test_scenario: 1 of 2 successful trajectories" in suptitles
+
+
+def test_no_summaries_skips_that_file(tmp_path):
+    store = write_store(tmp_path / "s.zarr", [0, 1], summaries=False)
+    written = _plots.plot_sweep(store, tmp_path / "out")
+    assert [p.name for p in written] == FOUR[1:]
+
+
+def test_energy_ellipsoid_with_products_of_inertia():
+    w0 = np.array([0.3, -1.1, 0.7])
+    energy = 0.5 * w0 @ J_ROTATED @ w0
+    points = _plots._energy_ellipsoid(J_ROTATED, energy).reshape(3, -1)
+    np.testing.assert_allclose(
+        np.einsum("in,ij,jn->n", points, J_ROTATED, points), 2 * energy, rtol=1e-12
+    )
+    # The extreme |ω| are the semi-axes sqrt(2T / I) along the largest and smallest moments.
+    speed = np.linalg.norm(points, axis=0)
+    assert speed.max() == pytest.approx(np.sqrt(2 * energy / 1.0), rel=1e-12)
+    assert speed.min() == pytest.approx(np.sqrt(2 * energy / 3.0), rel=1e-12)
+
+
+def test_polhodes_lie_on_their_ellipsoids(tmp_path):
+    """The fixture's physics: each successful ω(t) keeps ωᵀ J ω = 2T (what polhodes.png shows)."""
+    ds = xr.open_zarr(write_store(tmp_path / "s.zarr", [0, 0, 0, 0, 0]), consolidated=False)
+    omega, inertia = ds["omega"].values, ds["inertia"].values
+    two_t = np.einsum("kti,kij,ktj->kt", omega, inertia, omega)
+    np.testing.assert_allclose(two_t, two_t[:, :1] * np.ones_like(two_t), rtol=1e-8)
+
+
+def test_nutation_matches_scipy(rng):
+    q = rng.normal(size=(50, 4))
+    q /= np.linalg.norm(q, axis=-1, keepdims=True)
+    R = Rotation.from_quat(wxyz_to_xyzw(q)).as_matrix()
+    expected = np.degrees(np.arccos(np.clip(R[:, 2, 2], -1, 1)))
+    np.testing.assert_allclose(_plots._nutation_deg(q), expected, atol=1e-10)
+
+
+def test_status_names_from_json_or_mapping():
+    assert _plots._status_names(json.dumps(STATUS_CODES))[1] == "max_steps_reached"
+    assert _plots._status_names({"0": "successful"}) == {0: "successful"}
+    assert _plots._status_names(None) == {}
+
+
+def test_bad_n_sample(store):
+    with pytest.raises(ValueError, match="n_sample"):
+        _plots.plot_sweep(store, n_sample=0)
+
+
+def test_missing_matplotlib_says_how_to_install(monkeypatch, tmp_path):
+    monkeypatch.setitem(sys.modules, "matplotlib", None)
+    with pytest.raises(ImportError, match="pip install matplotlib"):
+        _plots.plot_sweep(tmp_path / "nothing.zarr")
