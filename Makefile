@@ -13,8 +13,10 @@ $(STAMP): pyproject.toml requirements.lock
 	$(PY) -m pip install --quiet -c requirements.lock -e ".[test]"
 	touch $(STAMP)
 
+# The main job: a Monte Carlo sweep of the shipped default scenario, then its plots.
 run: $(STAMP)
-	$(VENV)/bin/rbdyn demo
+	$(VENV)/bin/rbdyn sweep torque_free_flip --n 20000 --out results/sweep/torque_free_flip.zarr
+	$(VENV)/bin/rbdyn plot results/sweep/torque_free_flip.zarr
 
 test: $(STAMP)
 	$(PY) -m pytest -q

@@ -1,13 +1,19 @@
-"""The `rbdyn` command (the only layer that prints or parses files; DESIGN.md).
+"""The `rbdyn` command (the only layer that prints; DESIGN.md).
 
-`rbdyn demo` is the main job for now: the shipped default body — a rigid cloud of point
-masses with products of inertia — its inertia, principal axes and planar moments
-(PHYSICS.md §3), then a torque-free spin near its intermediate axis solved with diffrax,
-with the intermediate-axis flips and the drift of the first integrals (PHYSICS.md §4).
-Later issues grow this into the Monte Carlo sweep and the identification demo.
+- `rbdyn sweep SCENARIO --n N --out PATH [--chunk C] [--seed S] [--devices D] [--resume]`:
+  a Monte Carlo sweep of a scenario (a TOML file or a shipped name, `rbdyn scenarios`)
+  streamed to a zarr store, with a progress bar and a summary table (`rbdyn_jax.sweep`).
+- `rbdyn plot PATH [--out DIR]`: PNGs of a sweep (summary histograms, sample
+  trajectories, polhodes on their energy ellipsoids, status counts).
+- `rbdyn scenarios`: the shipped scenarios.
+- `rbdyn demo`: the shipped default body, one trajectory, printed.
+
+On a CPU-only machine `rbdyn sweep` splits the host into `--devices` XLA devices (default:
+one per core), since one XLA CPU device uses about one core for these solves.
 """
 
 import argparse
+import os
 import sys
 import time
 
@@ -97,15 +103,137 @@ def demo(n_steps: int = 5, duration: float = 100.0) -> int:
     return 0
 
 
+def _host_devices(n: int | None) -> None:
+    """Ask XLA for `n` CPU devices (default: one per core) unless XLA_FLAGS already says;
+    must run before JAX initialises its backend. No effect on GPU/TPU devices."""
+    flags = os.environ.get("XLA_FLAGS", "")
+    if "xla_force_host_platform_device_count" in flags:
+        return
+    count = n if n is not None else (os.cpu_count() or 1)
+    os.environ["XLA_FLAGS"] = f"{flags} --xla_force_host_platform_device_count={count}".strip()
+
+
+def _table(rows: list[list[str]], header: list[str]) -> str:
+    widths = [max(len(r[i]) for r in [header, *rows]) for i in range(len(header))]
+    line = lambda r: "  ".join(c.rjust(w) if i else c.ljust(w)  # noqa: E731
+                               for i, (c, w) in enumerate(zip(r, widths)))
+    return "\n".join([line(header), "  ".join("-" * w for w in widths), *map(line, rows)])
+
+
+def print_summary(stats: dict) -> None:
+    """Print `sweep.summarize`'s result as tables."""
+    print(f"\nscenario {stats['scenario']}: {stats['n']} trajectories"
+          + ("" if stats["complete"] else " (incomplete: run again with --resume)"))
+    print(_table([[k, str(v)] for k, v in stats["status"].items()], ["status", "count"]))
+    cols = ["count", "mean", "std", "min", "q05", "q50", "q95", "max"]
+    rows = []
+    for name, row in stats["summaries"].items():
+        rows.append([name] + [str(row[c]) if c == "count" else
+                              (f"{row[c]:.6g}" if c in row else "-") for c in cols])
+    if rows:
+        print()
+        print(_table(rows, ["summary (successful)"] + cols))
+
+
+def sweep_command(args) -> int:
+    _host_devices(args.devices)
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    from tqdm import tqdm
+
+    from . import sweep
+
+    try:
+        scenario = sweep.Scenario.load(args.scenario)
+    except sweep.ScenarioError as e:
+        print(f"rbdyn sweep: invalid scenario: {e}", file=sys.stderr)
+        return 2
+    devices = jax.devices()
+    n_dev = args.devices if args.devices is not None else len(devices)
+    print(f"rbdyn sweep: {scenario.name} — {scenario.description}")
+    print(f"  {args.n} trajectories in chunks of {args.chunk} on {n_dev} "
+          f"{devices[0].platform} device(s), {args.lanes} lanes per solver loop, "
+          f"seed {args.seed}, → {args.out}")
+    bar = tqdm(total=args.n, unit="traj", unit_scale=True, dynamic_ncols=True,
+               desc="solving (first chunk compiles)", file=sys.stderr)
+
+    def progress(p: "sweep.Progress") -> None:
+        if bar.n == 0 and p.done > p.solved_now:  # resumed: count the finished ones
+            bar.update(p.done - p.solved_now)
+        bar.set_description("solving")
+        bar.set_postfix(failed=p.failed)
+        bar.update(p.solved_now)
+
+    t0 = time.perf_counter()
+    try:
+        path = sweep.run(scenario, args.n, args.out, chunk=args.chunk, seed=args.seed,
+                         devices=n_dev, lanes=args.lanes, resume=args.resume,
+                         progress=progress)
+    except ValueError as e:
+        bar.close()
+        print(f"rbdyn sweep: {e}", file=sys.stderr)
+        return 2
+    bar.close()
+    elapsed = time.perf_counter() - t0
+    print_summary(sweep.summarize(path))
+    print(f"\nwrote {path} in {elapsed:.1f} s (open with xarray.open_zarr({str(path)!r}));"
+          f" plots: rbdyn plot {path}")
+    return 0
+
+
+def plot_command(args) -> int:
+    from ._plots import plot_sweep
+
+    files = plot_sweep(args.path, args.out)
+    for f in files:
+        print(f"wrote {f}")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="rbdyn", description="Rotational dynamics of rigid bodies in JAX."
     )
     sub = parser.add_subparsers(dest="command", required=True)
+    p_sweep = sub.add_parser("sweep", help="Monte Carlo sweep of a scenario, streamed to zarr")
+    p_sweep.add_argument("scenario", help="scenario TOML file or shipped name (rbdyn scenarios)")
+    p_sweep.add_argument("--n", type=int, required=True, help="number of trajectories")
+    p_sweep.add_argument("--out", required=True, help="output zarr store (a directory)")
+    p_sweep.add_argument("--chunk", type=int, default=1024,
+                         help="trajectories solved and written at a time (default 1024)")
+    p_sweep.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p_sweep.add_argument("--devices", type=int, default=None,
+                         help="devices to shard over (default all; on CPU, one per core)")
+    p_sweep.add_argument("--lanes", type=int, default=64,
+                         help="trajectories per vmapped solver loop (default 64)")
+    p_sweep.add_argument("--resume", action="store_true",
+                         help="finish an interrupted run in --out")
+    p_plot = sub.add_parser("plot", help="PNGs of a sweep store")
+    p_plot.add_argument("path", help="a store written by rbdyn sweep")
+    p_plot.add_argument("--out", default=None, help="folder for the PNGs (default PATH_plots)")
+    sub.add_parser("scenarios", help="list the shipped scenarios")
     p_demo = sub.add_parser("demo", help="summarise and simulate the shipped default body")
     p_demo.add_argument("--steps", type=int, default=5, help="output steps (default 5)")
     p_demo.add_argument("--duration", type=float, default=100.0, help="seconds (default 100)")
     args = parser.parse_args(argv)
+    if args.command == "sweep":
+        for name in ("n", "chunk", "lanes", "devices"):
+            v = getattr(args, name)
+            if v is not None and v < 1:
+                parser.error(f"--{name} must be ≥ 1")
+        if args.seed < 0:
+            parser.error("--seed must be ≥ 0")
+        return sweep_command(args)
+    if args.command == "plot":
+        return plot_command(args)
+    if args.command == "scenarios":
+        from . import sweep
+
+        for name in sweep.list_scenarios():
+            sc = sweep.Scenario.load(name)
+            print(f"{name:28s} {sc.description}")
+        return 0
     if args.command == "demo":
         if args.steps < 1:
             parser.error("--steps must be ≥ 1")
