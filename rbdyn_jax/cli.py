@@ -5,6 +5,9 @@
   streamed to a zarr store, with a progress bar and a summary table (`rbdyn_jax.sweep`).
 - `rbdyn plot PATH [--out DIR]`: PNGs of a sweep (summary histograms, sample
   trajectories, polhodes on their energy ellipsoids, status counts).
+- `rbdyn fit DATA --model SCENARIO [--free inertia,k] [--out PATH]`: identify the
+  inertia and/or torque parameters from observed ω / attitudes (`rbdyn_jax.identify`),
+  printing them with standard errors and writing fit.json and a PNG of observed vs fitted.
 - `rbdyn scenarios`: the shipped scenarios.
 - `rbdyn demo`: the shipped default body, one trajectory, printed.
 
@@ -191,6 +194,248 @@ def plot_command(args) -> int:
     return 0
 
 
+def load_observations(path: str, *, sigma_omega=None, sigma_quat=None, trajectories=None,
+                      seq: str = "ZXZ"):
+    """Observations from a file: `.npz` (arrays `ts` (n,) or (K, n), `omega` (K, n, 3),
+    `quat` (K, n, 4) or `euler` (K, n, 3) of `seq`, optional `sigma_omega`, `sigma_quat`,
+    `mask`), `.csv` (a header with `t` and `wx, wy, wz` and/or `qw, qx, qy, qz`, optional
+    `trajectory` column; trajectories of different lengths are padded and masked), or
+    anything xarray opens (a sweep store or netCDF with `omega`/`quat` over `trajectory`,
+    `time`; only successful trajectories when it has `status`). `trajectories` keeps the
+    first K. Noise levels given here override the file's (default 1)."""
+    import pathlib
+
+    import numpy as np
+
+    from .identify import Observations
+
+    p = pathlib.Path(path)
+    fields: dict = {}
+    if p.suffix == ".npz":
+        with np.load(p) as z:
+            unknown = set(z.files) - {"ts", "omega", "quat", "euler", "seq", "sigma_omega",
+                                      "sigma_quat", "mask"}
+            if unknown:
+                raise ValueError(f"{p}: unknown arrays {sorted(unknown)}")
+            if "ts" not in z.files:
+                raise ValueError(f"{p}: no `ts` array")
+            fields = {k: z[k] for k in z.files}
+            if "seq" in fields:
+                seq = str(fields.pop("seq"))
+    elif p.suffix == ".csv":
+        table = np.genfromtxt(p, delimiter=",", names=True)
+        names = table.dtype.names or ()
+        if "t" not in names:
+            raise ValueError(f"{p}: the header must name a `t` column, got {names}")
+        traj = table["trajectory"].astype(int) if "trajectory" in names else np.zeros(len(table),
+                                                                                    int)
+        ids = np.unique(traj)
+        n = max(int(np.sum(traj == i)) for i in ids)
+        K = len(ids)
+        ts = np.full((K, n), np.nan)
+        mask = np.zeros((K, n), bool)
+        groups = {"omega": ("wx", "wy", "wz"), "quat": ("qw", "qx", "qy", "qz")}
+        for name, cols in groups.items():
+            if all(c in names for c in cols):
+                fields[name] = np.full((K, n, len(cols)), np.nan)
+            elif any(c in names for c in cols):
+                raise ValueError(f"{p}: `{name}` needs all of the columns {cols}")
+        for k, i in enumerate(ids):
+            rows = table[traj == i]
+            ts[k, : len(rows)] = rows["t"]
+            mask[k, : len(rows)] = True
+            for name, cols in groups.items():
+                if name in fields:
+                    fields[name][k, : len(rows)] = np.stack([rows[c] for c in cols], -1)
+        fields.update(ts=ts, mask=mask)
+    else:
+        import xarray as xr
+
+        ds = xr.open_zarr(p) if (p / ".zgroup").exists() else xr.open_dataset(p)
+        if "status" in ds:
+            ds = ds.isel(trajectory=np.nonzero(ds.status.values == 0)[0])
+        if trajectories is not None:
+            ds = ds.isel(trajectory=slice(0, trajectories))
+        fields["ts"] = ds["time"].values
+        for name in ("omega", "quat"):
+            if name in ds:
+                fields[name] = ds[name].values
+    if trajectories is not None:
+        for k in ("omega", "quat", "euler", "mask", "sigma_omega", "sigma_quat"):
+            if k in fields and np.ndim(fields[k]) >= 2:
+                fields[k] = fields[k][:trajectories]
+        if np.ndim(fields["ts"]) == 2:
+            fields["ts"] = fields["ts"][:trajectories]
+    if sigma_omega is not None:
+        fields["sigma_omega"] = sigma_omega
+    if sigma_quat is not None:
+        fields["sigma_quat"] = sigma_quat
+    return Observations(fields.pop("ts"), omega=fields.get("omega"), quat=fields.get("quat"),
+                        sigma_omega=fields.get("sigma_omega"),
+                        sigma_quat=fields.get("sigma_quat"), mask=fields.get("mask"),
+                        euler=fields.get("euler"), seq=seq)
+
+
+def _free_params(names: list[str], torque):
+    """`--free` names → (`params`, `torque_where`) for `identify.fit`: `inertia`,
+    `initial_conditions` (or `ic`), `torque` (every array leaf of the torque), `k` (the
+    restoring moments' k, or their K(τ) coefficients)."""
+    from .torques import RestoringMoment, SumTorque
+
+    params, where = [], None
+    for name in names:
+        if name == "inertia":
+            params.append("inertia")
+        elif name in ("initial_conditions", "ic"):
+            params.append("initial_conditions")
+        elif name in ("torque", "k"):
+            if "torque" not in params:
+                params.append("torque")
+        else:
+            raise ValueError(f"--free: unknown {name!r}; expected inertia, k, torque, ic")
+    if "k" in names and "torque" not in names:
+        parts = list(torque.torques) if isinstance(torque, SumTorque) else [torque]
+        picks = [i for i, t in enumerate(parts) if isinstance(t, RestoringMoment)]
+        if not picks:
+            raise ValueError("--free k: the scenario's model has no restoring_moment torque")
+
+        def leaf(t):
+            return t.k.coeffs if callable(t.k) else t.k
+
+        if isinstance(torque, SumTorque):
+            where = lambda tq: tuple(leaf(tq.torques[i]) for i in picks)  # noqa: E731
+        else:
+            where = leaf
+    return tuple(params), where
+
+
+def _get_path(obj, path):
+    for key in path:
+        obj = getattr(obj, key.name) if hasattr(key, "name") else obj[key.idx]
+    return obj
+
+
+def fit_command(args) -> int:
+    import json
+    import pathlib
+
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    import jax.numpy as jnp
+    import numpy as np
+
+    from . import identify, sweep
+    from .integrate import simulate
+    from .models import RigidBody
+
+    try:
+        scenario = sweep.Scenario.load(args.model)
+    except sweep.ScenarioError as e:
+        print(f"rbdyn fit: invalid scenario: {e}", file=sys.stderr)
+        return 2
+    model, _ = scenario.build(scenario.nominal())
+    if not isinstance(model, RigidBody):
+        print("rbdyn fit: only rigid_body scenarios can be fitted (absolute motion).",
+              file=sys.stderr)
+        return 2
+    try:
+        data = load_observations(args.data, sigma_omega=args.sigma_omega,
+                                 sigma_quat=args.sigma_quat, trajectories=args.trajectories,
+                                 seq=args.seq)
+        params, where = _free_params([s.strip() for s in args.free.split(",") if s.strip()],
+                                     model.torque)
+    except (ValueError, OSError) as e:
+        print(f"rbdyn fit: {e}", file=sys.stderr)
+        return 2
+    scale = None
+    if args.scale:
+        kind, _, value = args.scale.partition("=")
+        if kind == "trace":
+            scale = ("trace", float(value))
+        elif kind.startswith("moment"):
+            axis, _, v = value.partition(":")
+            scale = ("moment", int(axis), float(v))
+        else:
+            print("rbdyn fit: --scale is trace=V or moment=AXIS:V", file=sys.stderr)
+            return 2
+    K, n = data.ts.shape
+    print(f"rbdyn fit: {K} trajectories × {n} samples from {args.data}; model "
+          f"{scenario.name} ({', '.join(scenario.torques) or 'no torque'}); free: "
+          f"{', '.join(params)}")
+    t0 = time.perf_counter()
+    res = identify.fit(model, data, params=params, torque_where=where, scale=scale,
+                       steps=args.steps)
+    elapsed = time.perf_counter() - t0
+    lh = np.asarray(res.loss_history)
+    print(f"  loss {lh[0]:.6g} → {lh[-1]:.6g} in {args.steps} steps, "
+          f"converged: {res.converged}, {elapsed:.1f} s (with compilation)")
+    report: dict = {"converged": bool(res.converged), "loss": float(res.loss),
+                    "notes": list(res.notes), "time_s": elapsed}
+    if "inertia" in params:
+        J = np.asarray(res.model.inertia)
+        se = np.asarray(res.stderr["inertia"])
+        print("  inertia J ± stderr:")
+        for i in range(3):
+            print("    " + "  ".join(f"{J[i, j]:+.6f} ± {se[i, j]:.2e}" for j in range(3)))
+        report.update(inertia=J.tolist(), inertia_stderr=se.tolist())
+    if "torque" in params:
+        rows = []
+        for path, se in jax.tree_util.tree_leaves_with_path(res.stderr["torque"]):
+            name = jax.tree_util.keystr(path)
+            val = np.atleast_1d(np.asarray(_get_path(res.model.torque, path)))
+            se = np.atleast_1d(np.asarray(se))
+            for i in range(val.size):
+                rows.append((f"{name}[{i}]" if val.size > 1 else name, val.flat[i], se.flat[i]))
+        print("  torque parameters ± stderr:")
+        for name, v, e in rows:
+            print(f"    torque{name:24s} {v:+.6g} ± {e:.2e}")
+        report["torque"] = {f"torque{r[0]}": [float(r[1]), float(r[2])] for r in rows}
+    for note in res.notes:
+        print(f"  note: {note}")
+    out = pathlib.Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "fit.json").write_text(json.dumps(report, indent=2))
+    try:
+        import matplotlib
+    except ImportError:
+        print(f"wrote {out / 'fit.json'} (no plot: pip install matplotlib)")
+        return 0
+    from matplotlib.figure import Figure
+
+    del matplotlib
+    show = min(K, 4)
+    fig = Figure(figsize=(11, 3.0 * show), layout="constrained")
+    axes = fig.subplots(show, 2, squeeze=False)
+    for k in range(show):
+        m = np.asarray(data.mask[k])
+        ts = np.asarray(data.ts[k])
+        y0 = jax.tree_util.tree_map(lambda x, k=k: x[k], res.y0)
+        traj = simulate(res.model, y0, jnp.asarray(ts), throw=False)
+        if data.omega is not None:
+            ax = axes[k, 0]
+            for c in range(3):
+                ax.plot(ts[m], np.asarray(data.omega[k])[m, c], ".", ms=3, color=f"C{c}")
+                ax.plot(ts, np.asarray(traj.ys.omega)[:, c], "-", color=f"C{c}",
+                        label=f"ω_{'xyz'[c]}")
+            ax.set(xlabel="t [s]", ylabel="ω [rad/s]", title=f"trajectory {k}: ω observed "
+                   "(dots) vs fitted")
+            ax.legend(fontsize=7)
+        if data.quat is not None:
+            ax = axes[k, 1]
+            qs, qo = np.asarray(traj.ys.quat), np.asarray(data.quat[k])
+            qo = np.where(np.sum(qs * qo, -1, keepdims=True) < 0, -qo, qo)  # same sign
+            for c in range(4):
+                ax.plot(ts[m], qo[m, c], ".", ms=3, color=f"C{c}")
+                ax.plot(ts, qs[:, c], "-", color=f"C{c}", label="q_" + "wxyz"[c])
+            ax.set(xlabel="t [s]", ylabel="quaternion", title=f"trajectory {k}: attitude "
+                   "observed (dots) vs fitted")
+            ax.legend(fontsize=7)
+    fig.savefig(out / "fit.png", dpi=90)
+    print(f"wrote {out / 'fit.json'} and {out / 'fit.png'}")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="rbdyn", description="Rotational dynamics of rigid bodies in JAX."
@@ -212,6 +457,20 @@ def main(argv: list[str] | None = None) -> int:
     p_plot = sub.add_parser("plot", help="PNGs of a sweep store")
     p_plot.add_argument("path", help="a store written by rbdyn sweep")
     p_plot.add_argument("--out", default=None, help="folder for the PNGs (default PATH_plots)")
+    p_fit = sub.add_parser("fit", help="identify inertia / torque parameters from observations")
+    p_fit.add_argument("data", help="observations: .npz, .csv, or a store/netCDF xarray opens")
+    p_fit.add_argument("--model", required=True, help="scenario TOML (or shipped name) giving "
+                       "the model and the initial guess (its nominal values)")
+    p_fit.add_argument("--free", default="inertia,ic",
+                       help="free parameters: inertia, k, torque, ic (default inertia,ic)")
+    p_fit.add_argument("--out", default="results/fit", help="folder for fit.json, fit.png")
+    p_fit.add_argument("--steps", type=int, default=30, help="Levenberg–Marquardt steps")
+    p_fit.add_argument("--scale", default=None,
+                       help="fix the scale of J: trace=V or moment=AXIS:V (torque-free data)")
+    p_fit.add_argument("--sigma-omega", type=float, default=None, help="ω noise [rad/s]")
+    p_fit.add_argument("--sigma-quat", type=float, default=None, help="attitude noise [rad]")
+    p_fit.add_argument("--trajectories", type=int, default=None, help="use the first K")
+    p_fit.add_argument("--seq", default="ZXZ", help="Euler sequence of `euler` data")
     sub.add_parser("scenarios", help="list the shipped scenarios")
     p_demo = sub.add_parser("demo", help="summarise and simulate the shipped default body")
     p_demo.add_argument("--steps", type=int, default=5, help="output steps (default 5)")
@@ -227,6 +486,10 @@ def main(argv: list[str] | None = None) -> int:
         return sweep_command(args)
     if args.command == "plot":
         return plot_command(args)
+    if args.command == "fit":
+        if args.steps < 1:
+            parser.error("--steps must be ≥ 1")
+        return fit_command(args)
     if args.command == "scenarios":
         from . import sweep
 

@@ -104,6 +104,10 @@ class Observations(eqx.Module):
       error's rotation vector, broadcast to `(K, n)` (default 1).
     - `mask`: `(K, n)` booleans, `False` for padding (trajectories of different lengths);
       default all `True`.
+    - `euler`, `seq`, `degrees`: the attitude as Euler angles `(K, n, 3)` of sequence `seq`
+      (scipy conventions, default "ZXZ" = (ψ, θ, φ)) instead of `quat`; converted to unit
+      quaternions (the residual is the same geodesic angle, free of the angles'
+      singularities).
     - `nan_policy`: `"raise"` (default): a NaN/inf sample at an unmasked position is a
       `ValueError` naming the field; `"mask"`: such a sample is masked for that field only.
 
@@ -131,11 +135,23 @@ class Observations(eqx.Module):
         sigma_quat: Float[ArrayLike, "..."] | None = None,
         mask: Bool[ArrayLike, "K n"] | None = None,
         *,
+        euler: Float[ArrayLike, "K n 3"] | None = None,
+        seq: str = "ZXZ",
+        degrees: bool = False,
         nan_policy: str = "raise",
         normalise_quat: bool = False,
     ):
+        if euler is not None:
+            if quat is not None:
+                raise ValueError("Give the attitude as `quat` or as `euler`, not both.")
+            angles = _as_np(euler, "euler")
+            if angles.ndim != 3 or angles.shape[-1] != 3:
+                raise ValueError(f"`euler` must have shape (K, n, 3), got {angles.shape}.")
+            if degrees:
+                angles = np.radians(angles)
+            quat = np.asarray(rotation.euler_to_quat(jnp.asarray(angles), seq))
         if omega is None and quat is None:
-            raise ValueError("Give at least one of `omega` and `quat`.")
+            raise ValueError("Give at least one of `omega` and `quat` (or `euler`).")
         if nan_policy not in ("raise", "mask"):
             raise ValueError(f"`nan_policy` must be 'raise' or 'mask', got {nan_policy!r}.")
         first = omega if omega is not None else quat

@@ -760,7 +760,8 @@ _RUNNERS: dict[tuple, _Runner] = {}
 def _runner(sc: Scenario, lanes: int, devices: tuple, chunk: int) -> _Runner:
     """A compiled runner, reused by later runs of the same scenario and layout (a resumed
     or repeated run in the same process compiles nothing)."""
-    key = (json.dumps(sc.source, sort_keys=True), lanes, devices, chunk)
+    quantum = lanes * len(devices)  # the compiled shape depends on the padded chunk only
+    key = (json.dumps(sc.source, sort_keys=True), lanes, devices, -(-chunk // quantum))
     if key not in _RUNNERS:
         _RUNNERS.clear()  # keep one: a compiled solver holds memory
         _RUNNERS[key] = _Runner(sc, lanes, list(devices), chunk)

@@ -247,3 +247,26 @@ def test_optax_optimizer_path_descends_and_stays_physical(gravity_truth):
     lh = np.asarray(res.loss_history)
     assert np.all(np.isfinite(lh)) and lh[-1] < lh[0] / 10
     assert np.all(np.asarray(rb.inertia.is_physical(res.model.inertia)))
+
+
+def test_euler_angle_observations_equal_quaternion_ones(gravity_truth):
+    """Attitude given as ZXZ angles (scipy's conversion of the true quaternions) gives the
+    same observations and the same loss as the quaternions themselves."""
+    w, q = gravity_truth
+    angles = Rotation.from_quat(q.reshape(-1, 4), scalar_first=True).as_euler("ZXZ")
+    angles = angles.reshape(q.shape[:-1] + (3,))
+    by_q = idf.Observations(TS, omega=w, quat=q, sigma_omega=SIGMA_W, sigma_quat=SIGMA_Q)
+    by_e = idf.Observations(TS, omega=w, euler=angles, seq="ZXZ", sigma_omega=SIGMA_W,
+                            sigma_quat=SIGMA_Q)
+    by_deg = idf.Observations(TS, omega=w, euler=np.degrees(angles), degrees=True)
+    sign = np.sign(np.sum(np.asarray(by_e.quat) * q, axis=-1, keepdims=True))
+    np.testing.assert_allclose(sign * np.asarray(by_e.quat), q, atol=1e-12)
+    np.testing.assert_allclose(np.abs(np.sum(np.asarray(by_deg.quat) * q, -1)), 1.0, atol=1e-12)
+    model = rb.RigidBody(jnp.asarray(J_GUESS), GRAVITY)
+    y0s = rb.State(jnp.asarray(W0), jnp.asarray(Q0))
+    np.testing.assert_allclose(idf.loss(model, y0s, by_e), idf.loss(model, y0s, by_q),
+                               rtol=1e-9)
+    with pytest.raises(ValueError, match="not both"):
+        idf.Observations(TS, quat=q, euler=angles)
+    with pytest.raises(ValueError, match="`euler` must have shape"):
+        idf.Observations(TS, euler=angles[..., :2])
