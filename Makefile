@@ -18,8 +18,9 @@ run: $(STAMP)
 	$(VENV)/bin/rbdyn sweep torque_free_flip --n 20000 --out results/sweep/torque_free_flip.zarr
 	$(VENV)/bin/rbdyn plot results/sweep/torque_free_flip.zarr
 
+# Two workers: the suite is bound by XLA compilation, which is single-threaded.
 test: $(STAMP)
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n 2
 
 clean:
 	rm -rf $(VENV)

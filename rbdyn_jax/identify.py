@@ -394,7 +394,8 @@ def fit(
     - `optimizer`: `None` (default): Levenberg–Marquardt on the residual vector (Jacobian by
       forward mode), `steps` iterations; or an optax transformation (e.g.
       `optax.chain(optax.adam(1e-2))` or `optax.lbfgs()`) run `steps` times on the loss.
-    - `tol`: convergence threshold on the Gauss–Newton decrement; `rcond`: eigenvalues of
+    - `tol`: convergence threshold on the Gauss–Newton decrement (Levenberg–Marquardt stops
+      early once it is reached); `rcond`: eigenvalues of
       JᵀJ below `rcond` × the largest count as ill-determined directions.
     - `solver`, `rtol`, `atol`, `max_steps`: passed to `simulate`.
 
@@ -441,7 +442,7 @@ def fit(
     if "torque" in params and not jax.tree_util.tree_leaves(torque_dyn):
         raise ValueError("`params` names 'torque' but the model's torque has no array leaves.")
 
-    cfg = _Config(solver=solver, rtol=rtol, atol=atol, max_steps=int(max_steps),
+    cfg = _Config(solver=solver, rtol=rtol, atol=atol, tol=tol, max_steps=int(max_steps),
                   steps=int(steps), scale=scale_spec, optimizer=optimizer,
                   torque_static=torque_static)
     out = _run(free, fixed, q0_guess, model, data, cfg)
@@ -508,6 +509,7 @@ class _Config(eqx.Module):
     solver: diffrax.AbstractSolver
     rtol: float
     atol: float
+    tol: float
     max_steps: int = eqx.field(static=True)
     steps: int = eqx.field(static=True)
     scale: tuple | None = eqx.field(static=True)
@@ -576,8 +578,11 @@ def _run(free, fixed, q0_guess, model, data, cfg: _Config):
         # the trial point once (the only trace of the solve, so compile once), accepts it if
         # the loss went down, and proposes the next trial point from the accepted one. The
         # last iteration proposes nothing: its accepted point and Jacobian are the optimum.
-        def step(carry, i):
-            x_acc, r_acc, J_acc, f_acc, lam, x_try = carry
+        # Once the Gauss–Newton decrement ½ gᵀ(JᵀJ)⁻¹g at the accepted point is below `tol`
+        # (the loss cannot fall by more), the remaining iterations are skipped (`lax.cond`:
+        # no further solves) and the history repeats the optimum.
+        def work(carry, i):
+            x_acc, r_acc, J_acc, f_acc, lam, x_try, _ = carry
             J_try, r_try = lin(x_try)
             f_try = 0.5 * jnp.sum(r_try * r_try)
             good = jnp.isfinite(f_try) & (f_try < f_acc)
@@ -589,13 +594,21 @@ def _run(free, fixed, q0_guess, model, data, cfg: _Config):
             g = J_acc.T @ r_acc
             d = jnp.diag(H) + 1e-12 * jnp.max(jnp.diag(H))
             dx = -jnp.linalg.solve(H + lam * jnp.diag(d), g)
-            x_next = jnp.where(i < cfg.steps, x_acc + dx, x_acc)
-            return (x_acc, r_acc, J_acc, f_acc, lam, x_next), (f_acc, inertia(x_acc))
+            dec = 0.5 * g @ jnp.linalg.solve(H + 1e-14 * jnp.max(d) * jnp.eye(H.shape[0]), g)
+            done = jnp.isfinite(f_acc) & (dec < cfg.tol)
+            x_next = jnp.where((i < cfg.steps) & ~done, x_acc + dx, x_acc)
+            return (x_acc, r_acc, J_acc, f_acc, lam, x_next, done)
+
+        def step(carry, i):
+            carry = jax.lax.cond(carry[-1], lambda c, i: c, work, carry, i)
+            return carry, (carry[3], inertia(carry[0]))
 
         m = jax.eval_shape(res_fwd, flat0).shape[0]
         init = (flat0, jnp.zeros(m, flat0.dtype), jnp.zeros((m, flat0.size), flat0.dtype),
-                jnp.asarray(jnp.inf, flat0.dtype), jnp.asarray(1e-3, flat0.dtype), flat0)
-        (x, r, Jm, _, _, _), (hist, Js) = jax.lax.scan(step, init, jnp.arange(cfg.steps + 1))
+                jnp.asarray(jnp.inf, flat0.dtype), jnp.asarray(1e-3, flat0.dtype), flat0,
+                jnp.asarray(False))
+        (x, r, Jm, _, _, _, _), (hist, Js) = jax.lax.scan(step, init,
+                                                          jnp.arange(cfg.steps + 1))
         # entry i: the accepted point after trial i (entry 0: the initial guess)
     else:
         opt = cfg.optimizer
