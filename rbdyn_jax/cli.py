@@ -364,8 +364,19 @@ def fit_command(args) -> int:
           f"{scenario.name} ({', '.join(scenario.torques) or 'no torque'}); free: "
           f"{', '.join(params)}")
     t0 = time.perf_counter()
-    res = identify.fit(model, data, params=params, torque_where=where, scale=scale,
-                       steps=args.steps)
+    horizons = None
+    if args.horizons:
+        try:
+            horizons = tuple(float(x) for x in args.horizons.split(","))
+        except ValueError:
+            print("rbdyn fit: --horizons is a comma list such as 0.25,0.5,1", file=sys.stderr)
+            return 2
+    try:
+        res = identify.fit(model, data, params=params, torque_where=where, scale=scale,
+                           steps=args.steps, horizons=horizons)
+    except ValueError as e:
+        print(f"rbdyn fit: {e}", file=sys.stderr)
+        return 2
     elapsed = time.perf_counter() - t0
     lh = np.asarray(res.loss_history)
     print(f"  loss {lh[0]:.6g} → {lh[-1]:.6g} in {args.steps} steps, "
@@ -470,6 +481,8 @@ def main(argv: list[str] | None = None) -> int:
     p_fit.add_argument("--sigma-omega", type=float, default=None, help="ω noise [rad/s]")
     p_fit.add_argument("--sigma-quat", type=float, default=None, help="attitude noise [rad]")
     p_fit.add_argument("--trajectories", type=int, default=None, help="use the first K")
+    p_fit.add_argument("--horizons", default=None,
+                       help="staged horizons for long records, e.g. 0.25,0.5,1")
     p_fit.add_argument("--seq", default="ZXZ", help="Euler sequence of `euler` data")
     sub.add_parser("scenarios", help="list the shipped scenarios")
     p_demo = sub.add_parser("demo", help="summarise and simulate the shipped default body")

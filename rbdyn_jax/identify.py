@@ -22,6 +22,7 @@ scaling of J and reports it (`FitResult.scale_identified = False`, inertia stand
 or a known torque in the model.
 """
 
+import dataclasses
 import numbers
 from collections.abc import Callable, Sequence
 
@@ -375,6 +376,7 @@ def fit(
     rtol: float = 1e-10,
     atol: float = 1e-10,
     max_steps: int = 4096,
+    horizons: Sequence[float] | None = None,
 ) -> FitResult:
     """Fit the free parameters of `model` (and the initial states) to `data`.
 
@@ -398,6 +400,12 @@ def fit(
       early once it is reached); `rcond`: eigenvalues of
       JᵀJ below `rcond` × the largest count as ill-determined directions.
     - `solver`, `rtol`, `atol`, `max_steps`: passed to `simulate`.
+    - `horizons`: staged horizons for long or chaotic records, increasing fractions of each
+      trajectory's span ending at 1, e.g. `(0.25, 0.5, 1.0)`: fit the samples up to the
+      first fraction, start the next stage from that fit, and so on (the early part of a
+      record constrains the parameters before errors in them have grown over the whole of
+      it). Every stage masks samples of the same arrays, so all stages share one
+      compilation.
 
     The whole fit (optimisation loop and covariance) is one compiled program (`eqx.filter_jit`,
     `lax.scan` over the steps); a second fit of the same structure and sizes reuses it.
@@ -408,6 +416,11 @@ def fit(
         raise ValueError(f"`model` must be a RigidBody, got {type(model).__name__}.")
     if not isinstance(data, Observations):
         raise ValueError(f"`data` must be Observations, got {type(data).__name__}.")
+    if horizons is not None:
+        return _staged_fit(model, data, horizons, params=params, torque_where=torque_where,
+                           y0=y0, scale=scale, optimizer=optimizer, steps=steps, tol=tol,
+                           rcond=rcond, solver=solver, rtol=rtol, atol=atol,
+                           max_steps=max_steps)
     params = tuple(params)
     for p in params:
         if p not in _PARAMS:
@@ -503,6 +516,26 @@ def fit(
         decrement=out["decrement"], converged=converged, covariance=cov, labels=labels,
         stderr=stderr, scale_identified=scale_ok, ill_determined=ill, notes=tuple(notes),
     )
+
+
+def _staged_fit(model, data: Observations, horizons, **kwargs) -> FitResult:
+    h = np.asarray(horizons, dtype=float)
+    if h.ndim != 1 or h.size < 1 or np.any(h <= 0) or np.any(np.diff(h) <= 0) or h[-1] != 1:
+        raise ValueError(f"`horizons` must increase within (0, 1] and end at 1, got {horizons}.")
+    ts = np.asarray(data.ts)
+    mask = np.asarray(data.mask)
+    t0 = np.array([t[m][0] for t, m in zip(ts, mask)])
+    t1 = np.array([t[m][-1] for t, m in zip(ts, mask)])
+    res, y0 = None, kwargs.pop("y0")
+    for frac in h:
+        keep = jnp.asarray(ts <= (t0 + frac * (t1 - t0))[:, None] * (1 + 1e-12))
+        stage = eqx.tree_at(lambda d: (d.mask_omega, d.mask_quat), data,
+                            (data.mask_omega & keep, data.mask_quat & keep))
+        res = fit(model, stage, y0=y0, **kwargs)
+        model, y0 = res.model, res.y0
+    notes = (*res.notes, f"Staged horizons {tuple(float(x) for x in h)}: each stage started "
+             "from the previous fit; the result is the last (full-record) stage's.")
+    return dataclasses.replace(res, notes=notes)
 
 
 class _Config(eqx.Module):
