@@ -26,6 +26,7 @@ exactly the trajectories still marked −1.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import math
@@ -708,6 +709,28 @@ def _solve_block(scenario: Scenario, dists, key, idx, tols):
     }
 
 
+@contextlib.contextmanager
+def _checks_as_nan():
+    """While the sweep's program is traced, `eqx.error_if` checks (the models' inertia
+    checks, …) give NaN in the failing lane instead of raising for the whole chunk: the
+    lane is then reported as `nonfinite_state`, like every other per-trajectory failure,
+    and the program holds no host callback, so JAX's persistent compilation cache can
+    store it (a second `rbdyn sweep` of the same scenario compiles nothing). The scenario
+    was validated before, so these checks cannot fire on good input. Equinox reads this
+    setting (`EQX_ON_ERROR`) once at import; without that module attribute this is a no-op."""
+    import equinox._errors as eqx_errors
+
+    old = getattr(eqx_errors, "EQX_ON_ERROR", None)
+    if old is None:
+        yield
+        return
+    eqx_errors.EQX_ON_ERROR = "nan"
+    try:
+        yield
+    finally:
+        eqx_errors.EQX_ON_ERROR = old
+
+
 @dataclasses.dataclass
 class _Runner:
     """The compiled chunk solver: every call has the same padded size (one compilation)."""
@@ -746,7 +769,8 @@ class _Runner:
         arr = jax.make_array_from_callback(
             (self.size,), NamedSharding(self.mesh, P("batch")), lambda i: full[i])
         tols = jnp.asarray([self.scenario.rtol, self.scenario.atol])
-        out = self.fn(arr, self.scenario.dists, key, tols)
+        with _checks_as_nan():  # traced on the first call only
+            out = self.fn(arr, self.scenario.dists, key, tols)
         if jax.process_count() > 1:  # multi-host: every process gets the whole chunk
             from jax.experimental import multihost_utils
 

@@ -319,7 +319,8 @@ def test_resume_after_kill_equals_uninterrupted(tmp_path):
     out = tmp_path / "killed.zarr"
     cmd = [sys.executable, "-m", "rbdyn_jax.cli", "sweep", str(scenario), "--n", str(n),
            "--out", str(out), "--chunk", str(chunk), "--lanes", "8", "--seed", "5"]
-    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    env = dict(os.environ, RBDYN_JAX_CACHE_DIR="")  # no compilation cache: a cold start
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
     done = 0
     deadline = time.time() + 240
     try:
