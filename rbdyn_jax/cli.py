@@ -273,7 +273,7 @@ def load_observations(path: str, *, sigma_omega=None, sigma_quat=None, trajector
         for name in ("omega", "quat"):
             if name in ds:
                 fields[name] = ds[name].values
-    if trajectories is not None:
+    if trajectories is not None and p.suffix in (".npz", ".csv"):  # xarray: sliced above
         for k in ("omega", "quat", "euler", "mask", "sigma_omega", "sigma_quat"):
             if k in fields and np.ndim(fields[k]) >= 2:
                 fields[k] = fields[k][:trajectories]

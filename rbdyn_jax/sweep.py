@@ -337,14 +337,20 @@ FRAMES = {
 }
 
 
-def _torque_spec(x, path) -> tuple[str, dict]:
+def _kinded(x, path, registry) -> tuple[str, dict, dict, dict]:
+    """A table with a `kind` from `registry` (kind → (required, optional) keys): the kind,
+    the validated table and its required and optional keys."""
     if not isinstance(x, Mapping) or "kind" not in x:
-        raise _fail(f"{path}.kind", f"one of {sorted(TORQUES)} (missing)")
+        raise _fail(f"{path}.kind", f"one of {sorted(registry)} (missing)")
     kind = x["kind"]
-    if kind not in TORQUES:
-        raise _fail(f"{path}.kind", f"one of {sorted(TORQUES)}", kind)
-    req, opt = TORQUES[kind]
-    t = _table(x, path, set(req) | set(opt) | {"kind"}, set(req))
+    if kind not in registry:
+        raise _fail(f"{path}.kind", f"one of {sorted(registry)}", kind)
+    req, opt = registry[kind]
+    return kind, _table(x, path, set(req) | set(opt) | {"kind"}, set(req)), req, opt
+
+
+def _torque_spec(x, path) -> tuple[str, dict]:
+    kind, t, req, opt = _kinded(x, path, TORQUES)
     params = {}
     for name, shape in {**req, **opt}.items():
         if name not in t:
@@ -367,13 +373,7 @@ def _torque_spec(x, path) -> tuple[str, dict]:
 
 
 def _frame_spec(x, path) -> tuple[str, dict, str]:
-    if not isinstance(x, Mapping) or "kind" not in x:
-        raise _fail(f"{path}.kind", f"one of {sorted(FRAMES)} (missing)")
-    kind = x["kind"]
-    if kind not in FRAMES:
-        raise _fail(f"{path}.kind", f"one of {sorted(FRAMES)}", kind)
-    req, opt = FRAMES[kind]
-    t = _table(x, path, set(req) | set(opt) | {"kind"}, set(req))
+    kind, t, req, opt = _kinded(x, path, FRAMES)
     params, seq = {}, "ZXZ"
     for name, shape in {**req, **opt}.items():
         if name not in t:
@@ -448,8 +448,9 @@ class Scenario:
     """A validated sweep scenario (build with `from_toml`, `from_dict` or `load`).
 
     `dists` is the pytree of distributions (key path → distribution module); the structure
-    (model kind, torques, frame, summaries) is static. See `rbdyn_jax/scenarios/*.toml` for
-    the format; `describe()` documents every key.
+    (model kind, torques, frame, summaries) is static. See `rbdyn_jax/scenarios/*.toml` and
+    the README for the format; `TORQUES`, `FRAMES`, `DISTRIBUTIONS` and `SUMMARIES` list
+    the accepted kinds.
     """
 
     name: str
@@ -967,13 +968,10 @@ def run(
     t_start = time.perf_counter()
     for _, idx in _todo_chunks(status, chunk):
         res = runner(idx, key)
-        if not writer:
-            pass
-        elif idx.size == idx[-1] - idx[0] + 1:
-            _write_chunk(g, int(idx[0]), res)
-        else:  # a partly finished chunk (resume): write trajectory by trajectory
-            for j, i in enumerate(idx):
-                _write_chunk(g, int(i), {k: v[j:j + 1] for k, v in res.items()})
+        if writer:  # one write per contiguous run (a partly finished chunk has several)
+            runs = np.split(np.arange(idx.size), np.nonzero(np.diff(idx) != 1)[0] + 1)
+            for r in runs:
+                _write_chunk(g, int(idx[r[0]]), {k: v[r[0]:r[-1] + 1] for k, v in res.items()})
         done += idx.size
         failed += int(np.sum(res["status"] != 0))
         if progress is not None:

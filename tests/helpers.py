@@ -1,6 +1,20 @@
 """Comparators and reference constructions shared by the tests."""
 
+import importlib.util
+import pathlib
+
 import numpy as np
+
+EXAMPLES = pathlib.Path(__file__).resolve().parent.parent / "examples"
+
+
+def load_example(name: str):
+    """Import `examples/<name>.py` by path (the examples are scripts, not a package)."""
+    spec = importlib.util.spec_from_file_location(f"example_{name}", EXAMPLES / f"{name}.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
 
 
 def assert_quat_equal(q1, q2, atol):

@@ -8,21 +8,10 @@ tolerances; the O(ε) and O(ε²) errors of the §6 averaged solutions, measured
 ≤ 3 ε² at ε = 0.05, bounded by 1.5 ε and 6 ε².
 """
 
-import importlib.util
 import math
-import pathlib
 
 import pytest
-
-EXAMPLES = pathlib.Path(__file__).resolve().parent.parent / "examples"
-
-
-def _load(name: str):
-    spec = importlib.util.spec_from_file_location(f"example_{name}", EXAMPLES / f"{name}.py")
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+from helpers import load_example
 
 
 def _check_torque_free_flip(s):
@@ -70,7 +59,7 @@ CASES = [
 
 @pytest.mark.parametrize("name, kwargs, check", CASES, ids=[c[0] for c in CASES])
 def test_example_runs(name, kwargs, check, tmp_path, capsys):
-    module = _load(name)
+    module = load_example(name)
     assert module.__doc__ and "Run:" in module.__doc__
     summary = module.main(**kwargs, out_dir=str(tmp_path))
     png = tmp_path / f"{name}.png"

@@ -6,25 +6,14 @@ small against the parameters (the data determine them), converged.
 Compilation dominates (one truth simulation and one fit per example).
 """
 
-import importlib.util
 import math
-import pathlib
 
 import numpy as np
-
-EXAMPLES = pathlib.Path(__file__).resolve().parent.parent / "examples"
-
-
-def _load(name: str):
-    spec = importlib.util.spec_from_file_location(f"example_{name}", EXAMPLES / f"{name}.py")
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+from helpers import load_example
 
 
 def _run(name, tmp_path, capsys, **kwargs):
-    module = _load(name)
+    module = load_example(name)
     assert module.__doc__ and "Run:" in module.__doc__
     summary = module.main(**kwargs, out_dir=str(tmp_path))
     png = tmp_path / f"{name}.png"

@@ -42,13 +42,13 @@ def truth(model, w0=W0, q0=Q0, ts=TS):
     return np.asarray(traj.ys.omega), np.asarray(traj.ys.quat)
 
 
-def noisy(omega, quat, seed):
+def noisy(omega, quat, seed, ts=TS):
     rng = np.random.default_rng(seed)
     w = omega + SIGMA_W * rng.standard_normal(omega.shape)
     dq = rb.rotation.quat_from_rotvec(jnp.asarray(SIGMA_Q * rng.standard_normal(omega.shape)))
     q = np.asarray(rb.rotation.quat_multiply(jnp.asarray(quat), dq))
     q = np.where(rng.random(q.shape[:-1] + (1,)) < 0.5, -q, q)  # the sign is irrelevant
-    return idf.Observations(TS, omega=w, quat=q, sigma_omega=SIGMA_W, sigma_quat=SIGMA_Q)
+    return idf.Observations(ts, omega=w, quat=q, sigma_omega=SIGMA_W, sigma_quat=SIGMA_Q)
 
 
 @pytest.fixture(scope="module")
@@ -278,13 +278,8 @@ def test_staged_horizons_rescue_a_long_record():
     (10 %, 25 %, 50 %, 100 % of the record) reach the noise floor (χ²/dof ≈ 1) with the
     inertia within a few standard errors, and every stage reuses the one compilation."""
     ts = np.linspace(0.0, 40.0, 61)
-    w, q = truth(rb.RigidBody(jnp.asarray(J_TRUE), GRAVITY), w0=W0[:2], q0=Q0[:2], ts=ts)
-    rng = np.random.default_rng(0)
-    w = w + SIGMA_W * rng.standard_normal(w.shape)
-    q = np.asarray(rb.rotation.quat_multiply(
-        jnp.asarray(q), rb.rotation.quat_from_rotvec(jnp.asarray(SIGMA_Q * rng.standard_normal(
-            w.shape)))))
-    data = idf.Observations(ts, omega=w, quat=q, sigma_omega=SIGMA_W, sigma_quat=SIGMA_Q)
+    data = noisy(*truth(rb.RigidBody(jnp.asarray(J_TRUE), GRAVITY), w0=W0[:2], q0=Q0[:2],
+                        ts=ts), seed=0, ts=ts)
     guess = rb.RigidBody(jnp.asarray(np.diag(np.diag(J_TRUE)) * 1.3), GRAVITY)
     dof = 2 * 61 * 6 - (6 + 12)
     direct = idf.fit(guess, data, steps=20)
