@@ -4,6 +4,8 @@ Static mistakes (shapes, strings) raise `ValueError` at trace time naming the ar
 value-dependent mistakes go through `eqx.error_if`, whose returned value must be used.
 """
 
+import contextlib
+
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike
 
@@ -40,3 +42,27 @@ def sqrt_eps(dtype) -> float:
     """√(machine epsilon) of `dtype` as a Python float (safe under `jit`): the relative
     tolerance of value checks."""
     return float(jnp.finfo(dtype).eps) ** 0.5
+
+
+@contextlib.contextmanager
+def checks_as_nan(enabled: bool = True):
+    """While a solve is traced, make `eqx.error_if` checks (the models' inertia checks,
+    diffrax's checks of `ts`, …) give NaN instead of raising through a host callback.
+
+    A NaN in a trajectory is reported per trajectory (`RESULTS.nonfinite_state`), and the
+    compiled program then holds no host callback, so JAX's persistent compilation cache can
+    store it (a program with callbacks is never cached). Use it only where the inputs were
+    validated before tracing, so the checks cannot fire on good input. Equinox reads this
+    setting (`EQX_ON_ERROR`) from a module attribute at trace time; without that attribute
+    this is a no-op (the program is then still correct, only not cacheable)."""
+    import equinox._errors as eqx_errors
+
+    old = getattr(eqx_errors, "EQX_ON_ERROR", None)
+    if not enabled or old is None:
+        yield
+        return
+    eqx_errors.EQX_ON_ERROR = "nan"
+    try:
+        yield
+    finally:
+        eqx_errors.EQX_ON_ERROR = old

@@ -10,11 +10,11 @@ nested dict (`Scenario.from_dict`), and validated: an unknown key or a bad value
 quantity from a further `fold_in` with a hash of its key path), so a trajectory's sample
 does not depend on the chunking, the devices or the other random quantities. The solves run
 through one compiled program: each device takes its part of a chunk with
-`jax.shard_map` (no collectives inside the solver loop) and works through it in blocks of
-`lanes` trajectories with `lax.map` (a vmapped diffrax solve per block). Because the block
-shape is fixed and every parameter enters as a runtime argument (nothing constant-folded),
-the results are **bitwise identical for any chunk size and any number of devices** at a
-given `lanes`. Each finished chunk is written to a zarr store (format 2 with consolidated
+`jax.shard_map` (no collectives inside the solver loop) and runs it through the lane solver
+of `simulate_batch(..., lanes=lanes)`: `lanes` trajectories step together, and a lane whose
+trajectory has finished takes the next one at once. Because the lane count is fixed and
+every parameter enters as a runtime argument (nothing constant-folded), the results are
+**bitwise identical for any chunk size and any number of devices** at a given `lanes`. Each finished chunk is written to a zarr store (format 2 with consolidated
 metadata: `xarray.open_zarr(path)` reads it) and dropped, so memory does not grow with `n`.
 
 The store holds, with dims `trajectory × time × axis|quat_component`: `omega`, `quat`,
@@ -26,7 +26,6 @@ exactly the trajectories still marked −1.
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import json
 import math
@@ -49,6 +48,7 @@ from jax.sharding import PartitionSpec as P
 from . import inertia as _inertia
 from . import invariants, rotation
 from .frames import CircularOrbit, ConstantRate, EulerAngleFrame, HarmonicAngles, Inertial
+from ._checks import checks_as_nan
 from .integrate import RESULTS, Trajectory, simulate_batch
 from .models import RelativeRigidBody, RigidBody
 from .state import State
@@ -671,8 +671,9 @@ def list_scenarios() -> list[str]:
 # The compiled chunk solver
 # ----------------------------------------------------------------------------------------
 
-def _solve_block(scenario: Scenario, dists, key, idx, tols):
-    """Sample and solve one block of trajectories `idx` (vmapped); per-trajectory outputs."""
+def _solve_block(scenario: Scenario, dists, key, idx, tols, lanes):
+    """Sample and solve the trajectories `idx` (through `lanes` lanes of the lane solver);
+    per-trajectory outputs."""
     import diffrax
 
     values = jax.vmap(lambda i: scenario.sample(dists, key, i))(idx)
@@ -691,7 +692,7 @@ def _solve_block(scenario: Scenario, dists, key, idx, tols):
     ts = jnp.linspace(scenario.t0, scenario.t1, scenario.n_times)
     solver = getattr(diffrax, scenario.solver)()
     traj = simulate_batch(models, y0s, ts, model_axes=0, solver=solver, rtol=tols[0],
-                          atol=tols[1], max_steps=scenario.max_steps)
+                          atol=tols[1], max_steps=scenario.max_steps, lanes=lanes, devices=1)
     status = jnp.where(ok, traj.result._value, RESULTS.nonfinite_state._value)
 
     def summaries(m, tr):
@@ -710,28 +711,6 @@ def _solve_block(scenario: Scenario, dists, key, idx, tols):
     }
 
 
-@contextlib.contextmanager
-def _checks_as_nan():
-    """While the sweep's program is traced, `eqx.error_if` checks (the models' inertia
-    checks, …) give NaN in the failing lane instead of raising for the whole chunk: the
-    lane is then reported as `nonfinite_state`, like every other per-trajectory failure,
-    and the program holds no host callback, so JAX's persistent compilation cache can
-    store it (a second `rbdyn sweep` of the same scenario compiles nothing). The scenario
-    was validated before, so these checks cannot fire on good input. Equinox reads this
-    setting (`EQX_ON_ERROR`) once at import; without that module attribute this is a no-op."""
-    import equinox._errors as eqx_errors
-
-    old = getattr(eqx_errors, "EQX_ON_ERROR", None)
-    if old is None:
-        yield
-        return
-    eqx_errors.EQX_ON_ERROR = "nan"
-    try:
-        yield
-    finally:
-        eqx_errors.EQX_ON_ERROR = old
-
-
 @dataclasses.dataclass
 class _Runner:
     """The compiled chunk solver: every call has the same padded size (one compilation)."""
@@ -748,9 +727,7 @@ class _Runner:
         self.mesh = jax.sharding.Mesh(np.asarray(self.devices), ("batch",))
 
         def per_device(idx, dists, key, tols):
-            blocks = idx.reshape(-1, lanes)
-            out = jax.lax.map(lambda b: _solve_block(sc, dists, key, b, tols), blocks)
-            return jax.tree_util.tree_map(lambda x: x.reshape((-1,) + x.shape[2:]), out)
+            return _solve_block(sc, dists, key, idx, tols, lanes)
 
         # No collectives inside the solver loop: each device runs its own while loops.
         sharded = jax.shard_map(per_device, mesh=self.mesh,
@@ -770,7 +747,7 @@ class _Runner:
         arr = jax.make_array_from_callback(
             (self.size,), NamedSharding(self.mesh, P("batch")), lambda i: full[i])
         tols = jnp.asarray([self.scenario.rtol, self.scenario.atol])
-        with _checks_as_nan():  # traced on the first call only
+        with checks_as_nan():  # traced on the first call only
             out = self.fn(arr, self.scenario.dists, key, tols)
         if jax.process_count() > 1:  # multi-host: every process gets the whole chunk
             from jax.experimental import multihost_utils
