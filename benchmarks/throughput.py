@@ -1,115 +1,194 @@
-"""Throughput of batched forward solves: rbdyn_jax `simulate_batch` vs a scipy `solve_ivp`
-loop, side by side in one run, with the accuracy of each against the Jacobi elliptic
-solution printed beside its speed.
+"""Throughput of batched forward solves, side by side in one run: rbdyn_jax's lane solver
+(`simulate_batch(..., lanes=L)`), the plain vmapped `diffeqsolve` (`simulate_batch`), a
+numba-compiled per-trajectory Dormand–Prince 5(4) (the near-limit yardstick) and a scipy
+`solve_ivp` loop, with the accuracy of each printed beside its speed.
 
-Setting: torque-free asymmetric body (moments 1, 2, 3), random initial rates |ω| ≈ 1,
-t ∈ [0, 20], 101 output times, rtol = atol = 1e-8, float64 (PHYSICS.md §4). rbdyn_jax uses
-its default Tsit5; the scipy loop uses RK45 (Dormand–Prince, the same order 5(4)) on the
-same equations written in NumPy, one `solve_ivp` call per trajectory.
+Setting (the performance issue's): J = [[2, 0.05, 0], [0.05, 3, 0.02], [0, 0.02, 4]],
+ω0 ~ N(0, 1) per axis (seed 0), identity initial attitude, t ∈ [0, 100], 101 outputs,
+rtol = atol = 1e-8, float64, three models (`benchmarks/_baselines.py` writes the same
+equations independently):
 
-Run: `python benchmarks/throughput.py [--sizes 1 10 100 1000]` — prints a table and writes
-results/benchmarks/throughput.json.
+- `torque_free`: accuracy against the Jacobi elliptic solution (PHYSICS.md §4, in principal
+  axes);
+- `heavy_top`: uniform gravity, weight 1 at r_c = (0, 0, 0.5);
+- `gravity_gradient`: M = ε γ × Jγ with ε = 3 (orbit rate 1);
+  for these two the reference is the numba solver at rtol = atol = 1e-12 on the first
+  `--ref-max` trajectories (errors are measured on those).
+
+rbdyn_jax uses Tsit5 (its default), numba and scipy RK45 use Dormand–Prince 5(4) with the
+same tolerances; the error columns show what each delivers. XLA runs a while loop on one
+core, so the script starts JAX with one host device per core
+(`XLA_FLAGS=--xla_force_host_platform_device_count=<cores>` unless XLA_FLAGS is set) and
+the lane solver splits the batch over them; numba uses its default thread count (the
+cores). The scipy loop is timed on at most `--scipy-max` trajectories and the plain
+vmapped solve on batches up to `--plain-max` (its lockstep cost grows with the batch).
+Compilation is excluded from the rates (a first call is made per shape and reported).
+
+Run: `python benchmarks/throughput.py [--sizes 1 10 100 1000 10000] [--models …]
+[--lanes 256]` — prints a table per model and writes results/benchmarks/throughput.json.
 """
 
-import argparse
-import json
-import pathlib
-import platform
-import time
+import os
 
-import jax
+os.environ.setdefault("XLA_FLAGS", f"--xla_force_host_platform_device_count={os.cpu_count()}")
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import pathlib  # noqa: E402
+import platform  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+
+import jax  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
-from scipy.integrate import solve_ivp  # noqa: E402
 
 import rbdyn_jax as rb  # noqa: E402
 
-MOMENTS = np.array([1.0, 2.0, 3.0])
-T_END, N_OUT, TOL = 20.0, 101, 1e-8
+sys.path.insert(0, str(pathlib.Path(__file__).parent))
+import _baselines  # noqa: E402
+
+J = np.array([[2.0, 0.05, 0.0], [0.05, 3.0, 0.02], [0.0, 0.02, 4.0]])
+T_END, N_OUT, TOL = 100.0, 101, 1e-8
+WEIGHT, COM, EPS = 1.0, np.array([0.0, 0.0, 0.5]), 3.0
+MODELS = ("torque_free", "heavy_top", "gravity_gradient")
+
+
+def rbdyn_model(name):
+    torque = {"torque_free": None,
+              "heavy_top": rb.UniformGravity(WEIGHT, jnp.asarray(COM)),
+              "gravity_gradient": rb.GravityGradient(EPS)}[name]
+    return rb.RigidBody(jnp.asarray(J), torque)
+
+
+def baseline_params(name):
+    return {"inertia": J, "weight": WEIGHT, "com": COM, "eps": EPS}
 
 
 def initial_rates(n, seed=0):
-    w = np.random.default_rng(seed).normal(size=(n, 3))
-    return w / np.linalg.norm(w, axis=1, keepdims=True)
+    return np.random.default_rng(seed).normal(size=(n, 3))
 
 
-def reference(w0, ts):
-    return np.asarray(jax.vmap(lambda w: rb.analytic.torque_free_elliptic(MOMENTS, w, ts))(
-        jnp.asarray(w0)))
+def elliptic(w0, ts):
+    moments, axes = rb.inertia.principal_axes(jnp.asarray(J))
+    wp = jnp.asarray(w0) @ axes  # ω in principal axes: axesᵀ ω for each row
+
+    def one(w):
+        return rb.analytic.torque_free_elliptic(moments, w, jnp.asarray(ts))
+
+    return np.asarray(jax.vmap(one)(wp) @ axes.T)
 
 
-def run_rbdyn(w0, ts, repeats):
-    model = rb.RigidBody(jnp.diag(jnp.asarray(MOMENTS)))
-    y0s = rb.State(jnp.asarray(w0), jnp.tile(jnp.array([1.0, 0.0, 0.0, 0.0]), (len(w0), 1)))
+def timed(fn, repeats):
     t0 = time.perf_counter()
-    traj = jax.block_until_ready(rb.simulate_batch(model, y0s, ts, rtol=TOL, atol=TOL))
+    out = fn()
     first = time.perf_counter() - t0
     times = []
     for _ in range(repeats):
         t0 = time.perf_counter()
-        traj = jax.block_until_ready(rb.simulate_batch(model, y0s, ts, rtol=TOL, atol=TOL))
+        out = fn()
         times.append(time.perf_counter() - t0)
-    steps = np.asarray(traj.stats["num_steps"])
-    return np.asarray(traj.ys.omega), float(np.median(times)), first, float(steps.mean())
+    return out, first, float(np.median(times))
 
 
-def rhs(t, y):
-    A, B, C = MOMENTS
-    p, q, r = y
-    return [(B - C) * q * r / A, (C - A) * r * p / B, (A - B) * p * q / C]
+def run_rbdyn(name, w0, ts, lanes, repeats):
+    model = rbdyn_model(name)
+    y0s = rb.State(jnp.asarray(w0), jnp.tile(jnp.array([1.0, 0.0, 0.0, 0.0]), (len(w0), 1)))
+
+    def call():
+        tr = rb.simulate_batch(model, y0s, jnp.asarray(ts), rtol=TOL, atol=TOL, lanes=lanes)
+        return jax.block_until_ready(tr)
+
+    tr, first, t = timed(call, repeats)
+    return np.asarray(tr.ys.omega), first, t, float(np.mean(tr.stats["num_steps"]))
 
 
-def run_scipy(w0, ts):
-    t0 = time.perf_counter()
-    out, steps = [], []
-    for w in w0:
-        sol = solve_ivp(rhs, (ts[0], ts[-1]), w, t_eval=ts, rtol=TOL, atol=TOL, method="RK45")
-        out.append(sol.y.T)
-        steps.append(sol.nfev / 6)
-    return np.stack(out), time.perf_counter() - t0, float(np.mean(steps))
+def run_baseline(solve, name, w0, ts, repeats, **kw):
+    q0 = np.tile([1.0, 0.0, 0.0, 0.0], (len(w0), 1))
+    out, first, t = timed(lambda: solve(name, baseline_params(name), w0, q0, ts, TOL, TOL, **kw),
+                          repeats)
+    return out["omega"], first, t, float(np.mean(out["steps"]))
 
 
-def main(sizes=(1, 10, 100, 1000), scipy_max=100, repeats=3, out="results/benchmarks"):
+def reference(name, w0, ts):
+    if name == "torque_free":
+        return elliptic(w0, ts)
+    q0 = np.tile([1.0, 0.0, 0.0, 0.0], (len(w0), 1))
+    return _baselines.numba_solve(name, baseline_params(name), w0, q0, ts, 1e-12, 1e-12)["omega"]
+
+
+def record(result, count, ref):
+    """Rate, first call, mean steps and the worst |ω − ω_ref| over the trajectories that
+    have a reference."""
+    omega, first, t, steps = result
+    m = min(len(omega), len(ref))
+    return {"traj_per_s": count / t, "first_call_s": first, "mean_steps": steps,
+            "max_error": float(np.max(np.abs(omega[:m] - ref[:m])))}
+
+
+def main(sizes, models, lanes, scipy_max, plain_max, ref_max, out):
     ts = np.linspace(0.0, T_END, N_OUT)
+    _baselines.warmup()
     rows = []
-    for n in sizes:
-        w0 = initial_rates(n)
-        ref = reference(w0, jnp.asarray(ts))
-        w_rb, t_rb, first, steps_rb = run_rbdyn(w0, jnp.asarray(ts), repeats)
-        row = {"batch": n, "rbdyn_s": t_rb, "rbdyn_first_call_s": first,
-               "rbdyn_traj_per_s": n / t_rb, "rbdyn_mean_steps": steps_rb,
-               "rbdyn_max_error": float(np.max(np.abs(w_rb - ref)))}
-        m = min(n, scipy_max)  # the scipy loop is timed on at most `scipy_max` trajectories
-        w_sp, t_sp, steps_sp = run_scipy(w0[:m], ts)
-        row.update({"scipy_traj_per_s": m / t_sp, "scipy_mean_steps": steps_sp,
-                    "scipy_max_error": float(np.max(np.abs(w_sp - ref[:m])))})
-        row["speedup_vs_scipy"] = row["rbdyn_traj_per_s"] / row["scipy_traj_per_s"]
-        rows.append(row)
-    head = (f"{'batch':>6} {'rbdyn traj/s':>13} {'steps':>6} {'max err':>9} | "
-            f"{'scipy traj/s':>12} {'steps':>6} {'max err':>9} | {'ratio':>7}")
-    print(head)
-    print("-" * len(head))
-    for r in rows:
-        print(f"{r['batch']:>6} {r['rbdyn_traj_per_s']:>13.1f} {r['rbdyn_mean_steps']:>6.0f} "
-              f"{r['rbdyn_max_error']:>9.1e} | {r['scipy_traj_per_s']:>12.1f} "
-              f"{r['scipy_mean_steps']:>6.0f} {r['scipy_max_error']:>9.1e} | "
-              f"{r['speedup_vs_scipy']:>6.1f}x")
+    for name in models:
+        for n in sizes:
+            w0 = initial_rates(n)
+            ref = reference(name, w0[:min(n, ref_max)], ts)
+            repeats = 3 if n <= 1000 else 1
+            row = {"model": name, "batch": n,
+                   "lanes": record(run_rbdyn(name, w0, ts, lanes, repeats), n, ref),
+                   "numba": record(run_baseline(_baselines.numba_solve, name, w0, ts, repeats),
+                                   n, ref)}
+            if n <= plain_max:
+                row["plain"] = record(run_rbdyn(name, w0, ts, None, repeats), n, ref)
+            k = min(n, scipy_max)
+            row["scipy"] = record(run_baseline(_baselines.scipy_solve, name, w0[:k], ts, 1,
+                                               method="RK45"), k, ref)
+            rows.append(row)
+            print_row(row)
     path = pathlib.Path(out)
     path.mkdir(parents=True, exist_ok=True)
-    meta = {"machine": platform.platform(), "cpus": jax.device_count(), "jax": jax.__version__,
-            "rtol": TOL, "t_end": T_END, "n_out": N_OUT}
+    meta = {"machine": platform.platform(), "cores": os.cpu_count(),
+            "devices": jax.device_count(), "jax": jax.__version__, "rtol": TOL,
+            "t_end": T_END, "n_out": N_OUT, "lanes": lanes, "scipy_max": scipy_max}
     (path / "throughput.json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=2))
     print(f"wrote {path / 'throughput.json'}")
     return rows
 
 
+HEAD = (f"{'model':>16} {'batch':>6} | {'lanes traj/s':>12} {'steps':>5} {'err':>7} | "
+        f"{'plain':>7} {'err':>7} | {'numba':>7} {'steps':>5} {'err':>7} | {'scipy':>6} "
+        f"{'err':>7} | {'lanes/numba':>11} {'lanes/scipy':>11} {'lanes/plain':>11}")
+
+
+def print_row(r, _printed=[]):  # noqa: B006 (print the header once)
+    if not _printed:
+        print(HEAD)
+        print("-" * len(HEAD))
+        _printed.append(True)
+    la, nu, sp = r["lanes"], r["numba"], r["scipy"]
+    pl = r.get("plain")
+    plain = f"{pl['traj_per_s']:>7.0f} {pl['max_error']:>7.1e}" if pl else f"{'—':>7} {'':>7}"
+    ratio_plain = f"{la['traj_per_s'] / pl['traj_per_s']:>10.1f}x" if pl else f"{'—':>11}"
+    print(f"{r['model']:>16} {r['batch']:>6} | {la['traj_per_s']:>12.0f} "
+          f"{la['mean_steps']:>5.0f} {la['max_error']:>7.1e} | {plain} | "
+          f"{nu['traj_per_s']:>7.0f} {nu['mean_steps']:>5.0f} {nu['max_error']:>7.1e} | "
+          f"{sp['traj_per_s']:>6.1f} {sp['max_error']:>7.1e} | "
+          f"{la['traj_per_s'] / nu['traj_per_s']:>10.2f}x "
+          f"{la['traj_per_s'] / sp['traj_per_s']:>10.0f}x {ratio_plain}", flush=True)
+
+
 if __name__ == "__main__":
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--sizes", type=int, nargs="+", default=[1, 10, 100, 1000])
-    p.add_argument("--scipy-max", type=int, default=100)
+    p.add_argument("--sizes", type=int, nargs="+", default=[1, 10, 100, 1000, 10000])
+    p.add_argument("--models", nargs="+", default=list(MODELS), choices=MODELS)
+    p.add_argument("--lanes", type=int, default=256)
+    p.add_argument("--scipy-max", type=int, default=20)
+    p.add_argument("--plain-max", type=int, default=1000)
+    p.add_argument("--ref-max", type=int, default=1000)
     p.add_argument("--out", default="results/benchmarks")
-    args = p.parse_args()
-    main(tuple(args.sizes), args.scipy_max, out=args.out)
+    a = p.parse_args()
+    main(a.sizes, a.models, a.lanes, a.scipy_max, a.plain_max, a.ref_max, a.out)

@@ -6,6 +6,7 @@ compiled once per model *structure* (`eqx.filter_jit`): changing parameter value
 conditions, times or tolerances reuses the compiled solve.
 """
 
+import functools
 import numbers
 
 import diffrax
@@ -123,7 +124,21 @@ def _solve(model, y0, ts, solver, controller, adjoint, max_steps, dt0) -> Trajec
     return _finish(model, ts, sol.ys, ok0, sol.result, counts)
 
 
-_solve_jit = eqx.filter_jit(_solve)
+def _compiled(fn):
+    """`fn` under `eqx.filter_jit` twice: `[False]` keeps the runtime checks (host
+    callbacks); `[True]` is traced with the checks as NaN (`checks_as_nan`), for inputs
+    validated before tracing: its program can be stored in JAX's persistent compilation
+    cache. Two wrappers, so that the two kinds of trace never share a cache entry."""
+
+    @functools.wraps(fn)
+    def checks_nan(*args):
+        with checks_as_nan(jitted=(diffrax.diffeqsolve,)):
+            return fn(*args)
+
+    return {False: eqx.filter_jit(fn), True: eqx.filter_jit(checks_nan)}
+
+
+_solve_jit = _compiled(_solve)
 
 
 # ----------------------------------------------------------------------------------------
@@ -342,12 +357,19 @@ def _lane_solve(model, y0s, ts, solver, controller, max_steps, dt0, model_axes, 
         model, c["ys"], ok0, c["out_result"], c["out_counts"])
 
 
-@eqx.filter_jit
 def _solve_batch(model, y0s, ts, solver, controller, adjoint, max_steps, dt0, model_axes):
     def one(m, y0):
         return _solve(m, y0, ts, solver, controller, adjoint, max_steps, dt0)
 
     return eqx.filter_vmap(one, in_axes=(model_axes, 0))(model, y0s)
+
+
+def _lane_batch(models, y0s, ts, solver, rtol, atol, max_steps, lanes) -> Trajectory:
+    """The lane solver for a caller that traces it inside its own program (the sweep, under
+    its own `checks_as_nan`): no jit wrapper of its own, per-trajectory `models` (every
+    array leaf batched), one device."""
+    controller = diffrax.PIDController(rtol=rtol, atol=atol)
+    return _lane_solve(models, y0s, ts, solver, controller, max_steps, None, 0, lanes)
 
 
 def _cacheable(ts, *tols) -> bool:
@@ -367,7 +389,6 @@ def _mesh(devices) -> jax.sharding.Mesh:
     return jax.sharding.Mesh(np.asarray(available[:devices]), ("batch",))
 
 
-@eqx.filter_jit
 def _lane_solve_sharded(model, y0s, ts, solver, controller, max_steps, dt0, model_axes, lanes,
                         mesh):
     """`_lane_solve` on each device's share of the batch (`shard_map`: every device runs its
@@ -401,6 +422,10 @@ def _lane_solve_sharded(model, y0s, ts, solver, controller, max_steps, dt0, mode
     out = jax.shard_map(local, mesh=mesh, in_specs=(spec, P("batch"), P()),
                         out_specs=P("batch"), check_vma=False)(dyn, y0s, ts)
     return jax.tree_util.tree_map(lambda x: x[:N], out)
+
+
+_solve_batch_jit = _compiled(_solve_batch)
+_lane_solve_jit = _compiled(_lane_solve_sharded)
 
 
 def _prepare(model, ts, rtol, atol, max_steps):
@@ -460,8 +485,8 @@ def simulate(
     **Returns:** a `Trajectory`.
     """
     ts, controller, max_steps = _prepare(model, ts, rtol, atol, max_steps)
-    with checks_as_nan(_cacheable(ts, rtol, atol)):
-        traj = _solve_jit(model, y0, ts, solver, controller, adjoint, max_steps, dt0)
+    traj = _solve_jit[_cacheable(ts, rtol, atol)](model, y0, ts, solver, controller, adjoint,
+                                                  max_steps, dt0)
     if throw:
         traj = traj.result.error_if(traj, traj.result != RESULTS.successful)
     return traj
@@ -509,16 +534,15 @@ def simulate_batch(
     `stats` and `result`).
     """
     ts, controller, max_steps = _prepare(model, ts, rtol, atol, max_steps)
-    with checks_as_nan(_cacheable(ts, rtol, atol)):
-        if lanes is None:
-            traj = _solve_batch(model, y0s, ts, solver, controller, adjoint, max_steps, dt0,
-                                model_axes)
-        else:
-            if not isinstance(lanes, numbers.Integral) or isinstance(lanes, bool) or lanes < 1:
-                raise ValueError(f"`lanes` must be a positive int or None, got {lanes!r}.")
-            mesh = _mesh(devices)
-            traj = _lane_solve_sharded(model, y0s, ts, solver, controller, max_steps, dt0,
-                                       model_axes, int(lanes), mesh)
+    cacheable = _cacheable(ts, rtol, atol)
+    if lanes is None:
+        traj = _solve_batch_jit[cacheable](model, y0s, ts, solver, controller, adjoint,
+                                           max_steps, dt0, model_axes)
+    else:
+        if not isinstance(lanes, numbers.Integral) or isinstance(lanes, bool) or lanes < 1:
+            raise ValueError(f"`lanes` must be a positive int or None, got {lanes!r}.")
+        traj = _lane_solve_jit[cacheable](model, y0s, ts, solver, controller, max_steps, dt0,
+                                          model_axes, int(lanes), _mesh(devices))
     if throw:
         traj = traj.result.error_if(traj, jnp.any(traj.result != RESULTS.successful))
     return traj

@@ -14,8 +14,9 @@ through one compiled program: each device takes its part of a chunk with
 of `simulate_batch(..., lanes=lanes)`: `lanes` trajectories step together, and a lane whose
 trajectory has finished takes the next one at once. Because the lane count is fixed and
 every parameter enters as a runtime argument (nothing constant-folded), the results are
-**bitwise identical for any chunk size and any number of devices** at a given `lanes`. Each finished chunk is written to a zarr store (format 2 with consolidated
-metadata: `xarray.open_zarr(path)` reads it) and dropped, so memory does not grow with `n`.
+**bitwise identical for any chunk size and any number of devices** at a given `lanes`.
+Each finished chunk is written to a zarr store (format 2 with consolidated metadata:
+`xarray.open_zarr(path)` reads it) and dropped, so memory does not grow with `n`.
 
 The store holds, with dims `trajectory × time × axis|quat_component`: `omega`, `quat`,
 `inertia` (`trajectory × row × col`), `status` (a `RESULTS` code per trajectory; −1 = not
@@ -47,9 +48,9 @@ from jax.sharding import PartitionSpec as P
 
 from . import inertia as _inertia
 from . import invariants, rotation
-from .frames import CircularOrbit, ConstantRate, EulerAngleFrame, HarmonicAngles, Inertial
 from ._checks import checks_as_nan
-from .integrate import RESULTS, Trajectory, simulate_batch
+from .frames import CircularOrbit, ConstantRate, EulerAngleFrame, HarmonicAngles, Inertial
+from .integrate import RESULTS, Trajectory, _lane_batch
 from .models import RelativeRigidBody, RigidBody
 from .state import State
 from .torques import (
@@ -691,8 +692,7 @@ def _solve_block(scenario: Scenario, dists, key, idx, tols, lanes):
     models, y0s = jax.vmap(scenario.build)(values)
     ts = jnp.linspace(scenario.t0, scenario.t1, scenario.n_times)
     solver = getattr(diffrax, scenario.solver)()
-    traj = simulate_batch(models, y0s, ts, model_axes=0, solver=solver, rtol=tols[0],
-                          atol=tols[1], max_steps=scenario.max_steps, lanes=lanes, devices=1)
+    traj = _lane_batch(models, y0s, ts, solver, tols[0], tols[1], scenario.max_steps, lanes)
     status = jnp.where(ok, traj.result._value, RESULTS.nonfinite_state._value)
 
     def summaries(m, tr):

@@ -1,0 +1,277 @@
+"""First-call latency (trace + compile + run) of rbdyn_jax's solves, with and without JAX's
+persistent compilation cache.
+
+Setting: torque-free body, J = [[2, 0.05, 0], [0.05, 3, 0.02], [0, 0.02, 4]], ω0 ~ N(0, 1)
+per component (seed 0), identity attitude, t ∈ [0, 20], 21 output times, rtol = atol = 1e-8,
+float64, default solver (Tsit5). Cases:
+
+- `simulate`: `rb.simulate`, one trajectory;
+- `batch`: `rb.simulate_batch`, plain path (vmapped `diffeqsolve`), N = 256;
+- `lanes`: `rb.simulate_batch(..., lanes=64)`, N = 256;
+- `grad`: `jax.jit(jax.grad(loss))`, loss = Σ|ω − data|² over `simulate_batch` (plain path,
+  `RecursiveCheckpointAdjoint`), N = 16, w.r.t. the 6 log-Cholesky parameters of J
+  (`rb.inertia.from_log_cholesky`; evaluated at the true parameters + 0.05);
+- `jacfwd_lanes`: `jax.jit(jax.jacfwd(loss))`, the same loss through `lanes=16`.
+
+The data are ω(t) of the true body from scipy's `solve_ivp` (so that no JAX program is
+compiled before the timed call). Every measurement runs in a fresh process (this script
+re-invoked with `--child CASE --cache DIR|none`), which times `import jax` + `import
+rbdyn_jax`, then the first call (inputs built beforehand; `block_until_ready`) and a second
+call with the same inputs (steady state). Three processes per case: (1) no persistent cache;
+(2) cache cold: a fresh empty cache directory (`jax_compilation_cache_dir`, min compile time
+0 s, min entry size 0 bytes); (3) cache warm: a new process on the same directory.
+"entries" counts the cache files (`*-cache`) that the first call of (2) wrote (0: nothing of
+it was cacheable); "cb skip" counts the programs JAX compiled during that call but refused
+to store because they hold host callbacks (taken from JAX's log; their names are in the
+JSON). The speed-up is first call without cache / first call warm.
+
+Run: `python benchmarks/compile.py [--cases simulate batch lanes grad jacfwd_lanes]` — prints
+a table and writes results/benchmarks/compile.json (`--out DIR`). Sequential, ≈ 2–3 min at
+the defaults on a 2-core CPU; `--cases simulate` is a quick smoke test.
+"""
+
+import argparse
+import json
+import logging
+import os
+import pathlib
+import platform
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from importlib.metadata import version
+
+J_TRUE = [[2.0, 0.05, 0.0], [0.05, 3.0, 0.02], [0.0, 0.02, 4.0]]
+T_END, N_OUT, TOL, SEED = 20.0, 21, 1e-8, 0
+CASES = {  # name: (batch size, lanes)
+    "simulate": (1, None),
+    "batch": (256, None),
+    "lanes": (256, 64),
+    "grad": (16, None),
+    "jacfwd_lanes": (16, 16),
+}
+CACHE_ENV = ("JAX_COMPILATION_CACHE_DIR", "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS",
+             "JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES", "JAX_ENABLE_COMPILATION_CACHE")
+
+
+# ----------------------------------------------------------------------------------------
+# Child: one case, one cache condition, in a fresh process.
+# ----------------------------------------------------------------------------------------
+
+
+def _cache_entries(cache):
+    return 0 if cache is None else len(list(pathlib.Path(cache).glob("*-cache")))
+
+
+class _Recorder(logging.Handler):
+    """JAX's compile statistics while `on`: the programs compiled (or loaded from the cache)
+    and the time it took, persistent cache hits, and the programs not stored because they
+    hold host callbacks."""
+
+    def __init__(self):
+        super().__init__(logging.DEBUG)
+        self.on = False
+        self.stats = {"compiles": 0, "compile_or_load_s": 0.0, "cache_hits": 0,
+                      "callback_programs": []}
+
+    def emit(self, record):
+        if self.on and "because it uses host callbacks" in str(record.msg):
+            self.stats["callback_programs"].append(str(record.args[0]))
+
+    def duration(self, event, secs, **_):
+        if self.on and event == "/jax/core/compile/backend_compile_duration":
+            self.stats["compiles"] += 1
+            self.stats["compile_or_load_s"] += secs
+
+    def event(self, event, **_):
+        if self.on and event == "/jax/compilation_cache/cache_hits":
+            self.stats["cache_hits"] += 1
+
+
+def _start_jax(cache):
+    """Import jax (float64, the cache configured) and rbdyn_jax; their import times."""
+    t0 = time.perf_counter()
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    if cache is not None:
+        jax.config.update("jax_compilation_cache_dir", cache)
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0)
+        jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    t1 = time.perf_counter()
+    import rbdyn_jax  # noqa: F401
+
+    return t1 - t0, time.perf_counter() - t1
+
+
+def _reference_omega(w0, ts):
+    """ω(t) of the true body for each row of `w0` (scipy, tight tolerances), (N, n, 3)."""
+    import numpy as np
+    from scipy.integrate import solve_ivp
+
+    J = np.array(J_TRUE)
+
+    def rhs(t, w):
+        return np.linalg.solve(J, np.cross(J @ w, w))
+
+    return np.stack([solve_ivp(rhs, (ts[0], ts[-1]), w, t_eval=ts, rtol=1e-11, atol=1e-11,
+                               method="DOP853").y.T for w in w0])
+
+
+def _loss_fn(y0s, ts, data, lanes):
+    import diffrax
+    import jax.numpy as jnp
+
+    import rbdyn_jax as rb
+
+    def loss(theta):
+        model = rb.RigidBody(rb.inertia.from_log_cholesky(theta))
+        traj = rb.simulate_batch(model, y0s, ts, rtol=TOL, atol=TOL, lanes=lanes,
+                                 adjoint=diffrax.RecursiveCheckpointAdjoint())
+        return jnp.sum((traj.ys.omega - data) ** 2)
+
+    return loss
+
+
+def build_call(case):
+    """A zero-argument function making the case's call; every input is built here."""
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    import rbdyn_jax as rb
+
+    n, lanes = CASES[case]
+    ts_np = np.linspace(0.0, T_END, N_OUT)
+    w0 = np.random.default_rng(SEED).normal(size=(n, 3))
+    ts = jnp.asarray(ts_np)
+    y0s = rb.State(jnp.asarray(w0), jnp.tile(jnp.array([1.0, 0.0, 0.0, 0.0]), (n, 1)))
+    if case == "simulate":
+        model, y0 = rb.RigidBody(jnp.array(J_TRUE)), jax.tree_util.tree_map(lambda x: x[0], y0s)
+        return lambda: rb.simulate(model, y0, ts, rtol=TOL, atol=TOL)
+    if case in ("batch", "lanes"):
+        model = rb.RigidBody(jnp.array(J_TRUE))
+        return lambda: rb.simulate_batch(model, y0s, ts, rtol=TOL, atol=TOL, lanes=lanes)
+    loss = _loss_fn(y0s, ts, jnp.asarray(_reference_omega(w0, ts_np)), lanes)
+    theta = rb.inertia.to_log_cholesky(jnp.array(J_TRUE)) + 0.05
+    fn = jax.jit(jax.grad(loss) if case == "grad" else jax.jacfwd(loss))
+    return lambda: fn(theta)
+
+
+def _all_finite(out):
+    import jax
+    import numpy as np
+
+    leaves = jax.tree_util.tree_leaves(out)
+    return bool(all(np.all(np.isfinite(np.asarray(x))) for x in leaves
+                    if np.issubdtype(np.asarray(x).dtype, np.floating)))
+
+
+def child(case, cache):
+    """Measure one case in this (fresh) process; print the result as one JSON line."""
+    import_jax_s, import_rb_s = _start_jax(cache)
+    import jax
+    from jax import monitoring
+
+    rec = _Recorder()
+    logger = logging.getLogger("jax._src.compiler")
+    logger.setLevel(logging.DEBUG)
+    logger.addHandler(rec)
+    monitoring.register_event_duration_secs_listener(rec.duration)
+    monitoring.register_event_listener(rec.event)
+
+    call = build_call(case)
+    before = _cache_entries(cache)
+    rec.on = True
+    t0 = time.perf_counter()
+    out = jax.block_until_ready(call())
+    first = time.perf_counter() - t0
+    rec.on = False
+    entries = _cache_entries(cache) - before
+    t0 = time.perf_counter()
+    jax.block_until_ready(call())
+    steady = time.perf_counter() - t0
+    print(json.dumps({"import_jax_s": import_jax_s, "import_rbdyn_jax_s": import_rb_s,
+                      "first_s": first, "steady_s": steady, "entries_written": entries,
+                      "entries_total": _cache_entries(cache), "finite": _all_finite(out),
+                      "backend": jax.default_backend(), **rec.stats}))
+
+
+# ----------------------------------------------------------------------------------------
+# Driver
+# ----------------------------------------------------------------------------------------
+
+
+def run_child(case, cache):
+    env = {k: v for k, v in os.environ.items() if k not in CACHE_ENV}
+    proc = subprocess.run([sys.executable, os.path.abspath(__file__), "--child", case,
+                           "--cache", cache or "none"], env=env, capture_output=True, text=True)
+    if proc.returncode != 0:
+        raise RuntimeError(f"child {case} (cache {cache}) failed ({proc.returncode}):\n"
+                           f"{proc.stderr[-4000:]}")
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def measure(case):
+    """The three conditions of one case: no cache, cold cache, warm cache."""
+    tmp = tempfile.mkdtemp(prefix=f"rbdyn_compile_{case}_")
+    try:
+        runs = {}
+        for cond, cache in (("no_cache", None), ("cold", tmp), ("warm", tmp)):
+            print(f"  {case}: {cond} …", flush=True)
+            runs[cond] = run_child(case, cache)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    imports = sorted(r["import_jax_s"] + r["import_rbdyn_jax_s"] for r in runs.values())
+    return {"case": case, "batch": CASES[case][0], "lanes": CASES[case][1],
+            "import_s": imports[1], **{f"{c}_s": r["first_s"] for c, r in runs.items()},
+            "steady_s": runs["warm"]["steady_s"],
+            "speedup_warm": runs["no_cache"]["first_s"] / runs["warm"]["first_s"],
+            "entries": runs["cold"]["entries_written"],
+            "callback_programs": runs["cold"]["callback_programs"], "runs": runs}
+
+
+def print_table(rows):
+    head = (f"{'case':<13} {'import s':>8} | {'first call: no cache':>20} {'cold':>7} "
+            f"{'warm':>7} | {'speed-up':>8} | {'steady':>7} | {'entries':>7} {'cb skip':>7}")
+    print(head)
+    print("-" * len(head))
+    for r in rows:
+        print(f"{r['case']:<13} {r['import_s']:>8.2f} | {r['no_cache_s']:>20.2f} "
+              f"{r['cold_s']:>7.2f} {r['warm_s']:>7.2f} | {r['speedup_warm']:>7.1f}x | "
+              f"{r['steady_s']:>7.3f} | {r['entries']:>7} {len(r['callback_programs']):>7}")
+    for r in rows:
+        if r["callback_programs"]:
+            print(f"{r['case']}: not cached (host callbacks): "
+                  f"{', '.join(sorted(set(r['callback_programs'])))}")
+
+
+def main(cases=tuple(CASES), out="results/benchmarks"):
+    t0 = time.perf_counter()
+    rows = [measure(c) for c in cases]
+    print_table(rows)
+    path = pathlib.Path(out)
+    path.mkdir(parents=True, exist_ok=True)
+    meta = {"machine": platform.platform(), "cpus": os.cpu_count(), "jax": version("jax"),
+            "equinox": version("equinox"), "diffrax": version("diffrax"),
+            "backend": rows[0]["runs"]["no_cache"]["backend"] if rows else None,
+            "inertia": J_TRUE, "t_end": T_END, "n_out": N_OUT, "rtol": TOL, "atol": TOL,
+            "seed": SEED, "total_s": time.perf_counter() - t0}
+    (path / "compile.json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=2))
+    print(f"wrote {path / 'compile.json'} ({meta['total_s']:.0f} s)")
+    return rows
+
+
+if __name__ == "__main__":
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--cases", nargs="+", choices=list(CASES), default=list(CASES))
+    p.add_argument("--out", default="results/benchmarks")
+    p.add_argument("--child", choices=list(CASES), help=argparse.SUPPRESS)
+    p.add_argument("--cache", default="none", help=argparse.SUPPRESS)
+    args = p.parse_args()
+    if args.child:
+        child(args.child, None if args.cache == "none" else args.cache)
+    else:
+        main(tuple(args.cases), args.out)

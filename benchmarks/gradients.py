@@ -1,0 +1,201 @@
+"""Gradients of a batched trajectory loss with respect to the inertia: cost and accuracy of
+reverse mode (three diffrax adjoints), forward mode (diffrax's `ForwardMode` and the lane
+solver) and central finite differences, each beside the cost of one forward loss.
+
+Setting (the performance issue's): torque-free body with products of inertia,
+J = [[2, 0.05, 0], [0.05, 3, 0.02], [0, 0.02, 4]], N trajectories (default 64) with
+ω0 ~ N(0, 1) per axis (numpy `default_rng(0)`), identity initial attitude, t ∈ [0, 20] with 21
+output times, Tsit5, rtol = atol = 1e-8, `max_steps` = 4096 for every solve, float64. Data:
+the trajectories of J_data = J + diag(0.1, 0, 0) (the smallest moment 5 % larger) from the
+same ω0, solved at rtol = atol = 1e-12. Not 1.05 J: the torque-free Euler equations
+J ω' = J ω × ω are homogeneous in J, so 1.05 J has exactly the same ω(t) as J, and the loss
+and its gradient would be zero (round-off) at θ0. Loss L(θ) = Σ |ω(t; θ) − ω_data|² over
+trajectories and times, θ the 6 log-Cholesky parameters of J
+(`rb.inertia.from_log_cholesky`), evaluated at θ0 = `to_log_cholesky(J)`.
+
+Methods, each a `jax.jit`-ed function of θ: the forward loss through `simulate_batch`
+(vmapped `diffeqsolve`) and through the lane solver (`lanes=64`); `jax.grad` with
+`RecursiveCheckpointAdjoint()` (diffrax's default), with `RecursiveCheckpointAdjoint(
+checkpoints=4096)` (every step stored) and with `BacksolveAdjoint()`; `jax.jacfwd` with
+`ForwardMode()` and through the lane solver; central differences, h = 1e-6, 12 lane-solver
+losses (`lax.map` over the 12 perturbed θ). Timings: the first call (tracing + compilation
++ one run) and the median of 3 calls after it. Accuracy: the relative error
+max|g − g_ref| / max|g_ref| against g_ref = `jax.grad` (RecursiveCheckpointAdjoint) of the
+loss solved at rtol = atol = 1e-12; for the two forward rows, |L − L_ref| / |L_ref| of the loss
+value. A method that fails has its error message in the table instead of numbers.
+
+Devices: unless XLA_FLAGS is already set, the script starts XLA with two host devices
+(`--xla_force_host_platform_device_count=2`), so the lane solver splits its batch over both
+cores; the vmapped `diffeqsolve` runs on one.
+
+Run: `python benchmarks/gradients.py [--n 64] [--out DIR]` — prints a table and writes
+DIR/gradients.json (DIR defaults to results/benchmarks).
+"""
+
+import os
+
+os.environ.setdefault("XLA_FLAGS", "--xla_force_host_platform_device_count=2")
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import pathlib  # noqa: E402
+import platform  # noqa: E402
+import time  # noqa: E402
+
+import jax  # noqa: E402
+
+jax.config.update("jax_enable_x64", True)
+
+import diffrax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+
+import rbdyn_jax as rb  # noqa: E402
+
+J = np.array([[2.0, 0.05, 0.0], [0.05, 3.0, 0.02], [0.0, 0.02, 4.0]])
+J_DATA = J + np.diag([0.1, 0.0, 0.0])
+T_END, N_OUT, TOL, REF_TOL = 20.0, 21, 1e-8, 1e-12
+MAX_STEPS, LANES, H, REPEATS = 4096, 64, 1e-6, 3
+
+
+def reference_rates(inertia, y0s, ts):
+    """ω(t) (N, n, 3) of the body `inertia` at rtol = atol = REF_TOL."""
+    traj = rb.simulate_batch(rb.RigidBody(jnp.asarray(inertia)), y0s, ts, rtol=REF_TOL,
+                             atol=REF_TOL, max_steps=MAX_STEPS, throw=True)
+    return traj.ys.omega
+
+
+def problem(n, seed=0):
+    """Initial states, output times, data (trajectories of J_DATA), θ0 and the loss at θ0
+    solved at REF_TOL."""
+    w0 = np.random.default_rng(seed).normal(size=(n, 3))
+    y0s = rb.State(jnp.asarray(w0), jnp.tile(jnp.array([1.0, 0.0, 0.0, 0.0]), (n, 1)))
+    ts = jnp.linspace(0.0, T_END, N_OUT)
+    data = reference_rates(J_DATA, y0s, ts)
+    ref_loss = float(jnp.sum((reference_rates(J, y0s, ts) - data) ** 2))
+    return y0s, ts, data, rb.inertia.to_log_cholesky(jnp.asarray(J)), ref_loss
+
+
+def make_loss(y0s, ts, data, tol=TOL, **kw):
+    """L(θ) through `simulate_batch(..., **kw)` (adjoint, lanes)."""
+
+    def loss(theta):
+        model = rb.RigidBody(rb.inertia.from_log_cholesky(theta))
+        traj = rb.simulate_batch(model, y0s, ts, rtol=tol, atol=tol, max_steps=MAX_STEPS, **kw)
+        return jnp.sum((traj.ys.omega - data) ** 2)
+
+    return loss
+
+
+def central_differences(loss, h=H):
+    """∇L by central differences: the 2 × 6 perturbed losses in one `lax.map`."""
+
+    def grad(theta):
+        e = h * jnp.eye(theta.shape[0], dtype=theta.dtype)
+        f = jax.lax.map(loss, jnp.concatenate([theta + e, theta - e]))
+        return (f[: theta.shape[0]] - f[theta.shape[0]:]) / (2 * h)
+
+    return grad
+
+
+def methods(y0s, ts, data):
+    """name -> (kind, function of θ): kind "loss" or "grad"."""
+    plain = make_loss(y0s, ts, data)
+    lanes = make_loss(y0s, ts, data, lanes=LANES)
+    adj = diffrax.RecursiveCheckpointAdjoint
+    return {
+        "forward loss, vmapped diffeqsolve": ("loss", plain),
+        f"forward loss, lanes={LANES}": ("loss", lanes),
+        "grad, RecursiveCheckpointAdjoint()": ("grad", jax.grad(plain)),
+        f"grad, RecursiveCheckpointAdjoint(checkpoints={MAX_STEPS})":
+            ("grad", jax.grad(make_loss(y0s, ts, data, adjoint=adj(checkpoints=MAX_STEPS)))),
+        "grad, BacksolveAdjoint()":
+            ("grad", jax.grad(make_loss(y0s, ts, data, adjoint=diffrax.BacksolveAdjoint()))),
+        "jacfwd, ForwardMode()":
+            ("grad", jax.jacfwd(make_loss(y0s, ts, data, adjoint=diffrax.ForwardMode()))),
+        f"jacfwd, lanes={LANES}": ("grad", jax.jacfwd(lanes)),
+        f"central differences, h={H:g}, lanes": ("grad", central_differences(lanes)),
+    }
+
+
+def measure(fn, theta, repeats):
+    """First-call and median wall times of `jax.jit(fn)(theta)` and its value, or the
+    error message of a failure."""
+    f = jax.jit(fn)
+    try:
+        t0 = time.perf_counter()
+        jax.block_until_ready(f(theta))
+        first = time.perf_counter() - t0
+        times = []
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            out = jax.block_until_ready(f(theta))
+            times.append(time.perf_counter() - t0)
+    except Exception as err:  # a method that does not work: report it, go on
+        msg = str(err).strip().splitlines()
+        return {"error": f"{type(err).__name__}: {msg[0] if msg else ''}"[:300]}
+    return {"first_call_s": first, "time_s": float(np.median(times)), "value": np.asarray(out)}
+
+
+def rel_error(value, ref):
+    return float(np.max(np.abs(value - ref)) / np.max(np.abs(ref)))
+
+
+def print_table(rows):
+    w = max(len(r["method"]) for r in rows)
+    head = (f"{'method':<{w}} | {'first call s':>12} | {'time ms':>9} | {'× plain fwd':>11} | "
+            f"{'× lane fwd':>10} | {'rel. error':>10}")
+    print(head)
+    print("-" * len(head))
+    for r in rows:
+        if "error" in r:
+            print(f"{r['method']:<{w}} | failed: {r['error']}")
+            continue
+        print(f"{r['method']:<{w}} | {r['first_call_s']:>12.2f} | {1e3 * r['time_s']:>9.2f} | "
+              f"{r['x_plain_forward']:>11.2f} | {r['x_lane_forward']:>10.2f} | "
+              f"{r['rel_error']:>10.1e}")
+
+
+def main(n=64, out="results/benchmarks", repeats=REPEATS, only=None):
+    """`only`: run just the methods whose name starts with one of these strings (the two
+    forward rows, the baselines of the ratios, always run)."""
+    y0s, ts, data, theta0, ref_loss = problem(n)
+    ref_grad = jax.jit(jax.grad(make_loss(y0s, ts, data, tol=REF_TOL)))(theta0)
+    ref = {"loss": np.asarray(ref_loss), "grad": np.asarray(ref_grad)}
+    rows = []
+    for name, (kind, fn) in methods(y0s, ts, data).items():
+        if only is not None and kind != "loss" and not name.startswith(tuple(only)):
+            continue
+        r = {"method": name, "kind": kind, **measure(fn, theta0, repeats)}
+        if "value" in r:
+            r["rel_error"] = rel_error(r["value"], ref[kind])
+            r["value"] = r["value"].tolist()
+        rows.append(r)
+    base = [r.get("time_s") for r in rows[:2]]
+    for r in rows:
+        if "time_s" in r:
+            r["x_plain_forward"] = r["time_s"] / base[0] if base[0] else float("nan")
+            r["x_lane_forward"] = r["time_s"] / base[1] if base[1] else float("nan")
+    print(f"reference (rtol = atol = {REF_TOL:g}): L = {float(ref['loss']):.6e}, "
+          f"max |∇L| = {np.max(np.abs(ref['grad'])):.6e}")
+    print_table(rows)
+    path = pathlib.Path(out)
+    path.mkdir(parents=True, exist_ok=True)
+    meta = {"machine": platform.platform(), "devices": jax.device_count(),
+            "xla_flags": os.environ.get("XLA_FLAGS", ""), "jax": jax.__version__,
+            "diffrax": diffrax.__version__, "n": n, "t_end": T_END, "n_out": N_OUT,
+            "rtol": TOL, "ref_rtol": REF_TOL, "max_steps": MAX_STEPS, "lanes": LANES,
+            "fd_step": H, "repeats": repeats, "inertia": J.tolist(),
+            "inertia_data": J_DATA.tolist(), "theta0": np.asarray(theta0).tolist(),
+            "ref_loss": float(ref["loss"]), "ref_grad": ref["grad"].tolist()}
+    (path / "gradients.json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=2))
+    print(f"wrote {path / 'gradients.json'}")
+    return rows
+
+
+if __name__ == "__main__":
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--n", type=int, default=64, help="trajectories (default 64)")
+    p.add_argument("--out", default="results/benchmarks", help="output folder")
+    args = p.parse_args()
+    main(args.n, args.out)

@@ -1,0 +1,163 @@
+"""The lane solver, `simulate_batch(..., lanes=L)`, against the plain vmapped `diffeqsolve`.
+
+The lane solver drives diffrax's own solver step and PID controller, so it must take the
+*same* steps as `diffeqsolve` for every trajectory — checked exactly through the step
+counts — and save the same values: only round-off may differ (the interpolant's weights
+are formed differently; measured ≤ 5e-15 on states of size ≲ 5). Covered: a shared model
+and per-trajectory models (`model_axes=0`), a relative model in a moving frame (a
+time-dependent right-hand side), Tsit5 and Dopri5 (different interpolants), more
+trajectories than lanes (refilling), failure isolation (a non-finite start, a trajectory out
+of steps), forward-mode gradients against reverse mode and finite differences, two XLA host
+devices, input errors, and that the compiled program can enter JAX's persistent cache.
+"""
+
+import os
+import subprocess
+import sys
+import textwrap
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import rbdyn_jax as rb
+
+J = jnp.array([[2.0, 0.05, 0.0], [0.05, 3.0, 0.02], [0.0, 0.02, 4.0]])
+TS = jnp.linspace(0.0, 6.0, 13)
+N, LANES = 11, 4  # more trajectories than lanes, not a multiple: refills and idle lanes
+RTOL = 1e-9
+# Same steps (asserted exactly); the saved values differ by round-off only.
+ROUND_OFF = 1e-12
+
+
+def initial_states(n=N, seed=0):
+    rng = np.random.default_rng(seed)
+    q = rng.normal(size=(n, 4))
+    return rb.State(jnp.asarray(rng.normal(size=(n, 3))),
+                    jnp.asarray(q / np.linalg.norm(q, axis=1, keepdims=True)))
+
+
+def assert_same_solves(a, b, tol=ROUND_OFF):
+    for k in ("num_steps", "num_accepted_steps", "num_rejected_steps"):
+        np.testing.assert_array_equal(a.stats[k], b.stats[k], err_msg=k)
+    np.testing.assert_array_equal(a.result._value, b.result._value)
+    for x, y in zip(jax.tree_util.tree_leaves(a.ys), jax.tree_util.tree_leaves(b.ys)):
+        np.testing.assert_allclose(x, y, rtol=0, atol=tol, equal_nan=True)
+    np.testing.assert_allclose(a.stats["norm_drift"], b.stats["norm_drift"], atol=tol)
+
+
+def heavy_top(weight):
+    return rb.RigidBody(J, rb.UniformGravity(weight, jnp.array([0.0, 0.1, 0.5])))
+
+
+CASES = {
+    "torque_free_shared": lambda: (rb.RigidBody(J), None, diffrax.Tsit5()),
+    "heavy_top_per_trajectory_dopri5": lambda: (
+        eqx.filter_vmap(heavy_top)(jnp.linspace(0.5, 2.0, N)), 0, diffrax.Dopri5()),
+    # weight seen from a turning frame: the torque depends on t through the frame's attitude
+    "relative_rotating_frame": lambda: (
+        rb.RelativeRigidBody(J, rb.ConstantRate(jnp.array([0.0, 0.3, 1.0])),
+                             rb.UniformGravity(1.0, jnp.array([0.0, 0.1, 0.5]))), None,
+        diffrax.Tsit5()),
+}
+
+
+@pytest.mark.parametrize("case", CASES)
+def test_same_steps_and_values_as_vmapped_diffeqsolve(case):
+    model, axes, solver = CASES[case]()
+    y0s = initial_states()
+    kw = dict(model_axes=axes, solver=solver, rtol=RTOL, atol=RTOL)
+    lanes = rb.simulate_batch(model, y0s, TS, lanes=LANES, **kw)
+    plain = rb.simulate_batch(model, y0s, TS, **kw)
+    assert np.all(plain.result._value == 0)
+    assert_same_solves(lanes, plain)
+    assert lanes.ys.omega.shape == (N, len(TS), 3)
+
+
+def test_failures_stay_in_their_lane():
+    """A NaN start is `nonfinite_state`, a fast spinner runs out of steps; the lanes they
+    shared go on with other trajectories, which equal the plain solve."""
+    y0s = initial_states()
+    omega = y0s.omega.at[2].set(jnp.nan).at[7].set(jnp.array([0.0, 400.0, 1.0]))
+    y0s = rb.State(omega, y0s.quat)
+    kw = dict(rtol=RTOL, atol=RTOL, max_steps=300)
+    lanes = rb.simulate_batch(rb.RigidBody(J), y0s, TS, lanes=LANES, **kw)
+    plain = rb.simulate_batch(rb.RigidBody(J), y0s, TS, **kw)
+    codes = np.asarray(lanes.result._value)
+    assert codes[2] == rb.RESULTS.nonfinite_state._value
+    assert codes[7] == rb.RESULTS.max_steps_reached._value
+    assert np.sum(codes == 0) == N - 2
+    assert_same_solves(lanes, plain)
+
+
+def test_forward_mode_gradient_matches_reverse_mode_and_finite_differences():
+    """d/dθ of a batched loss, θ the log-Cholesky inertia parameters: `jax.jacfwd` through
+    the lane solver vs `jax.grad` through the vmapped `diffeqsolve` (reverse mode) and vs
+    central differences. Both autodiff paths differentiate the same discrete steps (the
+    controller's step-size factor is not differentiated in either), so they agree to
+    round-off; the finite differences (h = 1e-6 on O(1) θ, solves at rtol 1e-11) carry
+    O(h²) + rtol/h ≈ 1e-5 relative error."""
+    y0s = initial_states(6, seed=1)
+    ts = jnp.linspace(0.0, 3.0, 7)
+    # data from a different body (not a multiple of J: torque-free ω(t) is scale-free)
+    J_data = J + jnp.diag(jnp.array([0.1, 0.0, 0.0]))
+    obs = rb.simulate_batch(rb.RigidBody(J_data), y0s, ts, rtol=1e-11, atol=1e-11).ys.omega
+    theta0 = rb.inertia.to_log_cholesky(J)
+
+    def loss(theta, lanes):
+        model = rb.RigidBody(rb.inertia.from_log_cholesky(theta))
+        tr = rb.simulate_batch(model, y0s, ts, rtol=1e-11, atol=1e-11, lanes=lanes)
+        return jnp.sum((tr.ys.omega - obs) ** 2)
+
+    fwd = jax.jit(jax.jacfwd(lambda th: loss(th, LANES)))(theta0)
+    rev = jax.jit(jax.grad(lambda th: loss(th, None)))(theta0)
+    assert float(jnp.max(jnp.abs(rev))) > 1e-2  # a real gradient, not round-off
+    np.testing.assert_allclose(fwd, rev, rtol=1e-9, atol=1e-12 * float(jnp.max(jnp.abs(rev))))
+    f = jax.jit(lambda th: loss(th, LANES))
+    h = 1e-6
+    fd = np.array([(f(theta0.at[i].add(h)) - f(theta0.at[i].add(-h))) / (2 * h)
+                   for i in range(theta0.shape[0])])
+    np.testing.assert_allclose(fwd, fd, rtol=1e-4, atol=1e-5 * np.max(np.abs(fd)))
+
+
+def test_argument_errors():
+    y0s = initial_states()
+    for bad in (0, -3, True, 2.5):
+        with pytest.raises(ValueError, match="`lanes`"):
+            rb.simulate_batch(rb.RigidBody(J), y0s, TS, lanes=bad)
+    with pytest.raises(ValueError, match="`devices`"):
+        rb.simulate_batch(rb.RigidBody(J), y0s, TS, lanes=LANES, devices=len(jax.devices()) + 1)
+
+
+def test_two_devices_and_the_persistent_cache(tmp_path):
+    """In a fresh process with two XLA host devices, the batch (odd: padded) is split over
+    both and equals the plain solve; the compiled program holds no host callback, so it is
+    written to JAX's persistent compilation cache."""
+    out = tmp_path / "lanes.npz"
+    cache = tmp_path / "xla-cache"
+    code = textwrap.dedent(f"""
+        import jax
+        jax.config.update("jax_enable_x64", True)
+        jax.config.update("jax_compilation_cache_dir", {str(cache)!r})
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+        jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+        assert jax.device_count() == 2
+        import numpy as np, jax.numpy as jnp, rbdyn_jax as rb
+        d = np.load({str(tmp_path / "in.npz")!r})
+        tr = rb.simulate_batch(rb.RigidBody(jnp.asarray(d["J"])),
+                               rb.State(jnp.asarray(d["w"]), jnp.asarray(d["q"])),
+                               jnp.asarray(d["ts"]), rtol={RTOL}, atol={RTOL}, lanes={LANES})
+        np.savez({str(out)!r}, omega=tr.ys.omega, steps=tr.stats["num_steps"])
+    """)
+    y0s = initial_states()
+    np.savez(tmp_path / "in.npz", J=J, w=y0s.omega, q=y0s.quat, ts=TS)
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
+    subprocess.run([sys.executable, "-c", code], check=True, env=env, timeout=300)
+    got = np.load(out)
+    plain = rb.simulate_batch(rb.RigidBody(J), y0s, TS, rtol=RTOL, atol=RTOL)
+    np.testing.assert_array_equal(got["steps"], plain.stats["num_steps"])
+    np.testing.assert_allclose(got["omega"], plain.ys.omega, rtol=0, atol=ROUND_OFF)
+    assert any(p.is_file() for p in cache.rglob("*")), "nothing entered the cache"
