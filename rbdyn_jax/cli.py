@@ -475,7 +475,7 @@ def main(argv: list[str] | None = None) -> int:
     p_sweep.add_argument("--devices", type=int, default=None,
                          help="devices to shard over (default all; on CPU, one per core)")
     p_sweep.add_argument("--lanes", type=int, default=64,
-                         help="trajectories per vmapped solver loop (default 64)")
+                         help="lanes per device in the solver loop (default 64)")
     p_sweep.add_argument("--resume", action="store_true",
                          help="finish an interrupted run in --out")
     p_plot = sub.add_parser("plot", help="PNGs of a sweep store")

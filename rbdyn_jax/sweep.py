@@ -903,8 +903,9 @@ def run(
     - `n`: number of trajectories; `chunk`: trajectories solved and written at a time
       (memory ∝ chunk); `seed`: the random seed.
     - `devices`: how many of `jax.devices()` to shard each chunk over (default all).
-    - `lanes`: trajectories vmapped together in one solver loop (the compiled block shape;
-      results are bitwise identical for any `chunk` and `devices` at the same `lanes`).
+    - `lanes`: lanes of each device's solver loop (the lane solver of `simulate_batch`; a
+      lane takes the next trajectory as soon as its own has finished). Results are bitwise
+      identical for any `chunk` and `devices` at the same `lanes`.
     - `resume`: continue an interrupted run in `out` (same scenario, n, seed, lanes),
       solving only the trajectories not yet written.
     - `progress`: called with a `Progress` after every chunk.
