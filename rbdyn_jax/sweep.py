@@ -711,6 +711,9 @@ def _solve_block(scenario: Scenario, dists, key, idx, tols, lanes):
     }
 
 
+_BLOCK = 1024  # the most trajectories a device solves in one lane-solver loop
+
+
 @dataclasses.dataclass
 class _Runner:
     """The compiled chunk solver: every call has the same padded size (one compilation)."""
@@ -727,7 +730,15 @@ class _Runner:
         self.mesh = jax.sharding.Mesh(np.asarray(self.devices), ("batch",))
 
         def per_device(idx, dists, key, tols):
-            return _solve_block(sc, dists, key, idx, tols, lanes)
+            # Blocks of at most _BLOCK trajectories, one after the other: with 2 XLA:CPU
+            # host devices, a device share of 2048 (chunk 4096) hung in the XLA runtime
+            # (all threads asleep; 1024 per device and 4096 on 1 device ran). Each block
+            # goes through the same `lanes` lanes, so the results do not change.
+            k = idx.shape[0] // lanes
+            per = max(d for d in range(1, k + 1) if k % d == 0 and d * lanes <= max(_BLOCK, lanes))
+            out = jax.lax.map(lambda b: _solve_block(sc, dists, key, b, tols, lanes),
+                              idx.reshape(-1, per * lanes))
+            return jax.tree_util.tree_map(lambda x: x.reshape((-1,) + x.shape[2:]), out)
 
         # No collectives inside the solver loop: each device runs its own while loops.
         sharded = jax.shard_map(per_device, mesh=self.mesh,
