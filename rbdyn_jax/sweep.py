@@ -711,7 +711,7 @@ def _solve_block(scenario: Scenario, dists, key, idx, tols, lanes):
     }
 
 
-_BLOCK = 1024  # the most trajectories a device solves in one lane-solver loop
+_PER_LANE = 8  # trajectories per lane in one lane-solver block (a block: 8 × lanes)
 
 
 @dataclasses.dataclass
@@ -730,14 +730,14 @@ class _Runner:
         self.mesh = jax.sharding.Mesh(np.asarray(self.devices), ("batch",))
 
         def per_device(idx, dists, key, tols):
-            # Blocks of at most _BLOCK trajectories, one after the other: with 2 XLA:CPU
-            # host devices, a device share of 2048 (chunk 4096) hung in the XLA runtime
-            # (all threads asleep; 1024 per device and 4096 on 1 device ran). Each block
-            # goes through the same `lanes` lanes, so the results do not change.
-            k = idx.shape[0] // lanes
-            per = max(d for d in range(1, k + 1) if k % d == 0 and d * lanes <= max(_BLOCK, lanes))
+            # Fixed blocks of _PER_LANE × lanes trajectories, one after the other: the
+            # block's program is then the same for every chunk size and device count, so
+            # the results are bitwise identical across them (a lane-solver loop over the
+            # whole share compiles differently for each share size and rounds differently).
+            # Fixed blocks also keep a share of 2048 on 2 XLA:CPU host devices from hanging
+            # in the XLA runtime, as one loop over it did (all threads asleep).
             out = jax.lax.map(lambda b: _solve_block(sc, dists, key, b, tols, lanes),
-                              idx.reshape(-1, per * lanes))
+                              idx.reshape(-1, _PER_LANE * lanes))
             return jax.tree_util.tree_map(lambda x: x.reshape((-1,) + x.shape[2:]), out)
 
         # No collectives inside the solver loop: each device runs its own while loops.
@@ -748,8 +748,8 @@ class _Runner:
 
     @property
     def size(self) -> int:
-        """The padded chunk: a multiple of lanes × devices."""
-        quantum = self.lanes * len(self.devices)
+        """The padded chunk: a multiple of _PER_LANE × lanes × devices."""
+        quantum = _PER_LANE * self.lanes * len(self.devices)
         return -(-self.chunk // quantum) * quantum
 
     def __call__(self, idx: np.ndarray, key) -> dict[str, np.ndarray]:
@@ -773,7 +773,7 @@ _RUNNERS: dict[tuple, _Runner] = {}
 def _runner(sc: Scenario, lanes: int, devices: tuple, chunk: int) -> _Runner:
     """A compiled runner, reused by later runs of the same scenario and layout (a resumed
     or repeated run in the same process compiles nothing)."""
-    quantum = lanes * len(devices)  # the compiled shape depends on the padded chunk only
+    quantum = _PER_LANE * lanes * len(devices)  # the compiled shape: the padded chunk
     key = (json.dumps(sc.source, sort_keys=True), lanes, devices, -(-chunk // quantum))
     if key not in _RUNNERS:
         _RUNNERS.clear()  # keep one: a compiled solver holds memory

@@ -208,16 +208,6 @@ def test_same_seed_same_bits_for_any_chunk(reference_run, tmp_path, chunk):
     assert not np.array_equal(load(other)["omega"], load(out)["omega"])
 
 
-def test_blocks_give_the_same_bits(reference_run, tmp_path, monkeypatch):
-    """A device's share solved in several lane-solver blocks (as a share > 1024 is) equals
-    one block: the lanes, and so every trajectory's arithmetic, are the same."""
-    monkeypatch.setattr(sweep, "_BLOCK", 8)
-    monkeypatch.setattr(sweep, "_RUNNERS", {})
-    out = sweep.run(Scenario.from_dict(small()), N, tmp_path / "b.zarr", chunk=N, seed=3,
-                    lanes=8)
-    assert_same(load(reference_run), load(out))
-
-
 def test_two_devices_give_the_same_bits(reference_run, tmp_path):
     """A fresh process with two XLA host devices, each taking half of every chunk."""
     code = (
