@@ -11,8 +11,9 @@ quantity from a further `fold_in` with a hash of its key path), so a trajectory'
 does not depend on the chunking, the devices or the other random quantities. The solves run
 through one compiled program: each device takes its part of a chunk with
 `jax.shard_map` (no collectives inside the solver loop) and runs it through the lane solver
-of `simulate_batch(..., lanes=lanes)`: `lanes` trajectories step together, and a lane whose
-trajectory has finished takes the next one at once. Because the lane count is fixed and
+of `simulate_batch(..., lanes=lanes)`, in fixed blocks of 8 × `lanes` trajectories: `lanes`
+trajectories step together, and a lane whose trajectory has finished takes the next one of
+its block at once. Because the block shape is fixed and
 every parameter enters as a runtime argument (nothing constant-folded), the results are
 **bitwise identical for any chunk size and any number of devices** at a given `lanes`.
 Each finished chunk is written to a zarr store (format 2 with consolidated metadata:
