@@ -18,7 +18,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from . import rotation
 from ._checks import as_float_array, check_trailing
-from .dynamics import transport_moment
+from .dynamics import _matvec, transport_moment
 from .state import Kinematics
 
 _E_Z = (0.0, 0.0, 1.0)
@@ -233,11 +233,11 @@ class GravityGradient(AbstractTorque):
 
     def __call__(self, kin, inertia):
         g = kin.gamma
-        return self.eps * jnp.cross(g, inertia @ g)
+        return self.eps * jnp.cross(g, _matvec(inertia, g))
 
     def potential(self, kin, inertia):
         g = kin.gamma
-        return 0.5 * self.eps * jnp.dot(g, inertia @ g)
+        return 0.5 * self.eps * jnp.dot(g, _matvec(inertia, g))
 
 
 class BalancingTransport(AbstractTorque):
