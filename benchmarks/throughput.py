@@ -33,9 +33,7 @@ import os
 os.environ.setdefault("XLA_FLAGS", f"--xla_force_host_platform_device_count={os.cpu_count()}")
 
 import argparse  # noqa: E402
-import json  # noqa: E402
 import pathlib  # noqa: E402
-import platform  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 
@@ -50,6 +48,7 @@ import rbdyn_jax as rb  # noqa: E402
 
 sys.path.insert(0, str(pathlib.Path(__file__).parent))
 import _baselines  # noqa: E402
+import _report  # noqa: E402
 
 J = np.array([[2.0, 0.05, 0.0], [0.05, 3.0, 0.02], [0.0, 0.02, 4.0]])
 T_END, N_OUT, TOL = 100.0, 101, 1e-8
@@ -175,13 +174,9 @@ def main(sizes, models, lanes, scipy_max, plain_max, ref_max, out):
                                                method="RK45"), k, ref)
             rows.append(row)
             print_row(row)
-    path = pathlib.Path(out)
-    path.mkdir(parents=True, exist_ok=True)
-    meta = {"machine": platform.platform(), "cores": os.cpu_count(),
-            "devices": jax.device_count(), "jax": jax.__version__, "rtol": TOL,
-            "t_end": T_END, "n_out": N_OUT, "lanes": lanes, "scipy_max": scipy_max}
-    (path / "throughput.json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=2))
-    print(f"wrote {path / 'throughput.json'}")
+    meta = {"rtol": TOL, "t_end": T_END, "n_out": N_OUT, "lanes": lanes,
+            "scipy_max": scipy_max}
+    print(f"wrote {_report.write_json(out, 'throughput', meta, rows)}")
     return rows
 
 

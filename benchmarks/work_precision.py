@@ -29,9 +29,7 @@ import os
 os.environ.setdefault("XLA_FLAGS", "--xla_force_host_platform_device_count=2")
 
 import argparse  # noqa: E402
-import json  # noqa: E402
 import pathlib  # noqa: E402
-import platform  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 
@@ -46,6 +44,7 @@ import numpy as np  # noqa: E402
 import rbdyn_jax as rb  # noqa: E402
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
+import _report  # noqa: E402
 from _baselines import numba_solve  # noqa: E402
 
 J = np.array([[2.0, 0.05, 0.0], [0.05, 3.0, 0.02], [0.0, 0.02, 4.0]])
@@ -170,16 +169,11 @@ def main(n=512, tols=TOLS, out="results/benchmarks", repeats=REPEATS):
     for r in rows:
         r["n"] = n
     print_table(rows)
-    path = pathlib.Path(out)
-    path.mkdir(parents=True, exist_ok=True)
-    meta = {"machine": platform.platform(), "devices": jax.device_count(),
-            "xla_flags": os.environ.get("XLA_FLAGS", ""), "jax": jax.__version__,
-            "diffrax": diffrax.__version__, "n": n, "t_end": T_END, "n_out": N_OUT,
-            "lanes": LANES, "repeats": repeats, "inertia": J.tolist()}
-    (path / "work_precision.json").write_text(json.dumps({"meta": meta, "rows": rows},
-                                                         indent=2))
-    plot(rows, path / "work_precision.png")
-    print(f"wrote {path / 'work_precision.json'} and {path / 'work_precision.png'}")
+    meta = {"n": n, "t_end": T_END, "n_out": N_OUT, "lanes": LANES, "repeats": repeats,
+            "inertia": J.tolist()}
+    file = _report.write_json(out, "work_precision", meta, rows)
+    plot(rows, file.with_suffix(".png"))
+    print(f"wrote {file} and {file.with_suffix('.png')}")
     return rows
 
 
