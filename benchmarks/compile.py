@@ -11,7 +11,11 @@ float64, default solver (Tsit5). Cases:
 - `grad`: `jax.jit(jax.grad(loss))`, loss = Σ|ω − data|² over `simulate_batch` (plain path,
   `RecursiveCheckpointAdjoint`), N = 16, w.r.t. the 6 log-Cholesky parameters of J
   (`rb.inertia.from_log_cholesky`; evaluated at the true parameters + 0.05);
-- `jacfwd_lanes`: `jax.jit(jax.jacfwd(loss))`, the same loss through `lanes=16`.
+- `jacfwd_lanes`: `jax.jit(jax.jacfwd(loss))`, the same loss through `lanes=16`;
+- `grad_nan`, `jacfwd_lanes_nan`: the two gradients in a process started with
+  `EQX_ON_ERROR=nan` (equinox's switch: its checks give NaN instead of a host callback).
+  The loss builds `RigidBody` from a traced θ, whose inertia check is otherwise a host
+  callback in the caller's program, and JAX never caches a program with callbacks.
 
 The data are ω(t) of the true body from scipy's `solve_ivp` (so that no JAX program is
 compiled before the timed call). Every measurement runs in a fresh process (this script
@@ -25,8 +29,8 @@ it was cacheable); "cb skip" counts the programs JAX compiled during that call b
 to store because they hold host callbacks (taken from JAX's log; their names are in the
 JSON). The speed-up is first call without cache / first call warm.
 
-Run: `python benchmarks/compile.py [--cases simulate batch lanes grad jacfwd_lanes]` — prints
-a table and writes results/benchmarks/compile.json (`--out DIR`). Sequential, ≈ 2–3 min at
+Run: `python benchmarks/compile.py [--cases simulate batch lanes grad jacfwd_lanes …]` — prints
+a table and writes results/benchmarks/compile.json (`--out DIR`). Sequential, ≈ 5 min at
 the defaults on a 2-core CPU; `--cases simulate` is a quick smoke test.
 """
 
@@ -51,7 +55,13 @@ CASES = {  # name: (batch size, lanes)
     "lanes": (256, 64),
     "grad": (16, None),
     "jacfwd_lanes": (16, 16),
+    "grad_nan": (16, None),
+    "jacfwd_lanes_nan": (16, 16),
 }
+# The same gradient programs traced with equinox's checks as NaN (`EQX_ON_ERROR=nan` in the
+# child's environment): the caller's choice that makes its own program cacheable, since the
+# inertia check of a traced θ is otherwise a host callback.
+NAN_CASES = {"grad_nan": "grad", "jacfwd_lanes_nan": "jacfwd_lanes"}
 CACHE_ENV = ("JAX_COMPILATION_CACHE_DIR", "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS",
              "JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES", "JAX_ENABLE_COMPILATION_CACHE")
 
@@ -156,7 +166,7 @@ def build_call(case):
         return lambda: rb.simulate_batch(model, y0s, ts, rtol=TOL, atol=TOL, lanes=lanes)
     loss = _loss_fn(y0s, ts, jnp.asarray(_reference_omega(w0, ts_np)), lanes)
     theta = rb.inertia.to_log_cholesky(jnp.array(J_TRUE)) + 0.05
-    fn = jax.jit(jax.grad(loss) if case == "grad" else jax.jacfwd(loss))
+    fn = jax.jit(jax.grad(loss) if NAN_CASES.get(case, case) == "grad" else jax.jacfwd(loss))
     return lambda: fn(theta)
 
 
@@ -205,7 +215,9 @@ def child(case, cache):
 
 
 def run_child(case, cache):
-    env = {k: v for k, v in os.environ.items() if k not in CACHE_ENV}
+    env = {k: v for k, v in os.environ.items() if k not in CACHE_ENV + ("EQX_ON_ERROR",)}
+    if case in NAN_CASES:
+        env["EQX_ON_ERROR"] = "nan"
     proc = subprocess.run([sys.executable, os.path.abspath(__file__), "--child", case,
                            "--cache", cache or "none"], env=env, capture_output=True, text=True)
     if proc.returncode != 0:
@@ -234,12 +246,12 @@ def measure(case):
 
 
 def print_table(rows):
-    head = (f"{'case':<13} {'import s':>8} | {'first call: no cache':>20} {'cold':>7} "
+    head = (f"{'case':<16} {'import s':>8} | {'first call: no cache':>20} {'cold':>7} "
             f"{'warm':>7} | {'speed-up':>8} | {'steady':>7} | {'entries':>7} {'cb skip':>7}")
     print(head)
     print("-" * len(head))
     for r in rows:
-        print(f"{r['case']:<13} {r['import_s']:>8.2f} | {r['no_cache_s']:>20.2f} "
+        print(f"{r['case']:<16} {r['import_s']:>8.2f} | {r['no_cache_s']:>20.2f} "
               f"{r['cold_s']:>7.2f} {r['warm_s']:>7.2f} | {r['speedup_warm']:>7.1f}x | "
               f"{r['steady_s']:>7.3f} | {r['entries']:>7} {len(r['callback_programs']):>7}")
     for r in rows:

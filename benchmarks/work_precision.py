@@ -1,7 +1,8 @@
 """Work–precision of batched forward solves: the largest error against the Jacobi elliptic
 solution vs the wall time per trajectory, over a range of tolerances, for diffrax's Tsit5,
 Dopri5 and Dopri8 through `simulate_batch` (vmapped `diffeqsolve`), the lane solver
-(`simulate_batch(..., lanes=256)`) with Tsit5 and Dopri5, and the numba Dormand–Prince 5(4)
+(`simulate_batch(..., lanes=64)`: 4 trajectories per lane at the default N = 512 on two
+devices, so lanes refill) with Tsit5 and Dopri5, and the numba Dormand–Prince 5(4)
 yardstick of `benchmarks/_baselines.py`.
 
 Setting (the performance issue's): torque-free body with products of inertia,
@@ -48,7 +49,7 @@ import _report  # noqa: E402
 from _baselines import numba_solve  # noqa: E402
 
 J = np.array([[2.0, 0.05, 0.0], [0.05, 3.0, 0.02], [0.0, 0.02, 4.0]])
-T_END, N_OUT, LANES, REPEATS = 100.0, 101, 256, 3
+T_END, N_OUT, LANES, REPEATS = 100.0, 101, 64, 3
 TOLS = (1e-5, 1e-6, 1e-7, 1e-8, 1e-9, 1e-10, 1e-11)
 # name -> (diffrax solver, lanes); None as the solver marks the numba yardstick.
 METHODS = {
