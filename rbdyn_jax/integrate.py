@@ -219,10 +219,12 @@ def _lane_solve(model, y0s, ts, solver, controller, max_steps, dt0, model_axes, 
     def difficulty(m, y, ok):
         # |f(t0, y0)| in the controller's tolerance scale: the rate the state moves at,
         # which sets the step count of these rotational problems (|ω| for a free body).
+        arrays, rest = eqx.partition((m, y), eqx.is_inexact_array)
+        m, y = eqx.combine(jax.lax.stop_gradient(arrays), rest)  # an ordering: no tangents
         f = m.vector_field(t0, y, None)
         d = sum(jnp.sum((a / (controller.atol + controller.rtol * jnp.abs(b))) ** 2)
                 for a, b in zip(jax.tree_util.tree_leaves(f), jax.tree_util.tree_leaves(y)))
-        return jnp.where(ok & jnp.isfinite(d), d, -1.0)
+        return jnp.where(ok & ~jnp.isnan(d), d, -1.0)  # an overflow to inf goes first
 
     def start(m, y0):
         ok, y = _start(m, y0, t0)
@@ -423,7 +425,7 @@ def _lane_solve_sharded(model, y0s, ts, solver, controller, max_steps, dt0, mode
                            None if model_axes is None else 0, lanes)
     pad = -N % n_dev
 
-    def padded(x):  # padded and dealt: row d·(N/devices) + i holds trajectory i·devices + d
+    def padded(x):  # padded to P = N + pad, dealt: row d·(P/devices) + i holds i·devices + d
         x = jnp.concatenate([x, jnp.repeat(x[-1:], pad, axis=0)]) if pad else x
         return x.reshape((-1, n_dev) + x.shape[1:]).swapaxes(0, 1).reshape(x.shape)
 
@@ -545,9 +547,12 @@ def simulate_batch(
       flows through `lanes` lanes of one loop that drives diffrax's solver step and
       step-size controller itself, and a lane whose trajectory has finished takes the next
       one at once (a vmapped `diffeqsolve` runs every lane until the slowest trajectory of
-      the batch finishes). Same steps, same saved values (to round-off) and same `stats`
-      and `result` as the default; forward-mode differentiable (`jax.jvp`, `jax.jacfwd`),
-      not reverse-mode; `adjoint` is ignored. 256 suits a CPU (see `benchmarks/`).
+      the batch finishes). Trajectories are handed out longest-first (by |f(t0, y0)|), and
+      the devices are dealt them in turn; use fewer lanes than trajectories per device
+      (2–8 trajectories per lane) so that lanes refill and finish together. Same steps,
+      same saved values (to round-off) and same `stats` and `result` as the default;
+      forward-mode differentiable (`jax.jvp`, `jax.jacfwd`), not reverse-mode; `adjoint`
+      is ignored. 256 suits a CPU at 10³–10⁴ trajectories (see `benchmarks/`).
     - `devices`: with `lanes`, the number of local devices the batch is split over
       (default: all of the default backend; on CPU that is one unless XLA was started with
       several host devices, e.g. `XLA_FLAGS=--xla_force_host_platform_device_count=2`).

@@ -18,7 +18,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from . import rotation
 from ._checks import as_float_array, check_trailing
-from .dynamics import _matvec, transport_moment
+from .dynamics import _matvec, transport_moment  # _matvec: J v elementwise (fast on CPU)
 from .state import Kinematics
 
 _E_Z = (0.0, 0.0, 1.0)

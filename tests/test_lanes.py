@@ -7,8 +7,9 @@ are formed differently; measured ≤ 5e-15 on states of size ≲ 5). Covered: a 
 and per-trajectory models (`model_axes=0`), a relative model in a moving frame (a
 time-dependent right-hand side), Tsit5 and Dopri5 (different interpolants), more
 trajectories than lanes (refilling), failure isolation (a non-finite start, a trajectory out
-of steps), forward-mode gradients against reverse mode and finite differences, two XLA host
-devices, input errors, and that the compiled program can enter JAX's persistent cache.
+of steps), results independent of the batch order and of the lane a trajectory ran in,
+forward-mode gradients against reverse mode and finite differences, two XLA host devices
+(shared and per-trajectory models), input errors, and that the compiled program can enter JAX's persistent cache.
 """
 
 import os
@@ -77,19 +78,30 @@ def test_same_steps_and_values_as_vmapped_diffeqsolve(case):
     assert lanes.ys.omega.shape == (N, len(TS), 3)
 
 
-def test_results_do_not_depend_on_the_order_of_the_batch():
-    """Lanes take trajectories longest-first (by |f(t0, y0)| in the tolerance scale) and
-    two devices are dealt them in turn: a permuted batch gives the permuted results, to the
-    bit (each lane's arithmetic is its own), whichever lane or device a trajectory ran in."""
+def test_results_do_not_depend_on_the_order_of_the_batch_or_the_lane():
+    """Lanes take trajectories longest-first (by |f(t0, y0)| in the tolerance scale).
+    (1) A permuted batch gives the permuted results, to the bit: the bookkeeping returns
+    every trajectory to its own row. (2) Replacing one trajectory by a fast spinner moves it
+    to the front of the order, so every other trajectory runs in another lane and starts at
+    another iteration; their results are unchanged to the bit (a lane's arithmetic is its
+    own)."""
     y0s = initial_states()
-    perm = np.random.default_rng(3).permutation(N)
     kw = dict(rtol=RTOL, atol=RTOL, lanes=LANES)
     a = rb.simulate_batch(rb.RigidBody(J), y0s, TS, **kw)
+    perm = np.random.default_rng(3).permutation(N)
     b = rb.simulate_batch(rb.RigidBody(J), jax.tree_util.tree_map(lambda x: x[perm], y0s),
                           TS, **kw)
     for x, y in zip(jax.tree_util.tree_leaves((a.ys, a.stats)),
                     jax.tree_util.tree_leaves((b.ys, b.stats))):
         np.testing.assert_array_equal(np.asarray(x)[perm], y)
+    assert np.argmax(a.stats["num_steps"]) != 5  # it moves up the order: the rest move down
+    spinner = rb.State(y0s.omega.at[5].set(jnp.array([0.3, 6.0, 1.0])), y0s.quat)
+    c = rb.simulate_batch(rb.RigidBody(J), spinner, TS, **kw)
+    assert c.stats["num_steps"][5] > np.max(np.delete(np.asarray(a.stats["num_steps"]), 5))
+    keep = np.arange(N) != 5
+    for x, y in zip(jax.tree_util.tree_leaves((a.ys, a.stats)),
+                    jax.tree_util.tree_leaves((c.ys, c.stats))):
+        np.testing.assert_array_equal(np.asarray(x)[keep], np.asarray(y)[keep])
 
 
 def test_failures_stay_in_their_lane():
@@ -148,9 +160,10 @@ def test_argument_errors():
 
 
 def test_two_devices_and_the_persistent_cache(tmp_path):
-    """In a fresh process with two XLA host devices, the batch (odd: padded) is split over
-    both and equals the plain solve; the compiled program holds no host callback, so it is
-    written to JAX's persistent compilation cache."""
+    """In a fresh process with two XLA host devices, the batch (odd: padded) is dealt to
+    both and equals the plain solve, with a shared model and with per-trajectory models;
+    the compiled program holds no host callback, so it is written to JAX's persistent
+    compilation cache."""
     out = tmp_path / "lanes.npz"
     cache = tmp_path / "xla-cache"
     code = textwrap.dedent(f"""
@@ -165,14 +178,28 @@ def test_two_devices_and_the_persistent_cache(tmp_path):
         tr = rb.simulate_batch(rb.RigidBody(jnp.asarray(d["J"])),
                                rb.State(jnp.asarray(d["w"]), jnp.asarray(d["q"])),
                                jnp.asarray(d["ts"]), rtol={RTOL}, atol={RTOL}, lanes={LANES})
-        np.savez({str(out)!r}, omega=tr.ys.omega, steps=tr.stats["num_steps"])
+        import equinox as eqx
+        J = jnp.asarray(d["J"])
+        tops = eqx.filter_vmap(lambda w: rb.RigidBody(J, rb.UniformGravity(
+            w, jnp.array([0.0, 0.1, 0.5]))))(jnp.asarray(d["weights"]))
+        tr2 = rb.simulate_batch(tops, rb.State(jnp.asarray(d["w"]), jnp.asarray(d["q"])),
+                                jnp.asarray(d["ts"]), rtol={RTOL}, atol={RTOL}, lanes={LANES},
+                                model_axes=0)
+        np.savez({str(out)!r}, omega=tr.ys.omega, steps=tr.stats["num_steps"],
+                 omega2=tr2.ys.omega, steps2=tr2.stats["num_steps"])
     """)
     y0s = initial_states()
-    np.savez(tmp_path / "in.npz", J=J, w=y0s.omega, q=y0s.quat, ts=TS)
+    weights = jnp.linspace(0.5, 2.0, N)
+    np.savez(tmp_path / "in.npz", J=J, w=y0s.omega, q=y0s.quat, ts=TS, weights=weights)
     env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
     subprocess.run([sys.executable, "-c", code], check=True, env=env, timeout=300)
     got = np.load(out)
     plain = rb.simulate_batch(rb.RigidBody(J), y0s, TS, rtol=RTOL, atol=RTOL)
     np.testing.assert_array_equal(got["steps"], plain.stats["num_steps"])
     np.testing.assert_allclose(got["omega"], plain.ys.omega, rtol=0, atol=ROUND_OFF)
+    # per-trajectory models are padded and dealt to the devices with their trajectories
+    plain2 = rb.simulate_batch(eqx.filter_vmap(heavy_top)(weights), y0s, TS, rtol=RTOL,
+                               atol=RTOL, model_axes=0)
+    np.testing.assert_array_equal(got["steps2"], plain2.stats["num_steps"])
+    np.testing.assert_allclose(got["omega2"], plain2.ys.omega, rtol=0, atol=ROUND_OFF)
     assert any(p.is_file() for p in cache.rglob("*")), "nothing entered the cache"
