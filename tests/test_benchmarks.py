@@ -13,19 +13,21 @@ def test_throughput_runs_and_is_accurate(tmp_path):
     spec = importlib.util.spec_from_file_location("throughput", BENCH / "throughput.py")
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
+    # the plain path is left out (plain_max=0): the lane solver's equality with it is
+    # tested in tests/test_lanes.py, and each plain solve is one more compilation here
     rows = mod.main(sizes=(3,), models=("torque_free", "heavy_top"), lanes=2, scipy_max=2,
-                    plain_max=3, ref_max=3, out=str(tmp_path))
+                    plain_max=0, ref_max=3, out=str(tmp_path))
     saved = json.loads((tmp_path / "throughput.json").read_text())
     assert saved["rows"] == rows and [r["batch"] for r in rows] == [3, 3]
     for r in rows:
         # every method at rtol 1e-8 stays close to the reference over t ≤ 100 (the elliptic
         # solution; numba at 1e-12 for the asymmetric heavy top, whose errors grow fastest:
-        # measured 4e-5); the two rbdyn paths take the same steps and make the same error
-        for method in ("lanes", "plain", "numba", "scipy"):
+        # measured 4e-5). For the heavy top this compares rbdyn_jax with numba's independent
+        # equations (benchmarks/_baselines.py).
+        assert "plain" not in r
+        for method in ("lanes", "numba", "scipy"):
             assert r[method]["max_error"] < 1e-3, (r["model"], method)
             assert np.isfinite(r[method]["traj_per_s"])
-        assert r["lanes"]["mean_steps"] == r["plain"]["mean_steps"]
-        assert abs(r["lanes"]["max_error"] - r["plain"]["max_error"]) < 1e-10
         # the equal-accuracy yardstick is at least as accurate as the lane solver, at the
         # loosest tolerance of its grid that gets there
         eq = r["numba_equal"]
@@ -68,12 +70,12 @@ def test_work_precision_runs(tmp_path):
 
 
 def test_gradients_runs_and_agrees(tmp_path):
-    rows = load("gradients").main(n=4, out=str(tmp_path), repeats=1,
-                                  only=("grad, RecursiveCheckpointAdjoint()", "jacfwd, lanes"))
+    # jacfwd through the lanes only (its equality with reverse mode is in tests/test_lanes.py)
+    rows = load("gradients").main(n=4, out=str(tmp_path), repeats=1, only=("jacfwd, lanes",))
     by = {r["method"].split(",")[0] + ("" if "lanes" not in r["method"] else " lanes"): r
           for r in rows}
-    assert set(by) == {"forward loss", "forward loss lanes", "grad", "jacfwd lanes"}
-    # every autodiff gradient within the rtol-1e-8 solve's error of the 1e-12 reference
+    assert set(by) == {"forward loss", "forward loss lanes", "jacfwd lanes"}
+    # the losses and the gradient within the rtol-1e-8 solve's error of the 1e-12 reference
+    # (reverse mode at rtol 1e-12; measured 2.8e-9 at N = 64)
     assert all(r["rel_error"] < 1e-6 for r in rows)
-    np.testing.assert_allclose(by["jacfwd lanes"]["value"], by["grad"]["value"], rtol=1e-8,
-                               atol=1e-10 * np.max(np.abs(by["grad"]["value"])))
+    assert np.max(np.abs(by["jacfwd lanes"]["value"])) > 1.0  # a real gradient
