@@ -9,7 +9,8 @@ time-dependent right-hand side), Tsit5 and Dopri5 (different interpolants), more
 trajectories than lanes (refilling), failure isolation (a non-finite start, a trajectory out
 of steps), results independent of the batch order and of the lane a trajectory ran in,
 forward-mode gradients against reverse mode and finite differences, two XLA host devices
-(shared and per-trajectory models), input errors, and that the compiled program can enter JAX's persistent cache.
+(shared and per-trajectory models), input errors, and that the compiled program can enter
+JAX's persistent cache.
 """
 
 import os
