@@ -158,13 +158,15 @@ def plot(rows, path):
     plt.close(fig)
 
 
-def main(n=512, tols=TOLS, out="results/benchmarks", repeats=REPEATS):
+def main(n=512, tols=TOLS, out="results/benchmarks", repeats=REPEATS, methods=tuple(METHODS)):
+    """`methods`: the names of METHODS to run (default all)."""
     tols = tuple(float(t) for t in tols)
     w0 = initial_rates(n)
     ts = np.linspace(0.0, T_END, N_OUT)
     ref = exact_rates(w0, jnp.asarray(ts))
     rows = []
-    for name, (solver, lanes) in METHODS.items():
+    for name in methods:
+        solver, lanes = METHODS[name]
         run = numba_runner(w0, ts) if solver is None else rbdyn_runner(solver, lanes, w0, ts)
         rows += measure(name, run, tols, ref, repeats)
     for r in rows:

@@ -60,13 +60,17 @@ def load(name):
 
 
 def test_work_precision_runs(tmp_path):
-    rows = load("work_precision").main(n=4, tols=(1e-7,), out=str(tmp_path), repeats=1)
+    # three of the six methods: the plain path, the lane solver and numba (each diffrax
+    # solver is one more compilation; Dopri5 through the lanes is in tests/test_lanes.py)
+    rows = load("work_precision").main(n=4, tols=(1e-7,), out=str(tmp_path), repeats=1,
+                                       methods=("Tsit5", "Tsit5 lanes", "numba DP5"))
     assert (tmp_path / "work_precision.json").exists()
     by = {r["method"]: r for r in rows}
     # the lane solver takes diffrax's steps: same count and same error as the plain path
     assert by["Tsit5 lanes"]["mean_steps"] == by["Tsit5"]["mean_steps"]
     assert abs(by["Tsit5 lanes"]["max_error"] - by["Tsit5"]["max_error"]) < 1e-12
     assert all(r["max_error"] < 1e-3 for r in rows)  # rtol 1e-7 over t ≤ 100: measured ~2e-5
+    assert {r["method"] for r in rows} == {"Tsit5", "Tsit5 lanes", "numba DP5"}
 
 
 def test_gradients_runs_and_agrees(tmp_path):
