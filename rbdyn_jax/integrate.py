@@ -216,18 +216,9 @@ def _lane_solve(model, y0s, ts, solver, controller, max_steps, dt0, model_axes, 
     dyn, static = eqx.partition(model, eqx.is_array)
     axis = 0 if batched else None
 
-    def difficulty(m, y, ok):
-        # |f(t0, y0)| in the controller's tolerance scale: the rate the state moves at,
-        # which sets the step count of these rotational problems (|ω| for a free body).
-        arrays, rest = eqx.partition((m, y), eqx.is_inexact_array)
-        m, y = eqx.combine(jax.lax.stop_gradient(arrays), rest)  # an ordering: no tangents
-        f = m.vector_field(t0, y, None)
-        d = sum(jnp.sum((a / (controller.atol + controller.rtol * jnp.abs(b))) ** 2)
-                for a, b in zip(jax.tree_util.tree_leaves(f), jax.tree_util.tree_leaves(y)))
-        return jnp.where(ok & ~jnp.isnan(d), d, -1.0)  # an overflow to inf goes first
-
     def start(m, y0):
         ok, y = _start(m, y0, t0)
+        f = m.vector_field(t0, y, None)
         term = WrapTerm(diffrax.ODETerm(_Guarded(m)), 1)
         tnext, cstate = controller.init(term, t0, t1, y, dt0, ok, solver.func,
                                         solver.error_order(term))
@@ -236,14 +227,22 @@ def _lane_solve(model, y0s, ts, solver, controller, max_steps, dt0, model_axes, 
         if getattr(getattr(solver, "tableau", None), "fsal", False):
             # An explicit FSAL Runge–Kutta step starts from f(t0, y0): give it now, so that
             # a refilled lane does not make every lane re-evaluate its first stage.
-            sstate = (jnp.array(False), _where_tree(ok, m.vector_field(t0, y, None), 0.0))
-        return ok, y, tnext, sstate, jax.tree_util.tree_map(jnp.asarray, cstate)
+            sstate = (jnp.array(False), _where_tree(ok, f, 0.0))
+        # How long the trajectory will take: |f(t0, y0)| in the controller's tolerance
+        # scale, the rate the state moves at, which sets the step count of these rotational
+        # problems (|ω| for a free body). An ordering only: no tangents through it.
+        f, y_ = jax.lax.stop_gradient((f, y))
+        d = sum(jnp.sum((a / (controller.atol + controller.rtol * jnp.abs(b))) ** 2)
+                for a, b in zip(jax.tree_util.tree_leaves(f), jax.tree_util.tree_leaves(y_)))
+        d = jnp.where(ok & ~jnp.isnan(d), d, -1.0)  # an overflow to inf goes first
+        return ok, y, tnext, sstate, jax.tree_util.tree_map(jnp.asarray, cstate), d
 
-    ok0, y0r, tnext0, sstate0, cstate0 = eqx.filter_vmap(start, in_axes=(axis, 0))(model, y0s)
+    ok0, y0r, tnext0, sstate0, cstate0, difficulty = eqx.filter_vmap(
+        start, in_axes=(axis, 0))(model, y0s)
     # Longest first: lanes take the trajectories in decreasing order of an estimate of
     # their step count, so that the last ones handed out are short and the lanes finish
     # together (a random order leaves a tail of idle lanes behind the slowest).
-    order = jnp.argsort(-eqx.filter_vmap(difficulty, in_axes=(axis, 0, 0))(model, y0r, ok0))
+    order = jnp.argsort(-difficulty)
     error_order = solver.error_order(diffrax.ODETerm(_Guarded(model)))
 
     def control(tprev, tnext, y, y1, y_error, cstate):
