@@ -305,6 +305,8 @@ def _lane_solve(model, y0s, ts, solver, controller, max_steps, dt0, model_axes, 
         out_counts=jnp.zeros((N, 3), int), out_result=jnp.zeros(N, jnp.int32),
     )
 
+    lane_ids = jnp.arange(L, dtype=order.dtype)
+
     def cond(c):
         return jnp.any(c["idx"] < N)
 
@@ -314,9 +316,15 @@ def _lane_solve(model, y0s, ts, solver, controller, max_steps, dt0, model_axes, 
         # (1) Save one output time from each lane's last step.
         s = jnp.minimum(c["save"], n - 1)
         vals = interpolate(c["dense_t"][0], c["dense_t"][1], c["dense"], ts[s])
-        row = jnp.where(c["pending"], order[jnp.minimum(c["idx"], N - 1)], N)  # N: dropped
-        c["ys"] = jax.tree_util.tree_map(lambda o, v: o.at[row, s].set(v, mode="drop"),
-                                         c["ys"], vals)
+        # Lanes with nothing to save write to rows N + lane, out of bounds and dropped. Every
+        # row is then distinct, as `unique_indices` promises, and forward-mode autodiff
+        # scatters the tangents as it scatters the values. Without the promise, JAX's
+        # scatter JVP masks the whole (N, n, …) output buffer at every iteration, a cost
+        # quadratic in N (measured: a jvp of 8192 trajectories cost 10.0× the forward
+        # solve, 1.85× with the promise).
+        row = jnp.where(c["pending"], order[jnp.minimum(c["idx"], N - 1)], N + lane_ids)
+        c["ys"] = jax.tree_util.tree_map(
+            lambda o, v: o.at[row, s].set(v, mode="drop", unique_indices=True), c["ys"], vals)
         c["save"] = c["save"] + c["pending"].astype(jnp.int32)
         s = jnp.minimum(c["save"], n - 1)
         c["pending"] = c["pending"] & (c["save"] < n) & (ts[s] <= c["dense_t"][1])

@@ -8,7 +8,8 @@ and per-trajectory models (`model_axes=0`), a relative model in a moving frame (
 time-dependent right-hand side), Tsit5 and Dopri5 (different interpolants), more
 trajectories than lanes (refilling), failure isolation (a non-finite start, a trajectory out
 of steps), results independent of the batch order and of the lane a trajectory ran in,
-forward-mode gradients against reverse mode and finite differences, two XLA host devices
+forward-mode gradients against reverse mode and finite differences (and a jvp that writes
+its tangents without touching the whole output buffer), two XLA host devices
 (shared and per-trajectory models), input errors, and that the compiled program can enter
 JAX's persistent cache.
 """
@@ -21,6 +22,7 @@ import textwrap
 import diffrax
 import equinox as eqx
 import jax
+import jax.extend.core
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -149,6 +151,38 @@ def test_forward_mode_gradient_matches_reverse_mode_and_finite_differences():
     fd = np.array([(f(theta0.at[i].add(h)) - f(theta0.at[i].add(-h))) / (2 * h)
                    for i in range(theta0.shape[0])])
     np.testing.assert_allclose(fwd, fd, rtol=1e-4, atol=1e-5 * np.max(np.abs(fd)))
+
+
+def _scatters(jaxpr):
+    """Every scatter-like equation in `jaxpr` and its sub-jaxprs (loop bodies, …)."""
+    for eqn in jaxpr.eqns:
+        if eqn.primitive.name.startswith("scatter"):
+            yield eqn
+        for sub in jax.extend.core.jaxprs_in_params(eqn.params):
+            yield from _scatters(sub)
+
+
+def test_forward_mode_saves_tangents_without_touching_the_whole_output():
+    """The jvp of the lane loop writes each saved tangent where the value goes, as the
+    primal does. A scatter without `unique_indices` would instead get JAX's general JVP:
+    ids scattered into a buffer the size of the whole output, then a masked scatter-add,
+    at every loop iteration — correct, but a cost quadratic in the batch size (measured
+    10.0× the forward solve for a jvp of 8192 trajectories, against 1.85×). The value
+    tests above cannot see that, so the program is inspected: every float scatter in the
+    jvp is a plain `scatter` promising unique indices, and there is no scatter-add."""
+    y0s = initial_states()
+
+    def omega(J):
+        return rb.simulate_batch(rb.RigidBody(J), y0s, TS, rtol=RTOL, atol=RTOL,
+                                 lanes=LANES).ys.omega
+
+    jaxpr = jax.make_jaxpr(lambda J, dJ: jax.jvp(omega, (J,), (dJ,)))(J, jnp.eye(3))
+    floats = [e for e in _scatters(jaxpr.jaxpr)
+              if jnp.issubdtype(e.invars[0].aval.dtype, jnp.floating)]
+    assert floats  # the saved values (and their tangents) are there to check
+    for e in floats:
+        assert e.primitive.name == "scatter", e.primitive.name
+        assert e.params["unique_indices"], e
 
 
 def test_argument_errors():
