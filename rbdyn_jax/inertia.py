@@ -14,7 +14,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
-from ._checks import check_batch, check_trailing, sqrt_eps
+from ._checks import check_batch, check_trailing, holds_now, sqrt_eps
 from ._custom_types import BoolArray, Matrix, MatrixLike, Scalar, Vector, VectorLike
 
 LogCholesky = Float[Array, "*batch 6"]
@@ -58,6 +58,12 @@ def _planar_psd(J: Array) -> Array:
     """Smallest eigenvalue of J' (of the symmetric part of `J`) ≥ −√eps · max|J|."""
     Jp = planar(0.5 * (J + _transpose(J)))
     return jnp.linalg.eigvalsh(Jp)[..., 0] >= -sqrt_eps(J.dtype) * _max_abs(J)
+
+
+@jax.jit
+def _physical_flags(J: Array) -> tuple[BoolArray, BoolArray]:
+    """The conditions `check_inertia` enforces, in one compiled call."""
+    return _is_symmetric(J), _planar_psd(J)
 
 
 def from_principal(moments: VectorLike, axes: MatrixLike | None = None) -> Matrix:
@@ -292,8 +298,9 @@ def is_physical(J: MatrixLike) -> BoolArray:
 def check_inertia(J: MatrixLike, name: str = "inertia") -> Matrix:
     """Return `J` unchanged, with runtime errors if it is not symmetric or not physical.
 
-    The conditions are those of [`is_physical`][] (PHYSICS.md §3). Use the returned value (it
-    carries the `eqx.error_if` checks); gradients pass through unchanged.
+    The conditions are those of [`is_physical`][] (PHYSICS.md §3). Use the returned value:
+    a traced `J` comes back carrying the `eqx.error_if` checks (gradients pass through
+    unchanged); a concrete one is checked at once, in one compiled call.
 
     **Arguments:**
 
@@ -305,6 +312,8 @@ def check_inertia(J: MatrixLike, name: str = "inertia") -> Matrix:
     `J` as a float array, shape `(*batch, 3, 3)`.
     """
     J = check_trailing(J, (3, 3), name)
+    if not isinstance(J, jax.core.Tracer) and holds_now(_physical_flags(J)):
+        return J  # concrete and valid: checked now, no runtime check to carry
     Js = jax.lax.stop_gradient(J)
     symmetric = _is_symmetric(Js)
     J = eqx.error_if(J, ~symmetric, f"`{name}` is not symmetric (J must equal Jᵀ and be finite).")

@@ -21,7 +21,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float, PyTree
 
 from . import rotation
-from ._checks import check_trailing, sqrt_eps
+from ._checks import check_trailing, holds_now, sqrt_eps
 from .dynamics import euler_rhs, relative_rhs
 from .frames import AbstractFrame, Inertial
 from .inertia import check_inertia
@@ -40,10 +40,18 @@ def _inertia(J: Float[ArrayLike, "3 3"]) -> Float[Array, "3 3"]:
             "`simulate_batch(..., model_axes=0)`."
         )
     J = check_inertia(J, "inertia")
-    smallest = jnp.linalg.eigvalsh(jax.lax.stop_gradient(0.5 * (J + J.T)))[0]
-    singular = ~(smallest > sqrt_eps(J.dtype) * jnp.max(jnp.abs(jax.lax.stop_gradient(J))))
-    return eqx.error_if(J, singular, "`inertia` must be positive definite (a principal "
-                        "moment is zero: a rod or a point has no rotational dynamics).")
+    if not isinstance(J, jax.core.Tracer) and holds_now(_definite(J)):
+        return J  # concrete and valid: checked now, no runtime check to carry
+    return eqx.error_if(J, ~_definite(jax.lax.stop_gradient(J)), "`inertia` must be positive "
+                        "definite (a principal moment is zero: a rod or a point has no "
+                        "rotational dynamics).")
+
+
+@jax.jit
+def _definite(J):
+    """Whether the smallest principal moment exceeds √eps·max|J| (one compiled call)."""
+    smallest = jnp.linalg.eigvalsh(0.5 * (J + J.T))[0]
+    return smallest > sqrt_eps(J.dtype) * jnp.max(jnp.abs(J))
 
 
 def _absolute_kinematics(t, omega, quat, gamma):

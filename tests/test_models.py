@@ -829,6 +829,53 @@ def test_non_physical_or_asymmetric_inertia_is_an_error(cls):
         cls(jnp.eye(2))
 
 
+def _builds(cls, J, jit):
+    """True if `cls(J)` builds (eagerly, or traced inside `eqx.filter_jit`), else which
+    check refused it."""
+    try:
+        if jit:
+            jax.block_until_ready(eqx.filter_jit(lambda J: cls(J).inertia)(J))
+        else:
+            cls(J)
+    except eqx.EquinoxRuntimeError as e:
+        return [k for k in ("not symmetric", "not physical", "positive definite") if k in str(e)]
+    return True
+
+
+@pytest.mark.parametrize("cls", MODEL_CLASSES)
+def test_eager_inertia_check_decides_as_the_traced_check(cls):
+    """A concrete inertia is checked in one compiled call and skips `eqx.error_if` when it
+    is valid (building the first model cost ~1 s of eager compilations before). That fast
+    path must accept and reject exactly what the traced checks do, with the same message,
+    including at the √eps boundaries of symmetry, the triangle inequality and
+    definiteness."""
+    eps = float(jnp.finfo(jnp.float64).eps) ** 0.5
+    base = np.array([[2.0, 0.05, 0.0], [0.05, 3.0, 0.02], [0.0, 0.02, 4.0]])
+    asym_in, asym_out = base.copy(), base.copy()
+    asym_in[0, 1] += 0.5 * eps * 4.0  # within √eps·max|J| of symmetric
+    asym_out[0, 1] += 2.0 * eps * 4.0
+    cases = {
+        "valid": base,
+        "nearly symmetric": asym_in,
+        "not symmetric": asym_out,
+        "on the triangle inequality": np.diag([1.0, 1.0, 2.0]),
+        "just outside it": np.diag([1.0, 1.0, 2.0 + 2e-6]),
+        "rod": np.diag([1.0, 1.0, 0.0]),
+        "nearly a rod": np.diag([1.0, 1.0, 1e-12]),
+        "NaN": np.diag([1.0, np.nan, 2.5]),
+    }
+    outcomes = {name: _builds(cls, jnp.asarray(J), jit=False) for name, J in cases.items()}
+    for name, J in cases.items():
+        assert outcomes[name] == _builds(cls, jnp.asarray(J), jit=True), name
+    assert outcomes["valid"] is True and outcomes["nearly symmetric"] is True
+    assert outcomes["not symmetric"] == ["not symmetric"]
+    assert outcomes["on the triangle inequality"] is True  # a flat body: physical, definite
+    assert outcomes["just outside it"] == ["not physical"]
+    assert outcomes["rod"] == ["positive definite"]
+    assert outcomes["nearly a rod"] == ["positive definite"]
+    assert outcomes["NaN"] == ["not symmetric"]
+
+
 def test_poisson_form_rejects_attitude_torques_at_trace_time():
     y0 = rb.PoissonState(jnp.array([0.1, 0.2, 0.3]), jnp.array([0.0, 0.0, 1.0]))
     ts = jnp.linspace(0.0, 1.0, 3)
