@@ -100,6 +100,27 @@ def test_euler_to_quat_matches_scipy(seq, data):
     )
 
 
+@pytest.mark.parametrize("seq", SEQS)
+def test_gimbal_lock_error_bound_is_reached_at_the_threshold(seq):
+    """The tolerance of the test below: a second angle δ just inside the 1e-7 threshold is
+    locked, and dropping δ moves the matrix by up to 2δ, reached to within rounding
+    (found by hypothesis in CI at the ZYX angles (0, π/2 − 1e-7, π); exactly at the
+    threshold, rounding decides whether the angle is locked)."""
+    lo, hi = (0.0, np.pi) if is_proper(seq) else (-np.pi / 2, np.pi / 2)
+    d = rot.GIMBAL_LOCK_EPS * (1 - 1e-6)
+    rng = np.random.default_rng(0)
+    a, c = rng.uniform(-np.pi, np.pi, (2, 64))
+    c[:2] = np.pi, -np.pi
+    angles = np.concatenate([np.stack([a, np.full(64, lo + d), c], 1),
+                             np.stack([a, np.full(64, hi - d), c], 1)])
+    r = scipy_euler(seq, angles)
+    ours, locked = rot.quat_to_euler(r.as_quat(scalar_first=True), seq, return_gimbal_lock=True)
+    assert np.all(np.asarray(locked))
+    err = np.abs(np.asarray(rot.euler_to_dcm(ours, seq)) - r.as_matrix()).max(axis=(1, 2))
+    assert np.all(err <= 2 * rot.GIMBAL_LOCK_EPS + TIGHT)  # the tolerance used below
+    assert np.max(err) > 1.9 * d  # and it is tight: 2δ, not δ
+
+
 @_per_sequence
 def test_quat_to_euler_matches_scipy_including_gimbal_lock(seq, data):
     angles = data.draw(angles_for(seq))
@@ -118,9 +139,11 @@ def test_quat_to_euler_matches_scipy_including_gimbal_lock(seq, data):
     # At gimbal lock the third angle is 0, as scipy documents.
     np.testing.assert_array_equal(np.asarray(ours)[np.asarray(locked), 2], 0.0)
     # Whatever the case, the angles represent the rotation; in gimbal lock only up to the
-    # discarded second-angle offset (≤ 1e-7 rad).
+    # discarded second-angle offset δ ≤ 1e-7 rad, which moves a matrix entry by up to 2δ.
+    # The bound is reached at the threshold itself (δ = 1e-7, a draw of the "near" kind
+    # with offset 1e-7: measured 2e-7 plus one rounding), hence TIGHT on top of it.
     back = rot.euler_to_dcm(ours, seq)
-    tol = np.where(np.asarray(locked), 2e-7, TIGHT)[:, None, None]
+    tol = np.where(np.asarray(locked), 2 * rot.GIMBAL_LOCK_EPS + TIGHT, TIGHT)[:, None, None]
     assert np.all(np.abs(np.asarray(back) - r.as_matrix()) <= tol)
 
 
