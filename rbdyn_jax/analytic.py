@@ -27,7 +27,6 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import scipy.integrate
 from jaxtyping import Array, ArrayLike, Float
 
 from ._checks import as_float_array, check_trailing
@@ -930,6 +929,8 @@ def gg_nutation_half_period(
 
     def integrand(phi):
         return 1.0 / np.sqrt(-np.polyval(quotient, mid + half * np.sin(phi)))
+
+    import scipy.integrate  # here, not at the top: it is ~0.6 s of `import rbdyn_jax`
 
     value, _ = scipy.integrate.quad(
         integrand, -0.5 * np.pi, 0.5 * np.pi, epsabs=0.0, epsrel=1e-13, limit=200
