@@ -60,12 +60,6 @@ def _planar_psd(J: Array) -> Array:
     return jnp.linalg.eigvalsh(Jp)[..., 0] >= -sqrt_eps(J.dtype) * _max_abs(J)
 
 
-@jax.jit
-def _physical_flags(J: Array) -> tuple[BoolArray, BoolArray]:
-    """The conditions `check_inertia` enforces, in one compiled call."""
-    return _is_symmetric(J), _planar_psd(J)
-
-
 def from_principal(moments: VectorLike, axes: MatrixLike | None = None) -> Matrix:
     """Inertia tensor from principal moments and axes, `J = C diag(moments) Cᵀ`.
 
@@ -295,6 +289,9 @@ def is_physical(J: MatrixLike) -> BoolArray:
     return _is_symmetric(J) & _planar_psd(J)
 
 
+_is_physical_jit = jax.jit(is_physical)  # `check_inertia`'s test of a concrete J, at once
+
+
 def check_inertia(J: MatrixLike, name: str = "inertia") -> Matrix:
     """Return `J` unchanged, with runtime errors if it is not symmetric or not physical.
 
@@ -312,8 +309,8 @@ def check_inertia(J: MatrixLike, name: str = "inertia") -> Matrix:
     `J` as a float array, shape `(*batch, 3, 3)`.
     """
     J = check_trailing(J, (3, 3), name)
-    if not isinstance(J, jax.core.Tracer) and holds_now(_physical_flags(J)):
-        return J  # concrete and valid: checked now, no runtime check to carry
+    if holds_now(_is_physical_jit, J):
+        return J  # concrete and valid: checked now, in one compiled call
     Js = jax.lax.stop_gradient(J)
     symmetric = _is_symmetric(Js)
     J = eqx.error_if(J, ~symmetric, f"`{name}` is not symmetric (J must equal Jᵀ and be finite).")

@@ -40,8 +40,8 @@ def _inertia(J: Float[ArrayLike, "3 3"]) -> Float[Array, "3 3"]:
             "`simulate_batch(..., model_axes=0)`."
         )
     J = check_inertia(J, "inertia")
-    if not isinstance(J, jax.core.Tracer) and holds_now(_definite(J)):
-        return J  # concrete and valid: checked now, no runtime check to carry
+    if holds_now(_definite, J):
+        return J  # concrete and valid: checked now, in one compiled call
     return eqx.error_if(J, ~_definite(jax.lax.stop_gradient(J)), "`inertia` must be positive "
                         "definite (a principal moment is zero: a rod or a point has no "
                         "rotational dynamics).")
