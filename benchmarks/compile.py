@@ -12,6 +12,8 @@ float64, default solver (Tsit5). Cases:
   `RecursiveCheckpointAdjoint`), N = 16, w.r.t. the 6 log-Cholesky parameters of J
   (`rb.inertia.from_log_cholesky`; evaluated at the true parameters + 0.05);
 - `jacfwd_lanes`: `jax.jit(jax.jacfwd(loss))`, the same loss through `lanes=16`;
+  both jitted with `compiler_options=rb.COMPILER_OPTIONS`, as rbdyn_jax advises for a
+  caller's own jit (its solves are compiled with them);
 - `grad_nan`, `jacfwd_lanes_nan`: the two gradients in a process started with
   `EQX_ON_ERROR=nan` (equinox's switch: its checks give NaN instead of a host callback).
   The loss builds `RigidBody` from a traced θ, whose inertia check is otherwise a host
@@ -166,7 +168,8 @@ def build_call(case):
         return lambda: rb.simulate_batch(model, y0s, ts, rtol=TOL, atol=TOL, lanes=lanes)
     loss = _loss_fn(y0s, ts, jnp.asarray(_reference_omega(w0, ts_np)), lanes)
     theta = rb.inertia.to_log_cholesky(jnp.array(J_TRUE)) + 0.05
-    fn = jax.jit(jax.grad(loss) if NAN_CASES.get(case, case) == "grad" else jax.jacfwd(loss))
+    fn = jax.jit(jax.grad(loss) if NAN_CASES.get(case, case) == "grad" else jax.jacfwd(loss),
+                 compiler_options=rb.COMPILER_OPTIONS)
     return lambda: fn(theta)
 
 

@@ -13,7 +13,8 @@ and its gradient would be zero (round-off) at θ0. Loss L(θ) = Σ |ω(t; θ) �
 trajectories and times, θ the 6 log-Cholesky parameters of J
 (`rb.inertia.from_log_cholesky`), evaluated at θ0 = `to_log_cholesky(J)`.
 
-Methods, each a `jax.jit`-ed function of θ: the forward loss through `simulate_batch`
+Methods, each a `jax.jit`-ed function of θ (`compiler_options=rb.COMPILER_OPTIONS`, as
+rbdyn_jax advises for a caller's jit): the forward loss through `simulate_batch`
 (vmapped `diffeqsolve`) and through the lane solver (`lanes=16`: fewer lanes than each
 device's 32 trajectories, so that lanes refill longest-first and finish together; measured
 jacfwd 66 ms at 16 lanes vs 87–89 ms at 8, 32 and 64); `jax.grad` with
@@ -125,7 +126,7 @@ def methods(y0s, ts, data):
 def measure(fn, theta, repeats):
     """First-call and median wall times of `jax.jit(fn)(theta)` and its value, or the
     error message of a failure."""
-    f = jax.jit(fn)
+    f = jax.jit(fn, compiler_options=rb.COMPILER_OPTIONS)
     try:
         t0 = time.perf_counter()
         jax.block_until_ready(f(theta))
@@ -164,7 +165,8 @@ def main(n=64, out="results/benchmarks", repeats=REPEATS, only=None):
     """`only`: run just the methods whose name starts with one of these strings (the two
     forward rows, the baselines of the ratios, always run)."""
     y0s, ts, data, theta0, ref_loss = problem(n)
-    ref_grad = jax.jit(jax.grad(make_loss(y0s, ts, data, tol=REF_TOL)))(theta0)
+    ref_grad = jax.jit(jax.grad(make_loss(y0s, ts, data, tol=REF_TOL)),
+                       compiler_options=rb.COMPILER_OPTIONS)(theta0)
     ref = {"loss": np.asarray(ref_loss), "grad": np.asarray(ref_grad)}
     rows = []
     for name, (kind, fn) in methods(y0s, ts, data).items():

@@ -55,6 +55,9 @@ from .frames import (
     Inertial as Inertial,
 )
 from .integrate import (
+    COMPILER_OPTIONS as COMPILER_OPTIONS,
+)
+from .integrate import (
     RESULTS as RESULTS,
 )
 from .integrate import (

@@ -31,6 +31,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from ._checks import as_float_array, check_trailing
 from ._custom_types import QuaternionLike, Scalar, ScalarLike, VectorLike
+from ._xla import filter_jit, jit
 from .rotation import quat_from_rotvec, quat_multiply, quat_normalize, quat_rotate
 
 __all__ = [
@@ -188,9 +189,9 @@ def _ellipj_m1(u: Array, m1: Array) -> tuple[Array, Array, Array]:
     )
 
 
-_ellipj_jit = jax.jit(lambda u, m: _ellipj_m1(u, 1.0 - m))
-_ellipk_jit = jax.jit(lambda m: _ellipk_m1(1.0 - m))
-_ellipkinc_jit = jax.jit(lambda phi, m: _ellipkinc_m1(phi, 1.0 - m))
+_ellipj_jit = jit(lambda u, m: _ellipj_m1(u, 1.0 - m))
+_ellipk_jit = jit(lambda m: _ellipk_m1(1.0 - m))
+_ellipkinc_jit = jit(lambda phi, m: _ellipkinc_m1(phi, 1.0 - m))
 
 
 def ellipj(u: ScalarLike, m: ScalarLike) -> tuple[Scalar, Scalar, Scalar]:
@@ -258,7 +259,7 @@ def _symmetric_core(A, C, omega0, ts, quat0):
     return omega, quat
 
 
-_symmetric_vec = jax.jit(jnp.vectorize(_symmetric_core, signature="(),(),(3),(n),(4)->(n,3),(n,4)"))
+_symmetric_vec = jit(jnp.vectorize(_symmetric_core, signature="(),(),(3),(n),(4)->(n,3),(n,4)"))
 
 
 def torque_free_symmetric(
@@ -446,8 +447,8 @@ def _elliptic_period_core(moments, omega0):
     return jnp.where(P["spherical"] | zero, inf, out)
 
 
-_elliptic_vec = jax.jit(jnp.vectorize(_elliptic_core, signature="(3),(3),(n)->(n,3)"))
-_elliptic_period_vec = jax.jit(jnp.vectorize(_elliptic_period_core, signature="(3),(3)->()"))
+_elliptic_vec = jit(jnp.vectorize(_elliptic_core, signature="(3),(3),(n)->(n,3)"))
+_elliptic_period_vec = jit(jnp.vectorize(_elliptic_period_core, signature="(3),(3)->()"))
 
 
 def _check_moments(moments: ArrayLike) -> Array:
@@ -633,7 +634,7 @@ def lagrange_top_first_approximation(
     )
 
 
-@eqx.filter_jit
+@filter_jit
 def _first_impl(ts, C, r0, psi0, theta0, eps, M3, K, quad_order):
     x, w = _gl_rule(quad_order, ts.dtype)
     tau = eps * ts
@@ -721,7 +722,7 @@ def lagrange_top_second_approximation(
     )
 
 
-@eqx.filter_jit
+@filter_jit
 def _second_impl(ts, A_, C_, r0_, ps0, th0, eps_, M3_, ph0, p0, q0, K, quad_order):
     x, w = _gl_rule(quad_order, ts.dtype)
     Kf = lambda u: _call_K(K, u)  # noqa: E731

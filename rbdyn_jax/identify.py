@@ -36,6 +36,7 @@ from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, ArrayLike, Bool, Float, PyTree
 
 from . import rotation
+from ._xla import filter_jit
 from .inertia import from_log_cholesky, to_log_cholesky
 from .integrate import RESULTS, simulate
 from .models import RigidBody
@@ -582,7 +583,7 @@ def _assemble(p, fixed, q0_guess, model, cfg):
     return m, State(allp["omega0"], quat)
 
 
-@eqx.filter_jit
+@filter_jit
 def _run(free, fixed, q0_guess, model, data, cfg: _Config):
     flat0, unravel = ravel_pytree(free)
 

@@ -16,6 +16,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from ._checks import check_batch, check_trailing, holds_now, sqrt_eps
 from ._custom_types import BoolArray, Matrix, MatrixLike, Scalar, Vector, VectorLike
+from ._xla import jit
 
 LogCholesky = Float[Array, "*batch 6"]
 LogCholeskyLike = Float[ArrayLike, "*batch 6"]
@@ -289,7 +290,7 @@ def is_physical(J: MatrixLike) -> BoolArray:
     return _is_symmetric(J) & _planar_psd(J)
 
 
-_is_physical_jit = jax.jit(is_physical)  # `check_inertia`'s test of a concrete J, at once
+_is_physical_jit = jit(is_physical)  # `check_inertia`'s test of a concrete J, at once
 
 
 def check_inertia(J: MatrixLike, name: str = "inertia") -> Matrix:

@@ -4,6 +4,10 @@
 vmaps it over initial conditions and, with `model_axes`, over model parameters. Both are
 compiled once per model *structure* (`eqx.filter_jit`): changing parameter values, initial
 conditions, times or tolerances reuses the compiled solve.
+
+`COMPILER_OPTIONS` are the XLA options of every program rbdyn_jax compiles (a shorter
+compile on CPU, the same run time; `_xla.py`). Pass them to your own `jax.jit` around a
+solve, a gradient of a loss say: `jax.jit(jax.grad(loss), compiler_options=COMPILER_OPTIONS)`.
 """
 
 import functools
@@ -17,6 +21,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float, PyTree
 
 from ._checks import as_float_array, checks_as_nan
+from ._xla import COMPILER_OPTIONS, filter_jit
 from .models import AbstractRigidBody
 
 
@@ -135,7 +140,7 @@ def _compiled(fn):
         with checks_as_nan(jitted=(diffrax.diffeqsolve,)):
             return fn(*args)
 
-    return {False: eqx.filter_jit(fn), True: eqx.filter_jit(checks_nan)}
+    return {False: filter_jit(fn), True: filter_jit(checks_nan)}
 
 
 _solve_jit = _compiled(_solve)
@@ -585,4 +590,4 @@ def simulate_batch(
     return traj
 
 
-__all__ = ["RESULTS", "Trajectory", "simulate", "simulate_batch"]
+__all__ = ["COMPILER_OPTIONS", "RESULTS", "Trajectory", "simulate", "simulate_batch"]

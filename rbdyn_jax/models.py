@@ -22,6 +22,7 @@ from jaxtyping import Array, ArrayLike, Float, PyTree
 
 from . import rotation
 from ._checks import check_trailing, holds_now, sqrt_eps
+from ._xla import jit
 from .dynamics import euler_rhs, relative_rhs
 from .frames import AbstractFrame, Inertial
 from .inertia import check_inertia
@@ -47,7 +48,7 @@ def _inertia(J: Float[ArrayLike, "3 3"]) -> Float[Array, "3 3"]:
                         "rotational dynamics).")
 
 
-@jax.jit
+@jit
 def _definite(J):
     """Whether the smallest principal moment exceeds √eps·max|J| (one compiled call)."""
     smallest = jnp.linalg.eigvalsh(0.5 * (J + J.T))[0]

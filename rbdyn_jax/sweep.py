@@ -50,6 +50,7 @@ from jax.sharding import PartitionSpec as P
 from . import inertia as _inertia
 from . import invariants, rotation
 from ._checks import checks_as_nan
+from ._xla import jit
 from .frames import CircularOrbit, ConstantRate, EulerAngleFrame, HarmonicAngles, Inertial
 from .integrate import RESULTS, Trajectory, _lane_batch
 from .models import RelativeRigidBody, RigidBody
@@ -745,7 +746,7 @@ class _Runner:
         sharded = jax.shard_map(per_device, mesh=self.mesh,
                                 in_specs=(P("batch"), P(), P(), P()), out_specs=P("batch"),
                                 check_vma=False)
-        self.fn = jax.jit(sharded)
+        self.fn = jit(sharded)
 
     @property
     def size(self) -> int:

@@ -79,3 +79,4 @@ def test_checker_sees_a_violation(tmp_path):
     bad = tmp_path / "rotation.py"
     bad.write_text("from .integrate import simulate\nimport rbdyn_jax.sweep\n")
     assert package_imports(bad) == {"integrate", "sweep"}
+

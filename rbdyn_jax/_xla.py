@@ -1,0 +1,47 @@
+"""How rbdyn_jax compiles: every program it compiles goes through `jit` or `filter_jit`
+here, which pass `COMPILER_OPTIONS` to XLA.
+
+XLA:CPU compiles each fused kernel of a program through its MLIR "fusion emitters" by
+default. Its classic emitters compile a solver program (~100 kernels) about a third
+faster, and the program runs as fast (benchmarks/README.md, `compile.py`).
+`xla_cpu_use_fusion_emitters` is a field of XLA's `DebugOptions`; only the CPU backend
+reads it.
+
+JAX takes compiler options only from the outermost `jit` of a program (a nested one
+raises). So the wrappers here pass them when called at the top level and are plain jits
+inside a caller's transformation, whose program compiles with the caller's options: pass
+`compiler_options=rbdyn_jax.COMPILER_OPTIONS` to your own `jax.jit` for the same saving.
+"""
+
+import functools
+
+import equinox as eqx
+import jax
+from jax._src import core as _core  # `trace_state_clean`: JAX has no public spelling
+
+COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
+
+
+def top_level() -> bool:
+    """Whether nothing is being traced now: a jitted call here compiles its own program."""
+    return _core.trace_state_clean()
+
+
+def _dispatch(jitter, fn):
+    own, nested = jitter(fn, compiler_options=COMPILER_OPTIONS), jitter(fn)
+
+    @functools.wraps(fn)
+    def call(*args, **kwargs):
+        return (own if top_level() else nested)(*args, **kwargs)
+
+    return call
+
+
+def jit(fn):
+    """`jax.jit(fn)`, compiled with `COMPILER_OPTIONS` when called at the top level."""
+    return _dispatch(jax.jit, fn)
+
+
+def filter_jit(fn):
+    """`eqx.filter_jit(fn)`, compiled with `COMPILER_OPTIONS` when called at the top level."""
+    return _dispatch(eqx.filter_jit, fn)
