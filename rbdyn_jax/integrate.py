@@ -35,6 +35,18 @@ class RESULTS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
     )
 
 
+def _code(result) -> Array:
+    """The `RESULTS` code (an int32 array) of a diffrax or rbdyn_jax result item.
+
+    diffrax's codes are the first of ours with the same values (tested), so promoting one
+    is the identity on its value. `RESULTS.promote` would look the value up in a table with
+    `jax.ensure_compile_time_eval`: when the code is a constant (diffrax's step-size
+    controller and Runge–Kutta step return the constant `successful`), that lookup runs
+    eagerly while the solve is traced and compiles seven small programs on a first call
+    (measured ~0.2 s)."""
+    return jnp.asarray(result._value, jnp.int32)
+
+
 class Trajectory(eqx.Module):
     """A solved trajectory.
 
@@ -83,11 +95,14 @@ def _start(model, y0, t0):
     batch in its loop). The trajectory is then reported as `nonfinite_state`. The initial
     attitude is normalised (the torques assume a unit quaternion; a zero one becomes NaN and
     is reported as non-finite). A state whose derivative is already non-finite (NaN
-    parameters, a singular inertia) is caught here too."""
+    parameters, a singular inertia) is caught here too. Also returns f(t0, ·) of the state
+    integrated, for a caller that needs it."""
     y0, _ = model.normalise(y0)
     ok0 = _all_finite(y0)
-    ok0 = ok0 & _all_finite(model.vector_field(t0, _where_tree(ok0, y0, 1.0), None))
-    return ok0, _where_tree(ok0, y0, 1.0)
+    y_run = _where_tree(ok0, y0, 1.0)
+    f0 = model.vector_field(t0, y_run, None)
+    ok0 = ok0 & _all_finite(f0)
+    return ok0, _where_tree(ok0, y0, 1.0), f0
 
 
 def _finish(model, ts, ys, ok0, result, counts) -> Trajectory:
@@ -96,7 +111,7 @@ def _finish(model, ts, ys, ok0, result, counts) -> Trajectory:
     ys, drift = model.normalise(ys)
     ys = _where_tree(ok0, ys, jnp.nan)
     if not isinstance(result, RESULTS):  # diffrax's own codes
-        result = RESULTS.promote(result)
+        result = _as_result(_code(result))
     bad_state = ~ok0 | ((result == RESULTS.successful) & ~_all_finite(ys))
     result = RESULTS.where(bad_state, RESULTS.nonfinite_state, result)
     stats = {
@@ -110,7 +125,7 @@ def _finish(model, ts, ys, ok0, result, counts) -> Trajectory:
 
 def _solve(model, y0, ts, solver, controller, adjoint, max_steps, dt0) -> Trajectory:
     ts = eqx.error_if(ts, jnp.any(jnp.diff(ts) <= 0), "`ts` must be strictly increasing.")
-    ok0, y0_run = _start(model, y0, ts[0])
+    ok0, y0_run, _ = _start(model, y0, ts[0])
     sol = diffrax.diffeqsolve(
         diffrax.ODETerm(_Guarded(model)),
         solver,
@@ -222,17 +237,18 @@ def _lane_solve(model, y0s, ts, solver, controller, max_steps, dt0, model_axes, 
     axis = 0 if batched else None
 
     def start(m, y0):
-        ok, y = _start(m, y0, t0)
-        f = m.vector_field(t0, y, None)
+        ok, y, f = _start(m, y0, t0)  # f = f(t0, y): y is the stand-in where not ok
         term = WrapTerm(diffrax.ODETerm(_Guarded(m)), 1)
         tnext, cstate = controller.init(term, t0, t1, y, dt0, ok, solver.func,
                                         solver.error_order(term))
         tnext = jnp.minimum(tnext, t1)
-        sstate = solver.init(term, t0, tnext, y, ok)
         if getattr(getattr(solver, "tableau", None), "fsal", False):
-            # An explicit FSAL Runge–Kutta step starts from f(t0, y0): give it now, so that
-            # a refilled lane does not make every lane re-evaluate its first stage.
+            # An explicit FSAL Runge–Kutta step starts from f(t0, y0): give it now (what
+            # `solver.init` would compute), so that a refilled lane does not make every
+            # lane re-evaluate its first stage.
             sstate = (jnp.array(False), _where_tree(ok, f, 0.0))
+        else:
+            sstate = solver.init(term, t0, tnext, y, ok)
         # How long the trajectory will take: |f(t0, y0)| in the controller's tolerance
         # scale, the rate the state moves at, which sets the step count of these rotational
         # problems (|ω| for a free body). An ordering only: no tangents through it.
@@ -257,7 +273,7 @@ def _lane_solve(model, y0s, ts, solver, controller, max_steps, dt0, model_axes, 
         tp = jnp.minimum(tp, t1)
         tn = jnp.where(tn > t1_floor, jnp.where(keep, t1, tp + 0.5 * (t1 - tp)), tn)
         cstate = jax.tree_util.tree_map(jnp.asarray, cstate)
-        return keep, tp, tn, cstate, RESULTS.promote(result)._value
+        return keep, tp, tn, cstate, _code(result)
 
     def interpolate(tprev, tnext, dense, t):
         # diffrax's Runge–Kutta interpolants are linear in the step's dense information

@@ -326,6 +326,21 @@ def test_simulate_throw_switch():
     assert np.all(np.isnan(traj.ys.omega))
 
 
+def test_diffrax_codes_keep_their_values():
+    # The solves read a diffrax result's value as an rbdyn_jax code (`integrate._code`,
+    # no table lookup): this holds only while every diffrax code keeps its value, and its
+    # message, in rb.RESULTS, which is what RESULTS.promote computes.
+    items = list(diffrax.RESULTS._name_to_item.values())  # equinox lists them nowhere public
+    assert {"successful", "max_steps_reached", "dt_min_reached"} <= set(
+        diffrax.RESULTS._name_to_item)
+    for item in items:
+        ours = rb.RESULTS.promote(item)
+        assert int(rb.integrate._code(item)) == int(ours._value) == int(item._value)
+        assert rb.RESULTS[ours] == diffrax.RESULTS[item]
+    assert int(rb.integrate._code(rb.RESULTS.nonfinite_state)) not in {
+        int(item._value) for item in items}
+
+
 # ---------------------------------------------------------------------------------------
 # 5. No recompilation when only values change.
 
