@@ -325,6 +325,26 @@ def _lane_solve(model, y0s, ts, solver, controller, max_steps, dt0, model_axes, 
                                   y0s),
         out_counts=jnp.zeros((N, 3), int), out_result=jnp.zeros(N, jnp.int32),
     )
+    # The state, the solver's state, the step's dense output and the saved values take
+    # tangents (`jax.jvp`) and a batch axis (`jax.vmap`) from the model and the initial
+    # states, but the buffers start as constants and some lane states from y0 alone (the
+    # attitude and its rate do not depend on the inertia at t0). JAX finds which carries
+    # of a while loop take them by a fixpoint that re-traces the whole body on each pass;
+    # tying those carries to the inputs from the start (a select that always picks the
+    # initial value) makes it converge in one pass (`jacfwd` traced ~1 s faster, measured).
+    inputs = [x for x in jax.tree_util.tree_leaves((dyn, y0s, sstate0)) if
+              jnp.issubdtype(x.dtype, jnp.inexact)]
+    if inputs:
+        anchor = sum(jnp.sum(x) for x in inputs)
+        never = jnp.zeros((), bool)
+
+        def tied(x):
+            if not jnp.issubdtype(x.dtype, jnp.inexact):
+                return x
+            return jnp.where(never, anchor.astype(x.dtype), x)
+
+        for k in ("y", "ss", "dense", "ys"):
+            carry[k] = jax.tree_util.tree_map(tied, carry[k])
 
     lane_ids = jnp.arange(L, dtype=order.dtype)
 

@@ -107,6 +107,25 @@ def test_results_do_not_depend_on_the_order_of_the_batch_or_the_lane():
         np.testing.assert_array_equal(np.asarray(x)[keep], np.asarray(y)[keep])
 
 
+def test_vmap_over_the_lane_solver_gives_each_member_its_own_solve():
+    """`jax.vmap` over a lane solve (here over the weight of a heavy top that the whole
+    batch shares) must give each member exactly its own solve: the loop's state carries are
+    tied to the inputs from the start (so that JAX's batching fixpoint converges in one
+    pass), and every carry that depends on the mapped weight must be batched, while the
+    members' step counts differ."""
+    weights = jnp.array([0.5, 3.0])
+    y0s = initial_states()
+
+    def solve(w):
+        return rb.simulate_batch(heavy_top(w), y0s, TS, rtol=RTOL, atol=RTOL, lanes=LANES)
+
+    both = jax.vmap(solve)(weights)
+    alone = [solve(w) for w in weights]
+    assert np.any(alone[0].stats["num_steps"] != alone[1].stats["num_steps"])
+    for i, one in enumerate(alone):
+        assert_same_solves(jax.tree_util.tree_map(lambda x: x[i], both), one)
+
+
 def test_failures_stay_in_their_lane():
     """A NaN start is `nonfinite_state`, a fast spinner runs out of steps; the lanes they
     shared go on with other trajectories, which equal the plain solve."""
