@@ -198,6 +198,22 @@ def _as_result(values) -> RESULTS:
     return eqx.tree_at(lambda r: r._value, RESULTS.successful, values)
 
 
+def _floats_below(x, k: int) -> Array:
+    """`x` moved `k` representable floats towards −inf: `k` times `jnp.nextafter(x, -inf)`
+    (what diffrax's `eqxi.prevbefore` loop gives), for finite `x`, in a few operations. The
+    bit patterns of floats, read as sign-magnitude integers, are ordered as the floats
+    are, so the move is an integer subtraction on that ordering (±0 map to 0, and the
+    first float below 0 is −(smallest subnormal), as `nextafter` gives). The loop of `k`
+    nextafter calls it replaces was ~1400 of the lane solver's ~3900 XLA instructions."""
+    x = jnp.asarray(x)
+    int_type = {2: jnp.int16, 4: jnp.int32, 8: jnp.int64}[x.dtype.itemsize]
+    bits = jax.lax.bitcast_convert_type(x, int_type)
+    magnitude = bits & jnp.iinfo(int_type).max
+    key = jnp.where(bits < 0, -magnitude, magnitude) - k  # the floats' order, as integers
+    bits = jnp.where(key < 0, (-key) | jnp.iinfo(int_type).min, key).astype(int_type)
+    return jax.lax.bitcast_convert_type(bits, x.dtype)
+
+
 def _take(tree, i):
     return jax.tree_util.tree_map(lambda x: x[i], tree)
 
@@ -227,9 +243,8 @@ def _lane_solve(model, y0s, ts, solver, controller, max_steps, dt0, model_axes, 
     L = min(lanes, N)
     n = ts.shape[0]
     t0, t1 = ts[0], ts[-1]
-    t1_floor = t1  # diffeqsolve's clip: a step ending within 100 ulp of t1 ends at t1
-    for _ in range(100):
-        t1_floor = jnp.nextafter(t1_floor, -jnp.inf)
+    t1_floor = _floats_below(t1, 100)  # diffeqsolve's clip: a step ending within 100
+    # representable floats of t1 ends at t1
     batched = model_axes is not None
     if batched:  # every array leaf with a leading trajectory axis
         model = eqx.filter_vmap(lambda m: m, in_axes=(model_axes,))(model)

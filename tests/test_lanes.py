@@ -107,6 +107,32 @@ def test_results_do_not_depend_on_the_order_of_the_batch_or_the_lane():
         np.testing.assert_array_equal(np.asarray(x)[keep], np.asarray(y)[keep])
 
 
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_floats_below_is_repeated_nextafter(dtype):
+    """The lane solver's end-of-interval clip (a step ending within 100 floats of t1 ends
+    at t1, as diffeqsolve's) moves t1 down by integer arithmetic on the float's bits: it
+    must equal NumPy's `nextafter` applied k times, across binade edges (powers of 2), at
+    and around zero (signed zero, subnormals) and for negative times."""
+    from rbdyn_jax.integrate import _floats_below
+
+    rng = np.random.default_rng(1)
+    tiny = np.finfo(dtype).smallest_subnormal
+    xs = np.concatenate([
+        rng.normal(size=40) * 10.0 ** rng.uniform(-6, 6, 40),
+        [0.0, -0.0, 1.0, 2.0, 1024.0, -1.0, -2.0, 6.0, 20.0, 100.0, 3 * tiny, -3 * tiny,
+         float(np.finfo(dtype).smallest_normal)],
+    ]).astype(dtype)
+    below = jax.jit(_floats_below, static_argnums=1)
+    for k in (1, 2, 100):
+        want = xs.copy()
+        for _ in range(k):
+            want = np.nextafter(want, dtype(-np.inf))
+        got = np.asarray(below(jnp.asarray(xs), k))
+        assert got.dtype == dtype
+        np.testing.assert_array_equal(got, want)
+        np.testing.assert_array_equal(np.signbit(got), np.signbit(want))
+
+
 def test_vmap_over_the_lane_solver_gives_each_member_its_own_solve():
     """`jax.vmap` over a lane solve (here over the weight of a heavy top that the whole
     batch shares) must give each member exactly its own solve: the loop's state carries are
