@@ -199,19 +199,25 @@ def _as_result(values) -> RESULTS:
 
 
 def _floats_below(x, k: int) -> Array:
-    """`x` moved `k` representable floats towards −inf: `k` times `jnp.nextafter(x, -inf)`
-    (what diffrax's `eqxi.prevbefore` loop gives), for finite `x`, in a few operations. The
-    bit patterns of floats, read as sign-magnitude integers, are ordered as the floats
-    are, so the move is an integer subtraction on that ordering (±0 map to 0, and the
-    first float below 0 is −(smallest subnormal), as `nextafter` gives). The loop of `k`
-    nextafter calls it replaces was ~1400 of the lane solver's ~3900 XLA instructions."""
-    x = jnp.asarray(x)
+    """`x` moved `k` floats towards −inf, as diffeqsolve's end-of-interval clip moves t1:
+    `k` times equinox's `prevbefore` (`jnp.nextafter(x, -inf)`, except that 0 goes to
+    −(smallest normal)), for finite `x` outside the subnormal range (where XLA:CPU flushes
+    the loop's results to zero), in a few operations. The bit patterns of floats,
+    read as sign-magnitude integers, are ordered as the floats are, so each move is an
+    integer subtraction on that ordering. (The loop of `k` calls it replaces was ~1400 of
+    the lane solver's ~3800 XLA instructions.) A threshold only: no tangent."""
+    x = jax.lax.stop_gradient(jnp.asarray(x))
     int_type = {2: jnp.int16, 4: jnp.int32, 8: jnp.int64}[x.dtype.itemsize]
-    bits = jax.lax.bitcast_convert_type(x, int_type)
-    magnitude = bits & jnp.iinfo(int_type).max
-    key = jnp.where(bits < 0, -magnitude, magnitude) - k  # the floats' order, as integers
-    bits = jnp.where(key < 0, (-key) | jnp.iinfo(int_type).min, key).astype(int_type)
-    return jax.lax.bitcast_convert_type(bits, x.dtype)
+    top, sign = jnp.iinfo(int_type).max, jnp.iinfo(int_type).min
+
+    def below(x, k):
+        bits = jax.lax.bitcast_convert_type(x, int_type)
+        key = jnp.where(bits < 0, -(bits & top), bits) - k  # the floats' order, as integers
+        bits = jnp.where(key < 0, (-key) | sign, key).astype(int_type)
+        return jax.lax.bitcast_convert_type(bits, x.dtype)
+
+    tiny = jnp.asarray(jnp.finfo(x.dtype).tiny, x.dtype)
+    return below(jnp.where(x == 0, -tiny, below(x, 1)), k - 1)
 
 
 def _take(tree, i):
