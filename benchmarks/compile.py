@@ -17,7 +17,13 @@ float64, default solver (Tsit5). Cases:
 - `grad_nan`, `jacfwd_lanes_nan`: the two gradients in a process started with
   `EQX_ON_ERROR=nan` (equinox's switch: its checks give NaN instead of a host callback).
   The loss builds `RigidBody` from a traced θ, whose inertia check is otherwise a host
-  callback in the caller's program, and JAX never caches a program with callbacks.
+  callback in the caller's program, and JAX never caches a program with callbacks;
+- `bare_diffrax`: the machine's yardstick, no rbdyn_jax: `jax.jit(jax.vmap(solve))` of
+  `diffrax.diffeqsolve` (Tsit5, `PIDController`, `SaveAt(ts=…)`) on a hand-written
+  right-hand side of the same equations, N = 256, compiled with JAX's defaults. First
+  calls vary with the machine (on this project's 2-core VMs, by 2× between days), so the
+  table gives each case's first call also as a multiple of this one, measured in the same
+  run.
 
 The data are ω(t) of the true body from scipy's `solve_ivp` (so that no JAX program is
 compiled before the timed call). Every measurement runs in a fresh process (this script
@@ -59,7 +65,9 @@ CASES = {  # name: (batch size, lanes)
     "jacfwd_lanes": (16, 16),
     "grad_nan": (16, None),
     "jacfwd_lanes_nan": (16, 16),
+    "bare_diffrax": (256, None),
 }
+YARDSTICK = "bare_diffrax"
 # The same gradient programs traced with equinox's checks as NaN (`EQX_ON_ERROR=nan` in the
 # child's environment): the caller's choice that makes its own program cacheable, since the
 # inertia check of a traced θ is otherwise a host callback.
@@ -102,8 +110,9 @@ class _Recorder(logging.Handler):
             self.stats["cache_hits"] += 1
 
 
-def _start_jax(cache):
-    """Import jax (float64, the cache configured) and rbdyn_jax; their import times."""
+def _start_jax(cache, case):
+    """Import jax (float64, the cache configured) and, but for the yardstick, rbdyn_jax
+    (diffrax for the yardstick); their import times."""
     t0 = time.perf_counter()
     import jax
 
@@ -113,7 +122,10 @@ def _start_jax(cache):
         jax.config.update("jax_persistent_cache_min_compile_time_secs", 0)
         jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
     t1 = time.perf_counter()
-    import rbdyn_jax  # noqa: F401
+    if case == YARDSTICK:
+        import diffrax  # noqa: F401
+    else:
+        import rbdyn_jax  # noqa: F401
 
     return t1 - t0, time.perf_counter() - t1
 
@@ -147,17 +159,53 @@ def _loss_fn(y0s, ts, data, lanes):
     return loss
 
 
-def build_call(case):
-    """A zero-argument function making the case's call; every input is built here."""
+def _bare_call(w0, ts_np):
+    """The yardstick: a vmapped `diffeqsolve` of J ω' = Jω × ω, q' = ½ q ⊗ (0, ω), written
+    here without rbdyn_jax (the problem of the `batch` case)."""
+    import diffrax
     import jax
     import jax.numpy as jnp
+
+    J = jnp.array(J_TRUE)
+    Jinv = jnp.linalg.inv(J)
+
+    def rhs(t, y, args):
+        w, (qw, qx, qy, qz) = y[:3], y[3:]
+        dw = Jinv @ jnp.cross(J @ w, w)
+        p, q, r = w
+        dq = 0.5 * jnp.stack([-qx * p - qy * q - qz * r, qw * p + qy * r - qz * q,
+                              qw * q + qz * p - qx * r, qw * r + qx * q - qy * p])
+        return jnp.concatenate([dw, dq])
+
+    ts = jnp.asarray(ts_np)
+
+    def solve(y0):
+        return diffrax.diffeqsolve(
+            diffrax.ODETerm(rhs), diffrax.Tsit5(), ts[0], ts[-1], None, y0,
+            saveat=diffrax.SaveAt(ts=ts), max_steps=16_384,
+            stepsize_controller=diffrax.PIDController(rtol=TOL, atol=TOL)).ys
+
+    y0s = jnp.concatenate([jnp.asarray(w0), jnp.tile(jnp.array([1.0, 0.0, 0.0, 0.0]),
+                                                     (w0.shape[0], 1))], axis=1)
+    fn = jax.jit(jax.vmap(solve))
+    return lambda: fn(y0s)
+
+
+def build_call(case):
+    """A zero-argument function making the case's call; every input is built here."""
+    n, lanes = CASES[case]
     import numpy as np
+
+    ts_np = np.linspace(0.0, T_END, N_OUT)
+    w0 = np.random.default_rng(SEED).normal(size=(n, 3))
+    if case == YARDSTICK:
+        return _bare_call(w0, ts_np)
+
+    import jax
+    import jax.numpy as jnp
 
     import rbdyn_jax as rb
 
-    n, lanes = CASES[case]
-    ts_np = np.linspace(0.0, T_END, N_OUT)
-    w0 = np.random.default_rng(SEED).normal(size=(n, 3))
     ts = jnp.asarray(ts_np)
     y0s = rb.State(jnp.asarray(w0), jnp.tile(jnp.array([1.0, 0.0, 0.0, 0.0]), (n, 1)))
     if case == "simulate":
@@ -184,7 +232,7 @@ def _all_finite(out):
 
 def child(case, cache):
     """Measure one case in this (fresh) process; print the result as one JSON line."""
-    import_jax_s, import_rb_s = _start_jax(cache)
+    import_jax_s, import_rb_s = _start_jax(cache, case)
     import jax
     from jax import monitoring
 
@@ -249,12 +297,15 @@ def measure(case):
 
 
 def print_table(rows):
-    head = (f"{'case':<16} {'import s':>8} | {'first call: no cache':>20} {'cold':>7} "
-            f"{'warm':>7} | {'speed-up':>8} | {'steady':>7} | {'entries':>7} {'cb skip':>7}")
+    bare = next((r["no_cache_s"] for r in rows if r["case"] == YARDSTICK), None)
+    head = (f"{'case':<16} {'import s':>8} | {'first call: no cache':>20} {'/ bare':>6} "
+            f"{'cold':>7} {'warm':>7} | {'speed-up':>8} | {'steady':>7} | {'entries':>7} "
+            f"{'cb skip':>7}")
     print(head)
     print("-" * len(head))
     for r in rows:
-        print(f"{r['case']:<16} {r['import_s']:>8.2f} | {r['no_cache_s']:>20.2f} "
+        rel = f"{r['no_cache_s'] / bare:>5.2f}x" if bare else f"{'—':>6}"
+        print(f"{r['case']:<16} {r['import_s']:>8.2f} | {r['no_cache_s']:>20.2f} {rel} "
               f"{r['cold_s']:>7.2f} {r['warm_s']:>7.2f} | {r['speedup_warm']:>7.1f}x | "
               f"{r['steady_s']:>7.3f} | {r['entries']:>7} {len(r['callback_programs']):>7}")
     for r in rows:
@@ -266,6 +317,9 @@ def print_table(rows):
 def main(cases=tuple(CASES), out="results/benchmarks"):
     t0 = time.perf_counter()
     rows = [measure(c) for c in cases]
+    bare = next((r["no_cache_s"] for r in rows if r["case"] == YARDSTICK), None)
+    for r in rows:  # first call without cache as a multiple of the yardstick's, same run
+        r["vs_bare"] = r["no_cache_s"] / bare if bare else None
     print_table(rows)
     path = pathlib.Path(out)
     path.mkdir(parents=True, exist_ok=True)

@@ -161,7 +161,7 @@ def test_vmap_over_the_lane_solver_gives_each_member_its_own_solve():
     alone = [solve(w) for w in weights]
     assert np.any(alone[0].stats["num_steps"] != alone[1].stats["num_steps"])
     for i, one in enumerate(alone):
-        assert_same_solves(jax.tree_util.tree_map(lambda x: x[i], both), one)
+        assert_same_solves(jax.tree_util.tree_map(lambda x, i=i: x[i], both), one)
 
 
 def test_failures_stay_in_their_lane():
