@@ -297,14 +297,13 @@ def measure(case):
 
 
 def print_table(rows):
-    bare = next((r["no_cache_s"] for r in rows if r["case"] == YARDSTICK), None)
     head = (f"{'case':<16} {'import s':>8} | {'first call: no cache':>20} {'/ bare':>6} "
             f"{'cold':>7} {'warm':>7} | {'speed-up':>8} | {'steady':>7} | {'entries':>7} "
             f"{'cb skip':>7}")
     print(head)
     print("-" * len(head))
     for r in rows:
-        rel = f"{r['no_cache_s'] / bare:>5.2f}x" if bare else f"{'—':>6}"
+        rel = f"{r['vs_bare']:>5.2f}x" if r.get("vs_bare") else f"{'—':>6}"
         print(f"{r['case']:<16} {r['import_s']:>8.2f} | {r['no_cache_s']:>20.2f} {rel} "
               f"{r['cold_s']:>7.2f} {r['warm_s']:>7.2f} | {r['speedup_warm']:>7.1f}x | "
               f"{r['steady_s']:>7.3f} | {r['entries']:>7} {len(r['callback_programs']):>7}")
