@@ -258,18 +258,20 @@ def warmup() -> None:
                     np.linspace(0.0, 1.0, 3), 1e-6, 1e-6)
 
 
-def _numpy_rhs(code, J, Jinv, weight, com, eps):
+def _numpy_rhs(code, J, Jinv, weight, com, eps, xp=np):
+    """f(t, y) of the 7-state (ω, q) in NumPy, or in any NumPy-like module `xp` (`jax.numpy`
+    for `compile.py`'s bare-diffrax yardstick)."""
     def f(t, y):
         w, (qw, qx, qy, qz) = y[:3], y[3:]
-        m = np.cross(J @ w, w)
+        m = xp.cross(J @ w, w)
         if code != 0:
-            g = np.array([2 * (qx * qz - qw * qy), 2 * (qy * qz + qw * qx),
+            g = xp.stack([2 * (qx * qz - qw * qy), 2 * (qy * qz + qw * qx),
                           qw * qw - qx * qx - qy * qy + qz * qz])
-            m += weight * np.cross(g, com) if code == 1 else eps * np.cross(g, J @ g)
+            m = m + (weight * xp.cross(g, com) if code == 1 else eps * xp.cross(g, J @ g))
         wx, wy, wz = w
-        return np.array([*(Jinv @ m), -0.5 * (qx * wx + qy * wy + qz * wz),
-                         0.5 * (qw * wx + qy * wz - qz * wy), 0.5 * (qw * wy + qz * wx - qx * wz),
-                         0.5 * (qw * wz + qx * wy - qy * wx)])
+        return xp.concatenate([Jinv @ m, xp.stack([
+            -0.5 * (qx * wx + qy * wy + qz * wz), 0.5 * (qw * wx + qy * wz - qz * wy),
+            0.5 * (qw * wy + qz * wx - qx * wz), 0.5 * (qw * wz + qx * wy - qy * wx)])])
     return f
 
 

@@ -19,11 +19,11 @@ float64, default solver (Tsit5). Cases:
   The loss builds `RigidBody` from a traced θ, whose inertia check is otherwise a host
   callback in the caller's program, and JAX never caches a program with callbacks;
 - `bare_diffrax`: the machine's yardstick, no rbdyn_jax: `jax.jit(jax.vmap(solve))` of
-  `diffrax.diffeqsolve` (Tsit5, `PIDController`, `SaveAt(ts=…)`) on a hand-written
-  right-hand side of the same equations, N = 256, compiled with JAX's defaults. First
-  calls vary with the machine (on this project's 2-core VMs, by 2× between days), so the
-  table gives each case's first call also as a multiple of this one, measured in the same
-  run.
+  `diffrax.diffeqsolve` (Tsit5, `PIDController`, `SaveAt(ts=…)`) on the scipy baseline's
+  right-hand side (`_baselines._numpy_rhs`) in `jax.numpy`, N = 256, compiled with JAX's
+  defaults. First calls vary with the machine (on this project's 2-core VMs, by 2× between
+  days), so the table gives each case's first call also as a multiple of this one, measured
+  in the same run.
 
 The data are ω(t) of the true body from scipy's `solve_ivp` (so that no JAX program is
 compiled before the timed call). Every measurement runs in a fresh process (this script
@@ -160,28 +160,26 @@ def _loss_fn(y0s, ts, data, lanes):
 
 
 def _bare_call(w0, ts_np):
-    """The yardstick: a vmapped `diffeqsolve` of J ω' = Jω × ω, q' = ½ q ⊗ (0, ω), written
-    here without rbdyn_jax (the problem of the `batch` case)."""
+    """The yardstick: a vmapped `diffeqsolve` of the torque-free body, without rbdyn_jax:
+    the right-hand side is the scipy baseline's (`_baselines._numpy_rhs`) in `jax.numpy`
+    (the problem of the `batch` case)."""
     import diffrax
     import jax
     import jax.numpy as jnp
 
+    here = str(pathlib.Path(__file__).parent)
+    if here not in sys.path:
+        sys.path.insert(0, here)
+    import _baselines
+
     J = jnp.array(J_TRUE)
-    Jinv = jnp.linalg.inv(J)
-
-    def rhs(t, y, args):
-        w, (qw, qx, qy, qz) = y[:3], y[3:]
-        dw = Jinv @ jnp.cross(J @ w, w)
-        p, q, r = w
-        dq = 0.5 * jnp.stack([-qx * p - qy * q - qz * r, qw * p + qy * r - qz * q,
-                              qw * q + qz * p - qx * r, qw * r + qx * q - qy * p])
-        return jnp.concatenate([dw, dq])
-
+    f = _baselines._numpy_rhs(_baselines.MODELS["torque_free"], J, jnp.linalg.inv(J),
+                              None, None, None, xp=jnp)
     ts = jnp.asarray(ts_np)
 
     def solve(y0):
         return diffrax.diffeqsolve(
-            diffrax.ODETerm(rhs), diffrax.Tsit5(), ts[0], ts[-1], None, y0,
+            diffrax.ODETerm(lambda t, y, args: f(t, y)), diffrax.Tsit5(), ts[0], ts[-1], None, y0,
             saveat=diffrax.SaveAt(ts=ts), max_steps=16_384,
             stepsize_controller=diffrax.PIDController(rtol=TOL, atol=TOL)).ys
 
@@ -193,9 +191,9 @@ def _bare_call(w0, ts_np):
 
 def build_call(case):
     """A zero-argument function making the case's call; every input is built here."""
-    n, lanes = CASES[case]
     import numpy as np
 
+    n, lanes = CASES[case]
     ts_np = np.linspace(0.0, T_END, N_OUT)
     w0 = np.random.default_rng(SEED).normal(size=(n, 3))
     if case == YARDSTICK:
