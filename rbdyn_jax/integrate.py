@@ -5,6 +5,9 @@ vmaps it over initial conditions and, with `model_axes`, over model parameters. 
 compiled once per model *structure* (`eqx.filter_jit`): changing parameter values, initial
 conditions, times or tolerances reuses the compiled solve.
 
+With JAX's persistent compilation cache configured, the traced solves are stored beside it
+(`_traces.py`), so that a later process skips tracing as well as compiling.
+
 `COMPILER_OPTIONS` are the XLA options of every program rbdyn_jax compiles (a shorter
 compile on CPU, the same run time; `_xla.py`). Pass them to your own `jax.jit` around a
 solve, a gradient of a loss say: `jax.jit(jax.grad(loss), compiler_options=COMPILER_OPTIONS)`.
@@ -20,6 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, PyTree
 
+from . import _traces
 from ._checks import as_float_array, checks_as_nan
 from ._xla import COMPILER_OPTIONS, filter_jit
 from .models import AbstractRigidBody
@@ -148,14 +152,15 @@ def _compiled(fn):
     """`fn` under `eqx.filter_jit` twice: `[False]` keeps the runtime checks (host
     callbacks); `[True]` is traced with the checks as NaN (`checks_as_nan`), for inputs
     validated before tracing: its program can be stored in JAX's persistent compilation
-    cache. Two wrappers, so that the two kinds of trace never share a cache entry."""
+    cache, and its trace in rbdyn_jax's beside it (`_traces.py`). Two wrappers, so that the
+    two kinds of trace never share a cache entry."""
 
     @functools.wraps(fn)
     def checks_nan(*args):
         with checks_as_nan(jitted=(diffrax.diffeqsolve,)):
             return fn(*args)
 
-    return {False: filter_jit(fn), True: filter_jit(checks_nan)}
+    return {False: filter_jit(fn), True: _traces.cached(checks_nan, filter_jit(checks_nan))}
 
 
 _solve_jit = _compiled(_solve)

@@ -1,0 +1,165 @@
+"""The on-disk cache of traced solves (`rbdyn_jax/_traces.py`): a later process gets the
+same results from a loaded trace as from tracing, and a key never lets one call's program
+serve another's."""
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+
+import diffrax
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import rbdyn_jax as rb
+from rbdyn_jax import _traces
+from rbdyn_jax import integrate as integ
+
+J = jnp.array([[2.0, 0.05, 0.0], [0.05, 3.0, 0.02], [0.0, 0.02, 4.0]])
+TS = np.linspace(0.0, 5.0, 11)
+
+
+def solve_args(model=None, y0=None, ts=TS, solver=None, max_steps=4096, rtol=1e-8):
+    """The arguments `simulate` hands its compiled solve."""
+    model = rb.RigidBody(J) if model is None else model
+    y0 = rb.State(jnp.array([0.3, -1.0, 0.5]), jnp.array([1.0, 0, 0, 0])) if y0 is None else y0
+    ts, controller, max_steps = integ._prepare(model, ts, rtol, 1e-8, max_steps)
+    return (model, y0, ts, diffrax.Tsit5() if solver is None else solver, controller,
+            diffrax.RecursiveCheckpointAdjoint(), max_steps, None)
+
+
+def test_key_is_the_same_for_new_values_and_differs_for_a_new_program():
+    base = _traces.key("solve", solve_args())
+    assert base is not None
+    # Values are inputs of the program, not part of it: the same key.
+    assert _traces.key("solve", solve_args(model=rb.RigidBody(J * 2.0))) == base
+    assert _traces.key("solve", solve_args(rtol=1e-6)) == base
+    assert _traces.key("solve", solve_args(ts=TS + 1.0)) == base
+    # Anything the trace reads changes the key.
+    other = [
+        solve_args(max_steps=4097),  # a static int
+        solve_args(solver=diffrax.Dopri5()),  # another solver class
+        solve_args(ts=np.linspace(0.0, 5.0, 12)),  # a shape
+        solve_args(model=rb.RigidBody(J, rb.UniformGravity(1.0, jnp.array([0.0, 0, 0.5])))),
+        solve_args(y0=rb.State(jnp.array([0.3, -1.0, 0.5], jnp.float32),
+                               jnp.array([1.0, 0, 0, 0]))),  # a dtype
+    ]
+    keys = [_traces.key("solve", a) for a in other]
+    assert None not in keys
+    assert len(set(keys) | {base}) == len(other) + 1
+    assert _traces.key("another function", solve_args()) != base
+
+
+class UsersTorque(rb.torques.AbstractTorque):
+    """A torque class from outside rbdyn_jax: its code is versioned by nothing the key
+    holds, so a model using it must never be cached."""
+
+    c: jax.Array
+
+    def __call__(self, t, kin, inertia):
+        return -self.c * kin.omega
+
+
+def test_key_refuses_what_it_cannot_describe():
+    model = rb.RigidBody(J, UsersTorque(jnp.asarray(0.1)))
+    assert _traces.key("solve", solve_args(model=model)) is None
+    scale = 2.0
+    assert _traces.key("f", (lambda x: scale * x,)) is None  # a test module's function
+    assert _traces.key("f", (object(),)) is None  # an object known only by its address
+    # the libraries' own classes and functions are described by name
+    assert _traces.key("f", (diffrax.PIDController, jnp.float64, rb.inertia.principal_axes,
+                             diffrax.RESULTS.successful)) is not None
+    # a numpy array is an input (its values are not in the key); a static one (an
+    # equinox static field) is described by its content
+    assert _traces.key("f", (np.arange(3.0),)) == _traces.key("f", (np.arange(3.0) + 1,))
+    assert _traces._value(np.arange(3.0)) != _traces._value(np.arange(3.0) + 1)
+
+
+def test_memo_follows_the_full_key():
+    """The per-process memo returns what the full description gives, and a static float
+    or int of the same value but another type is another key."""
+    args = solve_args()
+    leaves, treedef = jax.tree_util.tree_flatten(args)
+    assert _traces._memo_key("solve", treedef, leaves) == _traces.key("solve", args)
+    one_int = _traces._memo_key("f", *reversed(jax.tree_util.tree_flatten((1,))))
+    one_float = _traces._memo_key("f", *reversed(jax.tree_util.tree_flatten((1.0,))))
+    assert one_int != one_float
+
+
+SCRIPT = textwrap.dedent("""
+    import json, sys
+    import jax
+    jax.config.update("jax_enable_x64", True)
+    if sys.argv[1] != "none":
+        jax.config.update("jax_compilation_cache_dir", sys.argv[1])
+    import jax.numpy as jnp, numpy as np
+    import rbdyn_jax as rb
+    from rbdyn_jax import _traces
+    J = jnp.array([[2.0, 0.05, 0.0], [0.05, 3.0, 0.02], [0.0, 0.02, 4.0]])
+    w = np.random.default_rng(1).normal(size=(12, 3)) * np.linspace(0.05, 3, 12)[:, None]
+    w = jnp.asarray(w)
+    y0s = rb.State(w, jnp.tile(jnp.array([1.0, 0, 0, 0]), (12, 1)))
+    ts = np.linspace(0.0, 5.0, 11)
+    one = rb.simulate(rb.RigidBody(J), rb.State(w[0], y0s.quat[0]), ts)
+    plain = rb.simulate_batch(rb.RigidBody(J), y0s, ts)
+    lanes = rb.simulate_batch(rb.RigidBody(J), y0s, ts, lanes=4, max_steps=50)  # 4 of 12 fail
+    out = {}
+    for name, tr in (("one", one), ("plain", plain), ("lanes", lanes)):
+        for i, leaf in enumerate(jax.tree_util.tree_leaves(tr)):
+            out[f"{name}{i}"] = np.asarray(leaf)
+    np.savez(sys.argv[2], **out)
+    print(json.dumps(_traces.stats))
+""")
+
+
+def _run(cache, tmp_path, **env):
+    """The script in a fresh process: this process's use of the trace cache, and every
+    leaf of the three trajectories."""
+    script, out = tmp_path / "traced.py", tmp_path / "out.npz"
+    script.write_text(SCRIPT)
+    proc = subprocess.run([sys.executable, str(script), str(cache), str(out)],
+                          capture_output=True, text=True, timeout=300,
+                          env=dict(os.environ, **env))
+    assert proc.returncode == 0, proc.stderr
+    return json.loads(proc.stdout.strip().splitlines()[-1]), dict(np.load(out))
+
+
+def assert_same(a, b):
+    """Bitwise the same leaves (NaN where the other has NaN)."""
+    assert a.keys() == b.keys()
+    for k in a:
+        np.testing.assert_array_equal(a[k], b[k], err_msg=k, strict=True)
+
+
+def test_a_later_process_loads_the_traces_and_gets_the_same_results(tmp_path):
+    """Three fresh processes: no cache; an empty cache (the three solves are traced and
+    stored); the same cache (all three loaded, none traced). Every result bitwise equal
+    (the same program), including the per-trajectory failure codes of the lane solve."""
+    cache = tmp_path / "cache"
+    ref_stats, ref = _run("none", tmp_path)
+    cold_stats, cold = _run(cache, tmp_path)
+    warm_stats, warm = _run(cache, tmp_path)
+    assert ref_stats == {"hits": 0, "stores": 0, "uncacheable": 0}
+    assert cold_stats == {"hits": 0, "stores": 3, "uncacheable": 0}
+    assert warm_stats == {"hits": 3, "stores": 0, "uncacheable": 0}
+    assert len(list((cache / "rbdyn_jax-traces").glob("*.jaxexport"))) == 3
+    assert_same(cold, ref)
+    assert_same(warm, ref)
+    codes = ref["lanes7"]  # `result` of the lane solve: max_steps reached for some
+    assert (codes == 0).any() and (codes == rb.RESULTS.max_steps_reached._value).any()
+    off_stats, off = _run(cache, tmp_path, RBDYN_JAX_TRACE_CACHE="0")
+    assert off_stats == {"hits": 0, "stores": 0, "uncacheable": 0}
+    assert_same(off, ref)
+
+
+def test_a_damaged_entry_is_traced_again(tmp_path):
+    """A truncated entry (a full disk, say) is not loaded: traced, used and stored anew."""
+    cache = tmp_path / "cache"
+    _, ref = _run(cache, tmp_path)
+    for path in (cache / "rbdyn_jax-traces").glob("*.jaxexport"):
+        path.write_bytes(path.read_bytes()[:100])
+    again_stats, again = _run(cache, tmp_path)
+    assert again_stats == {"hits": 0, "stores": 3, "uncacheable": 0}
+    assert_same(again, ref)
