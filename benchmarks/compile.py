@@ -35,7 +35,10 @@ call with the same inputs (steady state). Three processes per case: (1) no persi
 "entries" counts the cache files (`*-cache`) that the first call of (2) wrote (0: nothing of
 it was cacheable); "cb skip" counts the programs JAX compiled during that call but refused
 to store because they hold host callbacks (taken from JAX's log; their names are in the
-JSON). The speed-up is first call without cache / first call warm.
+JSON). "traces" counts the solves that (3) loaded from rbdyn_jax's cache of traced programs
+(`rbdyn_jax/_traces.py`, in the same directory) instead of tracing them; the gradients are
+the caller's own `jit`, which rbdyn_jax cannot store. The speed-up is first call without
+cache / first call warm.
 
 Run: `python benchmarks/compile.py [--cases simulate batch lanes grad jacfwd_lanes …]` — prints
 a table and writes results/benchmarks/compile.json (`--out DIR`). Sequential, ≈ 5 min at
@@ -252,8 +255,10 @@ def child(case, cache):
     t0 = time.perf_counter()
     jax.block_until_ready(call())
     steady = time.perf_counter() - t0
+    traces = sys.modules.get("rbdyn_jax._traces")  # rbdyn_jax's cache of traced solves
     print(json.dumps({"import_jax_s": import_jax_s, "import_rbdyn_jax_s": import_rb_s,
                       "first_s": first, "steady_s": steady, "entries_written": entries,
+                      "traces": dict(traces.stats) if traces else None,
                       "entries_total": _cache_entries(cache), "finite": _all_finite(out),
                       "backend": jax.default_backend(), **rec.stats}))
 
@@ -291,20 +296,22 @@ def measure(case):
             "steady_s": runs["warm"]["steady_s"],
             "speedup_warm": runs["no_cache"]["first_s"] / runs["warm"]["first_s"],
             "entries": runs["cold"]["entries_written"],
+            "trace_hits": (runs["warm"]["traces"] or {}).get("hits", 0),
             "callback_programs": runs["cold"]["callback_programs"], "runs": runs}
 
 
 def print_table(rows):
     head = (f"{'case':<16} {'import s':>8} | {'first call: no cache':>20} {'/ bare':>6} "
             f"{'cold':>7} {'warm':>7} | {'speed-up':>8} | {'steady':>7} | {'entries':>7} "
-            f"{'cb skip':>7}")
+            f"{'cb skip':>7} {'traces':>6}")
     print(head)
     print("-" * len(head))
     for r in rows:
         rel = f"{r['vs_bare']:>5.2f}x" if r.get("vs_bare") else f"{'—':>6}"
         print(f"{r['case']:<16} {r['import_s']:>8.2f} | {r['no_cache_s']:>20.2f} {rel} "
               f"{r['cold_s']:>7.2f} {r['warm_s']:>7.2f} | {r['speedup_warm']:>7.1f}x | "
-              f"{r['steady_s']:>7.3f} | {r['entries']:>7} {len(r['callback_programs']):>7}")
+              f"{r['steady_s']:>7.3f} | {r['entries']:>7} {len(r['callback_programs']):>7} "
+              f"{r['trace_hits']:>6}")
     for r in rows:
         if r["callback_programs"]:
             print(f"{r['case']}: not cached (host callbacks): "
