@@ -39,7 +39,7 @@ import equinox as eqx
 import jax
 import numpy as np
 
-from ._xla import COMPILER_OPTIONS, top_level
+from ._xla import COMPILER_OPTIONS, export, jit, top_level
 
 # The modules whose classes and functions a key may name: their code is versioned by
 # `_environment` (builtins by the Python version, which changes the bytecode cache anyway).
@@ -191,7 +191,7 @@ def _export(path: pathlib.Path, fn, dyn, static, leaves):
         out_tree.append(treedef)
         return out_leaves
 
-    exported = jax.export.export(jax.jit(flat))(*leaves)
+    exported = export(flat)(*leaves)
     try:
         skeleton = jax.tree_util.tree_unflatten(out_tree[0], [0] * out_tree[0].num_leaves)
         blob = pickle.dumps({"tree": skeleton, "exported": bytes(exported.serialize())})
@@ -256,7 +256,7 @@ def cached(fn, jitted):
                 dyn, static = eqx.partition(args, eqx.is_array)
                 entry = _export(path, fn, dyn, static, arrays)
             exported, out_tree = entry
-            _LOADED[k] = (jax.jit(exported.call, compiler_options=COMPILER_OPTIONS), out_tree)
+            _LOADED[k] = (jit(exported.call), out_tree)
         run, out_tree = _LOADED[k]
         return jax.tree_util.tree_unflatten(out_tree, run(*arrays))
 

@@ -45,3 +45,9 @@ def jit(fn):
 def filter_jit(fn):
     """`eqx.filter_jit(fn)`, compiled with `COMPILER_OPTIONS` when called at the top level."""
     return _dispatch(eqx.filter_jit, fn)
+
+
+def export(fn):
+    """`jax.export.export(jax.jit(fn))`: `fn` traced and lowered, for storing (`_traces.py`).
+    Nothing is compiled here; the exported program is compiled through `jit`."""
+    return jax.export.export(jax.jit(fn))
