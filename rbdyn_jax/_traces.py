@@ -52,6 +52,7 @@ _SUBDIR = "rbdyn_jax-traces"
 stats = {"hits": 0, "stores": 0, "uncacheable": 0}  # this process's use of the cache (tests)
 _LOADED: dict[str, tuple] = {}  # key -> (jitted exported call, output treedef)
 _KEYS: dict[tuple, str | None] = {}  # `_memo_key`'s memo
+_UNEXPORTABLE: set[str] = set()  # keys whose trace `jax.export` refused
 
 
 class _Unsafe(Exception):
@@ -146,12 +147,14 @@ def _tree(tree):
     return _treedef(treedef), tuple(_leaf(x) for x in leaves)
 
 
+def _aval(x) -> tuple:
+    """What a trace sees of an array: shape, dtype and weak type (numpy: never weak)."""
+    weak = bool(jax.typeof(x).weak_type) if isinstance(x, jax.Array) else False
+    return ("array", tuple(x.shape), str(x.dtype), weak)
+
+
 def _leaf(x):
-    if eqx.is_array(x):
-        aval = jax.typeof(x) if isinstance(x, jax.Array) else None
-        weak = bool(aval.weak_type) if aval is not None else False
-        return ("array", tuple(x.shape), str(x.dtype), weak)
-    return _value(x)
+    return _aval(x) if eqx.is_array(x) else _value(x)
 
 
 def _settings() -> tuple:
@@ -191,7 +194,10 @@ def _export(path: pathlib.Path, fn, dyn, static, leaves):
         out_tree.append(treedef)
         return out_leaves
 
-    exported = export(flat)(*leaves)
+    try:
+        exported = export(flat)(*leaves)
+    except Exception:  # not exportable (a host callback, say): the caller traces it anew,
+        return None  # raising there as it would have without this cache
     try:
         skeleton = jax.tree_util.tree_unflatten(out_tree[0], [0] * out_tree[0].num_leaves)
         blob = pickle.dumps({"tree": skeleton, "exported": bytes(exported.serialize())})
@@ -211,8 +217,8 @@ def _memo_key(name, treedef, leaves):
     static values with their types, and the arrays' shapes and dtypes: a dict lookup
     instead of the full description (~150 µs a call, measured)."""
     memo = (name, _settings(), treedef, tuple(
-        ("a", x.shape, x.dtype, getattr(jax.typeof(x), "weak_type", False))
-        if isinstance(x, jax.Array) else ("a", x.shape, x.dtype) if eqx.is_array(x)
+        _aval(x) if eqx.is_array(x)
+        else (type(x), repr(x)) if isinstance(x, (float, complex))  # 0.0 == -0.0
         else (type(x), x) for x in leaves))
     try:
         return _KEYS[memo]
@@ -244,7 +250,7 @@ def cached(fn, jitted):
         if any(isinstance(x, jax.core.Tracer) for x in arrays):
             return jitted(*args)
         k = _memo_key(name, treedef, leaves)
-        if k is None:
+        if k is None or k in _UNEXPORTABLE:
             stats["uncacheable"] += 1
             return jitted(*args)
         if k not in _LOADED:
@@ -255,6 +261,10 @@ def cached(fn, jitted):
             else:
                 dyn, static = eqx.partition(args, eqx.is_array)
                 entry = _export(path, fn, dyn, static, arrays)
+            if entry is None:  # not exportable: traced as without the cache, from now on
+                _UNEXPORTABLE.add(k)
+                stats["uncacheable"] += 1
+                return jitted(*args)
             exported, out_tree = entry
             _LOADED[k] = (jit(exported.call), out_tree)
         run, out_tree = _LOADED[k]

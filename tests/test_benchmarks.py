@@ -56,6 +56,7 @@ def test_compile_latency_runs_in_fresh_processes(tmp_path):
     assert all(np.isfinite(r[k]) and r[k] > 0 for k in ("no_cache_s", "cold_s", "warm_s")
                for r in rows)
     assert set(row["callback_programs"]) <= {"jit_branched_error_if_impl"}
+    assert row["trace_hits"] == 1 and bare["trace_hits"] == 0  # rbdyn_jax's trace cache
     assert bare["vs_bare"] == 1.0 and row["vs_bare"] == row["no_cache_s"] / bare["no_cache_s"]
     assert all(r["runs"]["no_cache"]["finite"] for r in rows)
 

@@ -163,3 +163,42 @@ def test_a_damaged_entry_is_traced_again(tmp_path):
     again_stats, again = _run(cache, tmp_path)
     assert again_stats == {"hits": 0, "stores": 3, "uncacheable": 0}
     assert_same(again, ref)
+
+
+def test_a_program_export_refuses_is_traced_as_without_the_cache(tmp_path, monkeypatch):
+    """`jax.export` refuses a program with a host callback: the call then goes through its
+    plain jit (same result), is counted uncacheable, nothing is stored, and the export is
+    not tried again."""
+    monkeypatch.setattr(_traces, "directory", lambda: tmp_path)
+    tries, export = [], _traces.export
+
+    def counted(f):
+        tries.append(f)
+        return export(f)
+
+    monkeypatch.setattr(_traces, "export", counted)
+    seen = []
+
+    def fn(x, scale):
+        jax.debug.callback(lambda v: seen.append(float(v)), x[0])
+        return x * scale
+
+    fn.__module__ = "rbdyn_jax.integrate"  # describable, as rbdyn_jax's own solves are
+    call = _traces.cached(fn, integ.filter_jit(fn))
+    before = dict(_traces.stats)
+    x = jnp.array([1.5, 2.0])
+    for _ in range(2):
+        np.testing.assert_array_equal(call(x, 3.0), x * 3.0)
+    assert _traces.stats["uncacheable"] - before["uncacheable"] == 2
+    assert _traces.stats["stores"] == before["stores"]
+    assert not list(tmp_path.iterdir())
+    assert seen == [1.5, 1.5]  # each call ran the plain jit, callback included
+    assert len(tries) == 1
+
+
+def test_memo_tells_signed_zeros_apart():
+    """0.0 == -0.0 in Python, but a trace may hold either: the memo keys floats by repr."""
+    keys = [_traces._memo_key("f", *reversed(jax.tree_util.tree_flatten((z,))))
+            for z in (0.0, -0.0)]
+    assert keys[0] != keys[1]
+    assert keys == [_traces.key("f", (0.0,)), _traces.key("f", (-0.0,))]
