@@ -119,9 +119,11 @@ def _run(cache, tmp_path, **env):
     leaf of the three trajectories."""
     script, out = tmp_path / "traced.py", tmp_path / "out.npz"
     script.write_text(SCRIPT)
+    # One XLA device unless asked: another test module may have set XLA_FLAGS for two
+    # (benchmarks/gradients.py does on import), and a two-device lane solve is not cached.
+    base = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
     proc = subprocess.run([sys.executable, str(script), str(cache), str(out)],
-                          capture_output=True, text=True, timeout=300,
-                          env=dict(os.environ, **env))
+                          capture_output=True, text=True, timeout=300, env=dict(base, **env))
     assert proc.returncode == 0, proc.stderr
     return json.loads(proc.stdout.strip().splitlines()[-1]), dict(np.load(out))
 
@@ -136,7 +138,8 @@ def assert_same(a, b):
 def test_a_later_process_loads_the_traces_and_gets_the_same_results(tmp_path):
     """Three fresh processes: no cache; an empty cache (the three solves are traced and
     stored); the same cache (all three loaded, none traced). Every result bitwise equal
-    (the same program), including the per-trajectory failure codes of the lane solve."""
+    (the same program), including the per-trajectory failure codes of the lane solve; the
+    same with the cache turned off. Then two XLA devices, where the lane solve is refused."""
     cache = tmp_path / "cache"
     ref_stats, ref = _run("none", tmp_path)
     cold_stats, cold = _run(cache, tmp_path)
@@ -152,6 +155,10 @@ def test_a_later_process_loads_the_traces_and_gets_the_same_results(tmp_path):
     off_stats, off = _run(cache, tmp_path, RBDYN_JAX_TRACE_CACHE="0")
     assert off_stats == {"hits": 0, "stores": 0, "uncacheable": 0}
     assert_same(off, ref)
+    # Two devices: the device count is in every key (nothing loaded), and the lane solve,
+    # split over both, is not exported at all.
+    two_stats, _ = _run(cache, tmp_path, XLA_FLAGS="--xla_force_host_platform_device_count=2")
+    assert two_stats == {"hits": 0, "stores": 2, "uncacheable": 1}
 
 
 def test_a_damaged_entry_is_traced_again(tmp_path):
