@@ -164,6 +164,34 @@ def test_batching_broadcast_jit_vmap_and_grad(rng):
         check_grads(f, args, order=2, modes=("fwd", "rev"), atol=1e-6, rtol=1e-6, eps=1e-5)
 
 
+def test_solve_derivative_is_the_inverse_rule_on_the_lower_triangle(rng):
+    """`_solve(J, b)` reads J's lower triangle, so it solves with A = tril(J) + tril(J, −1)ᵀ,
+    and its custom derivative must be dx = A⁻¹ (db − dA x), dA built alike from dJ: an
+    upper-triangle perturbation changes nothing. Against numpy's solve, in forward and
+    reverse mode, with a perturbation of the whole matrix (not symmetric)."""
+    J, _, _ = random_body(rng)
+    b, db = rng.normal(size=(2, 3))
+    dJ = rng.normal(size=(3, 3))
+
+    def sym_lower(M):
+        return np.tril(M) + np.tril(M, -1).T
+
+    x = np.linalg.solve(J, b)
+    expected = np.linalg.solve(J, db - sym_lower(dJ) @ x)
+    _, dx = jax.jvp(dynamics._solve, (jnp.asarray(J), jnp.asarray(b)),
+                    (jnp.asarray(dJ), jnp.asarray(db)))
+    np.testing.assert_allclose(dx, expected, atol=TOL)
+    _, dx_upper = jax.jvp(lambda J: dynamics._solve(J, jnp.asarray(b)), (jnp.asarray(J),),
+                          (jnp.asarray(np.triu(dJ, 1)),))
+    np.testing.assert_allclose(dx_upper, 0.0, atol=TOL)
+    # reverse mode transposes the same rule: ⟨c, dx⟩ for every (dJ, db)
+    c = rng.normal(size=3)
+    gJ, gb = jax.grad(lambda J, b: jnp.dot(jnp.asarray(c), dynamics._solve(J, b)),
+                      argnums=(0, 1))(jnp.asarray(J), jnp.asarray(b))
+    np.testing.assert_allclose(np.sum(gJ * dJ) + np.dot(gb, db), np.dot(c, expected),
+                               atol=TOL)
+
+
 def test_shapes_are_checked():
     with pytest.raises(ValueError, match="`J`"):
         dynamics.euler_rhs(jnp.eye(2), jnp.zeros(3), jnp.zeros(3))
