@@ -229,8 +229,162 @@ def _take(tree, i):
     return jax.tree_util.tree_map(lambda x: x[i], tree)
 
 
+def _unit_columns(leaves, offsets, P):
+    """One `(P, *shape)` array per leaf: row p is the unit perturbation of the leaf's
+    element p − offset (zero outside the leaf's block of rows)."""
+    return [jnp.eye(P, dtype=x.dtype)[:, o:o + x.size].reshape((P,) + x.shape)
+            for x, o in zip(leaves, offsets)]
+
+
+def _with_leaves(tree, which, new):
+    """`tree` with its array leaves number `which` replaced by `new`."""
+    dyn, static = eqx.partition(tree, eqx.is_array)
+    leaves, treedef = jax.tree_util.tree_flatten(dyn)
+    leaves = list(leaves)
+    for i, x in zip(which, new):
+        leaves[i] = x
+    return eqx.combine(jax.tree_util.tree_unflatten(treedef, leaves), static)
+
+
+class _Sensitivity(eqx.Module):
+    """A model extended by its forward sensitivities: the state `(y, S)`, every leaf of `S`
+    `P` columns of the shape of `y`'s, stacked and flattened (so that a lane's time step
+    broadcasts against the one axis of every leaf), and
+
+        dy/dt = f(t, y; p),    dS/dt = ∂f/∂y · S + ∂f/∂p,
+
+    p the model's array leaves number `which`, whose elements are the columns `offsets[k]
+    …` of S; the other columns (initial conditions, the start time) have no ∂f/∂p. The
+    columns are one `jax.jvp` of the model's vector field, vmapped. Integrated by the same
+    explicit Runge–Kutta steps as y, S is exactly the derivative of the discrete solution
+    for those steps (Runge–Kutta methods commute with linearisation)."""
+
+    model: AbstractRigidBody
+    which: tuple[int, ...] = eqx.field(static=True)
+    offsets: tuple[int, ...] = eqx.field(static=True)
+    P: int = eqx.field(static=True)
+
+    def vector_field(self, t, ys, args):
+        y, S = ys
+        S = jax.tree_util.tree_map(lambda s, x: s.reshape((self.P,) + x.shape), S, y)
+        p = [jax.tree_util.tree_leaves(eqx.filter(self.model, eqx.is_array))[i]
+             for i in self.which]
+
+        def field(p, y):
+            return _with_leaves(self.model, self.which, p).vector_field(t, y, args)
+
+        basis = _unit_columns(p, self.offsets, self.P)
+        f, dS = jax.vmap(lambda b, s: jax.jvp(field, (p, y), (b, s)),
+                         out_axes=(None, 0))(basis, S)
+        return f, jax.tree_util.tree_map(jnp.ravel, dS)
+
+
 def _lane_solve(model, y0s, ts, solver, controller, max_steps, dt0, model_axes, lanes):
-    """All trajectories of `y0s` through `lanes` lanes of one while loop.
+    """The lane solver (`_lane_loop`) and its `Trajectory`s.
+
+    Differentiable in both modes by forward sensitivities: the rule of its `custom_jvp`
+    integrates, once, the variational equations for every input element with a tangent
+    (`_Sensitivity`; p parameters per trajectory add p columns to each state) by the same
+    steps as the solve, and contracts them with the tangents. That contraction is linear,
+    so `jax.grad` transposes it, and `jax.jacfwd`'s tangents share the one solve; the
+    tangents never enter the loop. The derivative is that of the discrete solve
+    (the step sizes are not differentiated, as in `diffeqsolve`); for `ts` it is
+    f(tᵢ, y(tᵢ)) at the output times and the column −f(t0, y0) for the start time."""
+    batched = model_axes is not None
+    if batched:  # every array leaf with a leading trajectory axis
+        model = eqx.filter_vmap(lambda m: m, in_axes=(model_axes,))(model)
+    dyn, static = eqx.partition(model, eqx.is_array)
+    tols, cstatic = eqx.partition(controller, eqx.is_array)
+
+    def loop(m, y0s, ts, tols):
+        return _lane_loop(m, y0s, ts, eqx.combine(tols, cstatic), solver=solver,
+                          max_steps=max_steps, dt0=dt0, batched=batched, lanes=lanes)
+
+    @jax.custom_jvp
+    def solve(dyn, y0s, ts, tols):
+        return loop(eqx.combine(dyn, static), y0s, ts, tols)
+
+    solve.defjvp(functools.partial(_lane_jvp, loop, static, batched), symbolic_zeros=True)
+    ys, ok0, result, counts = solve(dyn, y0s, ts, tols)
+
+    def finish(m, ys, ok, result, counts):
+        return _finish(m, ts, ys, ok, _as_result(result), list(counts))
+
+    return eqx.filter_vmap(finish, in_axes=(0 if batched else None, 0, 0, 0, 0))(
+        model, ys, ok0, result, counts)
+
+
+def _lane_jvp(loop, static, batched, primals, tangents):
+    """The `custom_jvp` rule of `_lane_solve`'s loop (see there). The tolerances take no
+    tangent."""
+    dyn, y0s, ts, tols = primals
+    tdyn, ty0s, tts, _ = tangents
+    zero = jax.custom_derivatives.SymbolicZero
+
+    def live(tree, tangent):  # the array leaves with a tangent, and all the tangents
+        xs = jax.tree_util.tree_leaves(tree)
+        dxs = jax.tree_util.tree_leaves(tangent, is_leaf=lambda x: isinstance(x, zero))
+        return [i for i, (x, dx) in enumerate(zip(xs, dxs)) if not isinstance(dx, zero)
+                and jnp.issubdtype(x.dtype, jnp.inexact)], xs, dxs
+
+    m_which, m_leaves, m_dots = live(dyn, tdyn)
+    y_which, y_leaves, y_dots = live(y0s, ty0s)
+    t_live = not isinstance(tts, zero)
+    N = y_leaves[0].shape[0]
+    model = eqx.combine(dyn, static)
+    # Columns: the differentiated model elements (per trajectory), then those of y0, then t0.
+    sizes = ([m_leaves[i][0].size if batched else m_leaves[i].size for i in m_which]
+             + [y_leaves[i][0].size for i in y_which])
+    offsets = tuple(int(o) for o in np.cumsum([0] + sizes)[:-1])
+    P = sum(sizes) + t_live
+    if P == 0:  # tangents on the tolerances only
+        out = loop(model, y0s, ts, tols)
+        return out, (jax.tree_util.tree_map(jnp.zeros_like, out[0]),) + tuple(
+            np.zeros(x.shape, jax.dtypes.float0) for x in out[1:])
+
+    def initial(m, y0):  # S at t0: the derivative of the normalised y0, and −f(t0, y0)
+        p = [jax.tree_util.tree_leaves(eqx.filter(m, eqx.is_array))[i] for i in m_which]
+        q = [jax.tree_util.tree_leaves(y0)[i] for i in y_which]
+
+        def start(p, q):
+            return _with_leaves(m, m_which, p).normalise(_with_leaves(y0, y_which, q))[0]
+
+        basis = _unit_columns(p + q, offsets, P)
+        _, S0 = jax.vmap(lambda b: jax.jvp(start, (p, q), (b[:len(p)], b[len(p):])),
+                         axis_size=P)(basis)
+        if t_live:
+            f0 = m.vector_field(ts[0], m.normalise(y0)[0], None)
+            S0 = jax.tree_util.tree_map(lambda s, f: s.at[-1].set(-f), S0, f0)
+        return jax.tree_util.tree_map(jnp.ravel, S0)
+
+    S0 = eqx.filter_vmap(initial, in_axes=(0 if batched else None, 0))(model, y0s)
+    aug = _Sensitivity(model, tuple(m_which), offsets[:len(m_which)], P)
+    (ys, S), ok0, result, counts = loop(aug, (y0s, S0), ts, tols)
+    S = jax.tree_util.tree_map(lambda s, y: s.reshape(y.shape[:2] + (P,) + y.shape[2:]), S, ys)
+    # The tangent of every output: S contracted with the inputs' tangents, per trajectory.
+    coef = [m_dots[i].reshape(N, -1) if batched else
+            jnp.broadcast_to(m_dots[i].reshape(1, -1), (N, m_dots[i].size)) for i in m_which]
+    coef += [y_dots[i].reshape(N, -1) for i in y_which]
+    coef += [jnp.broadcast_to(tts[0], (N, 1))] if t_live else []
+    dys = jax.tree_util.tree_map(
+        lambda s: jnp.einsum("ntp...,np->nt...", s, jnp.concatenate(
+            [c.astype(s.dtype) for c in coef], axis=1)), S)
+    if t_live:  # the output times themselves: f(tᵢ, y(tᵢ)) dtᵢ
+
+        def rates(m, ys, ok):
+            f = jax.vmap(lambda t, y: m.vector_field(t, y, None))(ts, ys)
+            return _where_tree(ok, f, 0.0)
+
+        F = eqx.filter_vmap(rates, in_axes=(0 if batched else None, 0, 0))(model, ys, ok0)
+        dys = jax.tree_util.tree_map(
+            lambda d, f: d + f * tts.reshape((1, -1) + (1,) * (f.ndim - 2)), dys, F)
+    out = (ys, ok0, result, counts)
+    return out, (dys,) + tuple(np.zeros(x.shape, jax.dtypes.float0) for x in out[1:])
+
+
+def _lane_loop(model, y0s, ts, controller, *, solver, max_steps, dt0, batched, lanes):
+    """All trajectories of `y0s` through `lanes` lanes of one while loop; the raw saved
+    states (before `_finish`), the start flags, result codes and step counts.
 
     Each loop iteration (1) saves at most one output time per lane from the lane's last
     step (diffrax's interpolant, as `SaveAt(ts=…)` does), (2) hands every finished lane the
@@ -242,7 +396,10 @@ def _lane_solve(model, y0s, ts, solver, controller, max_steps, dt0, model_axes, 
     Trajectories are handed out longest-first, by |f(t0, y0)| in the tolerance scale (rank
     correlation with the step count 0.99 for a torque-free body and 0.97 for a heavy top,
     measured), so the last ones are short and the lanes finish nearly together.
-    Forward-mode differentiable (`jax.jvp`, `jax.jacfwd`); not reverse-mode (a while loop).
+
+    `model` has a leading trajectory axis on every array leaf when `batched`. It may be a
+    `_Sensitivity` (its states `(y, S)`): the controller, the start checks and the order
+    then see `y` alone, so the steps are those of the model's own solve.
     """
     from diffrax._term import WrapTerm  # exactly the term diffeqsolve hands its solver
 
@@ -256,15 +413,21 @@ def _lane_solve(model, y0s, ts, solver, controller, max_steps, dt0, model_axes, 
     t0, t1 = ts[0], ts[-1]
     t1_floor = _floats_below(t1, 100)  # diffeqsolve's clip: a step ending within 100
     # representable floats of t1 ends at t1
-    batched = model_axes is not None
-    if batched:  # every array leaf with a leading trajectory axis
-        model = eqx.filter_vmap(lambda m: m, in_axes=(model_axes,))(model)
     dyn, static = eqx.partition(model, eqx.is_array)
     axis = 0 if batched else None
+    sens = isinstance(model, _Sensitivity)
+    primal = (lambda y: y[0]) if sens else (lambda y: y)  # what the controller sees
 
     def start(m, y0):
-        ok, y, f = _start(m, y0, t0)  # f = f(t0, y): y is the stand-in where not ok
-        term = WrapTerm(diffrax.ODETerm(_Guarded(m)), 1)
+        if sens:
+            ok, y, f = _start(m.model, y0[0], t0)
+            term = WrapTerm(diffrax.ODETerm(_Guarded(m.model)), 1)
+            y_aug = (y, _where_tree(ok, y0[1], 0.0))
+            f_aug = _where_tree(ok, m.vector_field(t0, y_aug, None), 0.0)
+        else:
+            ok, y, f = _start(m, y0, t0)  # f = f(t0, y): y is the stand-in where not ok
+            term = WrapTerm(diffrax.ODETerm(_Guarded(m)), 1)
+            y_aug, f_aug = y, f
         tnext, cstate = controller.init(term, t0, t1, y, dt0, ok, solver.func,
                                         solver.error_order(term))
         tnext = jnp.minimum(tnext, t1)
@@ -272,9 +435,10 @@ def _lane_solve(model, y0s, ts, solver, controller, max_steps, dt0, model_axes, 
             # An explicit FSAL Runge–Kutta step starts from f(t0, y0): give it now (what
             # `solver.init` would compute), so that a refilled lane does not make every
             # lane re-evaluate its first stage.
-            sstate = (jnp.array(False), _where_tree(ok, f, 0.0))
+            sstate = (jnp.array(False), _where_tree(ok, f_aug, 0.0))
         else:
-            sstate = solver.init(term, t0, tnext, y, ok)
+            sstate = solver.init(WrapTerm(diffrax.ODETerm(_Guarded(m)), 1), t0, tnext, y_aug,
+                                 ok)
         # How long the trajectory will take: |f(t0, y0)| in the controller's tolerance
         # scale, the rate the state moves at, which sets the step count of these rotational
         # problems (|ω| for a free body). An ordering only: no tangents through it.
@@ -282,7 +446,7 @@ def _lane_solve(model, y0s, ts, solver, controller, max_steps, dt0, model_axes, 
         d = sum(jnp.sum((a / (controller.atol + controller.rtol * jnp.abs(b))) ** 2)
                 for a, b in zip(jax.tree_util.tree_leaves(f), jax.tree_util.tree_leaves(y_)))
         d = jnp.where(ok & ~jnp.isnan(d), d, -1.0)  # an overflow to inf goes first
-        return ok, y, tnext, sstate, jax.tree_util.tree_map(jnp.asarray, cstate), d
+        return ok, y_aug, tnext, sstate, jax.tree_util.tree_map(jnp.asarray, cstate), d
 
     ok0, y0r, tnext0, sstate0, cstate0, difficulty = eqx.filter_vmap(
         start, in_axes=(axis, 0))(model, y0s)
@@ -351,13 +515,13 @@ def _lane_solve(model, y0s, ts, solver, controller, max_steps, dt0, model_axes, 
                                   y0s),
         out_counts=jnp.zeros((N, 3), int), out_result=jnp.zeros(N, jnp.int32),
     )
-    # The state, the solver's state, the step's dense output and the saved values take
-    # tangents (`jax.jvp`) and a batch axis (`jax.vmap`) from the model and the initial
-    # states, but the buffers start as constants and some lane states from y0 alone (the
-    # attitude and its rate do not depend on the inertia at t0). JAX finds which carries
-    # of a while loop take them by a fixpoint that re-traces the whole body on each pass;
-    # tying those carries to the inputs from the start (a select that always picks the
-    # initial value) makes it converge in one pass (`jacfwd` traced ~1 s faster, measured).
+    # The state, the solver's state, the step's dense output and the saved values take a
+    # batch axis (`jax.vmap`) from the model and the initial states (and tangents, for a
+    # derivative of the sensitivities themselves), but the buffers start as constants and
+    # some lane states from y0 alone. JAX finds which carries of a while loop take them by
+    # a fixpoint that re-traces the whole body on each pass; tying those carries to the
+    # inputs from the start (a select that always picks the initial value) makes it
+    # converge in one pass (`jacfwd` through the loop traced ~1 s faster, measured).
     inputs = [x for x in jax.tree_util.tree_leaves((dyn, y0s, sstate0)) if
               jnp.issubdtype(x.dtype, jnp.inexact)]
     if inputs:
@@ -423,7 +587,7 @@ def _lane_solve(model, y0s, ts, solver, controller, max_steps, dt0, model_axes, 
             term, c["tprev"][:, None], c["tnext"][:, None], c["y"], c["ok"], c["ss"], False)
         ss1 = jax.tree_util.tree_map(lambda a, b: jnp.broadcast_to(a, b.shape), ss1, c["ss"])
         keep, tp, tn, cs1, result = jax.vmap(control)(
-            c["tprev"], c["tnext"], c["y"], y1, y_error, c["cs"])
+            c["tprev"], c["tnext"], primal(c["y"]), primal(y1), primal(y_error), c["cs"])
         accept = go & keep
         c["y"] = _lane_select(accept, y1, c["y"])
         c["ss"] = _lane_select(accept, ss1, c["ss"])
@@ -444,12 +608,7 @@ def _lane_solve(model, y0s, ts, solver, controller, max_steps, dt0, model_axes, 
         return c
 
     c = jax.lax.while_loop(cond, body, carry)
-
-    def finish(m, ys, ok, result, counts):
-        return _finish(m, ts, ys, ok, _as_result(result), list(counts))
-
-    return eqx.filter_vmap(finish, in_axes=(axis, 0, 0, 0, 0))(
-        model, c["ys"], ok0, c["out_result"], c["out_counts"])
+    return c["ys"], ok0, c["out_result"], c["out_counts"]
 
 
 def _solve_batch(model, y0s, ts, solver, controller, adjoint, max_steps, dt0, model_axes):
@@ -627,9 +786,15 @@ def simulate_batch(
       the batch finishes). Trajectories are handed out longest-first (by |f(t0, y0)|), and
       the devices are dealt them in turn; use fewer lanes than trajectories per device
       (2–8 trajectories per lane) so that lanes refill and finish together. Same steps,
-      same saved values (to round-off) and same `stats` and `result` as the default;
-      forward-mode differentiable (`jax.jvp`, `jax.jacfwd`), not reverse-mode; `adjoint`
-      is ignored. 256 suits a CPU at 10³–10⁴ trajectories (see `benchmarks/`).
+      same saved values (to round-off) and same `stats` and `result` as the default.
+      Differentiable in both modes (`jax.grad`, `jax.jacfwd`, w.r.t. the model, `y0s` and
+      `ts`) by forward sensitivities: one solve carries, beside each state, its derivative
+      w.r.t. every differentiated element (p per trajectory: 9 for an inertia, 7 for an
+      initial state; per-trajectory models count their own only), by the same steps, so
+      the derivative equals reverse mode through the default path (to round-off). Its cost
+      grows with p, not with the number of tangents (measured ~4× the forward solve for a
+      3×3 inertia); `adjoint` is ignored. 256 lanes suit a CPU at 10³–10⁴ trajectories
+      (see `benchmarks/`).
     - `devices`: with `lanes`, the number of local devices the batch is split over
       (default: all of the default backend; on CPU that is one unless XLA was started with
       several host devices, e.g. `XLA_FLAGS=--xla_force_host_platform_device_count=2`).

@@ -8,8 +8,10 @@ and per-trajectory models (`model_axes=0`), a relative model in a moving frame (
 time-dependent right-hand side), Tsit5 and Dopri5 (different interpolants), more
 trajectories than lanes (refilling), failure isolation (a non-finite start, a trajectory out
 of steps), results independent of the batch order and of the lane a trajectory ran in,
-forward-mode gradients against reverse mode and finite differences (and a jvp that writes
-its tangents without touching the whole output buffer), two XLA host devices
+gradients in both modes (forward sensitivities) against reverse mode through
+`diffeqsolve` and finite differences, w.r.t. inertia, per-trajectory parameters, initial
+states and output times (and a jvp that runs one loop, writing its saved values without
+touching the whole output buffer), two XLA host devices
 (shared and per-trajectory models), input errors, and that the compiled program can enter
 JAX's persistent cache.
 """
@@ -180,29 +182,35 @@ def test_failures_stay_in_their_lane():
     assert_same_solves(lanes, plain)
 
 
-def test_forward_mode_gradient_matches_reverse_mode_and_finite_differences():
-    """d/dθ of a batched loss, θ the log-Cholesky inertia parameters: `jax.jacfwd` through
-    the lane solver vs `jax.grad` through the vmapped `diffeqsolve` (reverse mode) and vs
-    central differences. Both autodiff paths differentiate the same discrete steps (the
-    controller's step-size factor is not differentiated in either), so they agree to
-    round-off; the finite differences (h = 1e-6 on O(1) θ, solves at rtol 1e-11) carry
-    O(h²) + rtol/h ≈ 1e-5 relative error."""
+def test_gradients_in_both_modes_match_reverse_mode_and_finite_differences():
+    """d/dθ of a batched loss, θ the log-Cholesky inertia parameters: `jax.jacfwd` and
+    `jax.grad` through the lane solver (its forward sensitivities) vs `jax.grad` through the
+    vmapped `diffeqsolve` (reverse mode) and vs central differences. The sensitivities are
+    integrated by the same Runge–Kutta steps as the states, which makes them the exact
+    derivative of the discrete solve (Runge–Kutta methods commute with linearisation), and
+    neither path differentiates the step sizes: the three agree to round-off. The finite
+    differences (h = 1e-6 on O(1) θ, solves at rtol 1e-11) carry O(h²) + rtol/h ≈ 1e-5
+    relative error. The loss reads the attitude too, whose sensitivities take another
+    path (quaternion kinematics)."""
     y0s = initial_states(6, seed=1)
     ts = jnp.linspace(0.0, 3.0, 7)
     # data from a different body (not a multiple of J: torque-free ω(t) is scale-free)
     J_data = J + jnp.diag(jnp.array([0.1, 0.0, 0.0]))
-    obs = rb.simulate_batch(rb.RigidBody(J_data), y0s, ts, rtol=1e-11, atol=1e-11).ys.omega
+    obs = rb.simulate_batch(rb.RigidBody(J_data), y0s, ts, rtol=1e-11, atol=1e-11).ys
     theta0 = rb.inertia.to_log_cholesky(J)
 
     def loss(theta, lanes):
         model = rb.RigidBody(rb.inertia.from_log_cholesky(theta))
         tr = rb.simulate_batch(model, y0s, ts, rtol=1e-11, atol=1e-11, lanes=lanes)
-        return jnp.sum((tr.ys.omega - obs) ** 2)
+        return (jnp.sum((tr.ys.omega - obs.omega) ** 2)
+                + jnp.sum((tr.ys.quat - obs.quat) ** 2))
 
     fwd = jax.jit(jax.jacfwd(lambda th: loss(th, LANES)))(theta0)
+    rev_lanes = jax.jit(jax.grad(lambda th: loss(th, LANES)))(theta0)
     rev = jax.jit(jax.grad(lambda th: loss(th, None)))(theta0)
     assert float(jnp.max(jnp.abs(rev))) > 1e-2  # a real gradient, not round-off
-    np.testing.assert_allclose(fwd, rev, rtol=1e-9, atol=1e-12 * float(jnp.max(jnp.abs(rev))))
+    for g in (fwd, rev_lanes):
+        np.testing.assert_allclose(g, rev, rtol=1e-9, atol=1e-12 * float(jnp.max(jnp.abs(rev))))
     f = jax.jit(lambda th: loss(th, LANES))
     h = 1e-6
     fd = np.array([(f(theta0.at[i].add(h)) - f(theta0.at[i].add(-h))) / (2 * h)
@@ -210,36 +218,75 @@ def test_forward_mode_gradient_matches_reverse_mode_and_finite_differences():
     np.testing.assert_allclose(fwd, fd, rtol=1e-4, atol=1e-5 * np.max(np.abs(fd)))
 
 
-def _scatters(jaxpr):
-    """Every scatter-like equation in `jaxpr` and its sub-jaxprs (loop bodies, …)."""
+def test_gradients_for_per_trajectory_models_initial_states_and_times():
+    """Reverse mode through the lane solver, per-trajectory heavy tops (`model_axes=0`),
+    w.r.t. each top's weight, the initial rates and attitudes (unnormalised: the solve
+    normalises them, and so must the derivative), against reverse mode through the vmapped
+    `diffeqsolve`: round-off, as above. W.r.t. the output times the two differ by design:
+    the lane solver gives f(tᵢ, y(tᵢ)) and, for t0, the variational solution of −f(t0, y0);
+    `diffeqsolve` differentiates its interpolant. Both approximate the exact derivative
+    within the local error of a step at rtol 1e-11, ~1e-8 relative: the times are checked
+    to 1e-6, and t0's against central differences (h = 1e-5: O(h²) + rtol/h ≈ 1e-6)."""
+    y0s = initial_states()
+    q0 = 1.3 * y0s.quat  # not unit: the solve normalises
+    weights = jnp.linspace(0.5, 2.0, N)
+    ts = jnp.linspace(0.0, 3.0, 7)
+    tol = 1e-11
+
+    def loss(w, omega, quat, ts, lanes):
+        tops = eqx.filter_vmap(heavy_top)(w)
+        tr = rb.simulate_batch(tops, rb.State(omega, quat), ts, rtol=tol, atol=tol,
+                               model_axes=0, lanes=lanes)
+        return jnp.sum(jnp.sin(tr.ys.omega)) + jnp.sum(tr.ys.quat[..., 1:] ** 2)
+
+    args = (weights, y0s.omega, q0, ts)
+    lanes = jax.jit(jax.grad(lambda *a: loss(*a, LANES), argnums=(0, 1, 2, 3)))(*args)
+    plain = jax.jit(jax.grad(lambda *a: loss(*a, None), argnums=(0, 1, 2, 3)))(*args)
+    for name, a, b in zip(("weight", "omega0", "quat0"), lanes[:3], plain[:3]):
+        scale = float(jnp.max(jnp.abs(b)))
+        assert scale > 1e-2, name
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-10 * scale, err_msg=name)
+    np.testing.assert_allclose(lanes[3], plain[3], rtol=0,
+                               atol=1e-6 * float(jnp.max(jnp.abs(plain[3]))))
+    f = jax.jit(lambda t0: loss(*args[:3], ts.at[0].set(t0), LANES))
+    h = 1e-5
+    fd = (f(ts[0] + h) - f(ts[0] - h)) / (2 * h)
+    np.testing.assert_allclose(lanes[3][0], fd, rtol=1e-5)
+
+
+def _equations(jaxpr):
+    """Every equation of `jaxpr` and of its sub-jaxprs (loop bodies, …)."""
     for eqn in jaxpr.eqns:
-        if eqn.primitive.name.startswith("scatter"):
-            yield eqn
+        yield eqn
         for sub in jax.extend.core.jaxprs_in_params(eqn.params):
-            yield from _scatters(sub)
+            yield from _equations(sub)
 
 
-def test_forward_mode_saves_tangents_without_touching_the_whole_output():
-    """The jvp of the lane loop writes each saved tangent where the value goes, as the
-    primal does. A scatter without `unique_indices` would instead get JAX's general JVP:
-    ids scattered into a buffer the size of the whole output, then a masked scatter-add,
-    at every loop iteration — correct, but a cost quadratic in the batch size (measured
-    10.0× the forward solve for a jvp of 8192 trajectories, against 1.85×). The value
-    tests above cannot see that, so the program is inspected: every float scatter in the
-    jvp is a plain `scatter` promising unique indices, and there is no scatter-add."""
+def test_a_jvp_runs_one_loop_with_the_sensitivities_and_the_same_steps():
+    """The tangents never enter the loop: a `jax.jvp` holds one lane loop, which carries
+    the states with their sensitivities (its saved values: a plain `scatter` promising
+    unique indices, not JAX's scatter JVP, a masked scatter-add over the whole output at
+    every iteration, measured quadratic in the batch size), and it takes the steps of the
+    forward solve, whose values it returns."""
     y0s = initial_states()
 
-    def omega(J):
-        return rb.simulate_batch(rb.RigidBody(J), y0s, TS, rtol=RTOL, atol=RTOL,
-                                 lanes=LANES).ys.omega
+    def solve(J):
+        return rb.simulate_batch(rb.RigidBody(J), y0s, TS, rtol=RTOL, atol=RTOL, lanes=LANES)
 
-    jaxpr = jax.make_jaxpr(lambda J, dJ: jax.jvp(omega, (J,), (dJ,)))(J, jnp.eye(3))
-    floats = [e for e in _scatters(jaxpr.jaxpr)
-              if jnp.issubdtype(e.invars[0].aval.dtype, jnp.floating)]
-    assert floats  # the saved values (and their tangents) are there to check
+    jaxpr = jax.make_jaxpr(lambda J, dJ: jax.jvp(solve, (J,), (dJ,)))(J, jnp.eye(3))
+    loops = [e for e in _equations(jaxpr.jaxpr) if e.primitive.name == "while"
+             and any(s.primitive.name.startswith("scatter") for s in
+                     _equations(e.params["body_jaxpr"].jaxpr))]
+    assert len(loops) == 1
+    floats = [e for e in _equations(jaxpr.jaxpr) if e.primitive.name.startswith("scatter")
+              and jnp.issubdtype(e.invars[0].aval.dtype, jnp.floating)]
+    assert floats
     for e in floats:
         assert e.primitive.name == "scatter", e.primitive.name
         assert e.params["unique_indices"], e
+    tr, dtr = jax.jit(lambda J, dJ: jax.jvp(solve, (J,), (dJ,)))(J, jnp.eye(3))
+    assert_same_solves(tr, solve(J))
+    assert float(jnp.max(jnp.abs(dtr.ys.omega))) > 1e-3
 
 
 def test_argument_errors():
