@@ -229,11 +229,29 @@ def _take(tree, i):
     return jax.tree_util.tree_map(lambda x: x[i], tree)
 
 
-def _unit_columns(leaves, offsets, P):
+_SYMMETRIC = ((0, 0), (1, 1), (2, 2), (1, 0), (2, 0), (2, 1))  # an inertia's 6 elements
+
+
+def _unit_columns(leaves, offsets, P, symmetric=()):
     """One `(P, *shape)` array per leaf: row p is the unit perturbation of the leaf's
-    element p − offset (zero outside the leaf's block of rows)."""
-    return [jnp.eye(P, dtype=x.dtype)[:, o:o + x.size].reshape((P,) + x.shape)
-            for x, o in zip(leaves, offsets)]
+    element p − offset (zero outside the leaf's block of rows). A leaf flagged in
+    `symmetric` (a 3×3 inertia) has six rows, its symmetric unit perturbations
+    (E_ii; E_ij + E_ji for i > j, in `_SYMMETRIC`'s order)."""
+    out = []
+    for k, (x, o) in enumerate(zip(leaves, offsets)):
+        if k < len(symmetric) and symmetric[k]:
+            e = np.zeros((P, 3, 3))
+            for r, (i, j) in enumerate(_SYMMETRIC):
+                e[o + r, i, j] = e[o + r, j, i] = 1.0
+            out.append(jnp.asarray(e, x.dtype))
+        else:
+            out.append(jnp.eye(P, dtype=x.dtype)[:, o:o + x.size].reshape((P,) + x.shape))
+    return out
+
+
+def _symmetric_part(dJ):
+    """The coefficients of dJ's symmetric part on `_unit_columns`' symmetric rows."""
+    return jnp.stack([0.5 * (dJ[..., i, j] + dJ[..., j, i]) for i, j in _SYMMETRIC], axis=-1)
 
 
 def _with_leaves(tree, which, new):
@@ -263,6 +281,7 @@ class _Sensitivity(eqx.Module):
     which: tuple[int, ...] = eqx.field(static=True)
     offsets: tuple[int, ...] = eqx.field(static=True)
     P: int = eqx.field(static=True)
+    symmetric: tuple[bool, ...] = eqx.field(static=True)
 
     def vector_field(self, t, ys, args):
         y, S = ys
@@ -273,7 +292,7 @@ class _Sensitivity(eqx.Module):
         def field(p, y):
             return _with_leaves(self.model, self.which, p).vector_field(t, y, args)
 
-        basis = _unit_columns(p, self.offsets, self.P)
+        basis = _unit_columns(p, self.offsets, self.P, self.symmetric)
         f, dS = jax.vmap(lambda b, s: jax.jvp(field, (p, y), (b, s)),
                          out_axes=(None, 0))(basis, S)
         return f, jax.tree_util.tree_map(jnp.ravel, dS)
@@ -284,8 +303,9 @@ def _lane_solve(model, y0s, ts, solver, controller, max_steps, dt0, model_axes, 
 
     Differentiable in both modes by forward sensitivities: the rule of its `custom_jvp`
     integrates, once, the variational equations for every input element with a tangent
-    (`_Sensitivity`; p parameters per trajectory add p columns to each state) by the same
-    steps as the solve, and contracts them with the tangents. That contraction is linear,
+    (`_Sensitivity`; p parameters per trajectory add p columns to each state; a model's
+    symmetric `inertia` six) by the same steps as the solve, and contracts them with the
+    tangents (an inertia's by their symmetric part). That contraction is linear,
     so `jax.grad` transposes it, and `jax.jacfwd`'s tangents share the one solve; the
     tangents never enter the loop. The derivative is that of the discrete solve
     (the step sizes are not differentiated, as in `diffeqsolve`); for `ts` it is
@@ -333,7 +353,12 @@ def _lane_jvp(loop, static, batched, primals, tangents):
     N = y_leaves[0].shape[0]
     model = eqx.combine(dyn, static)
     # Columns: the differentiated model elements (per trajectory), then those of y0, then t0.
-    sizes = ([m_leaves[i][0].size if batched else m_leaves[i].size for i in m_which]
+    # The inertia is a symmetric tensor: six columns, and a tangent counts by its
+    # symmetric part.
+    paths = [path for path, _ in jax.tree_util.tree_flatten_with_path(dyn)[0]]
+    symmetric = tuple(paths[i] == (jax.tree_util.GetAttrKey("inertia"),) for i in m_which)
+    sizes = ([6 if sym else m_leaves[i][0].size if batched else m_leaves[i].size
+              for i, sym in zip(m_which, symmetric)]
              + [y_leaves[i][0].size for i in y_which])
     offsets = tuple(int(o) for o in np.cumsum([0] + sizes)[:-1])
     P = sum(sizes) + t_live
@@ -349,7 +374,7 @@ def _lane_jvp(loop, static, batched, primals, tangents):
         def start(p, q):
             return _with_leaves(m, m_which, p).normalise(_with_leaves(y0, y_which, q))[0]
 
-        basis = _unit_columns(p + q, offsets, P)
+        basis = _unit_columns(p + q, offsets, P, symmetric)
         _, S0 = jax.vmap(lambda b: jax.jvp(start, (p, q), (b[:len(p)], b[len(p):])),
                          axis_size=P)(basis)
         if t_live:
@@ -358,12 +383,14 @@ def _lane_jvp(loop, static, batched, primals, tangents):
         return jax.tree_util.tree_map(jnp.ravel, S0)
 
     S0 = eqx.filter_vmap(initial, in_axes=(0 if batched else None, 0))(model, y0s)
-    aug = _Sensitivity(model, tuple(m_which), offsets[:len(m_which)], P)
+    aug = _Sensitivity(model, tuple(m_which), offsets[:len(m_which)], P, symmetric)
     (ys, S), ok0, result, counts = loop(aug, (y0s, S0), ts, tols)
     S = jax.tree_util.tree_map(lambda s, y: s.reshape(y.shape[:2] + (P,) + y.shape[2:]), S, ys)
     # The tangent of every output: S contracted with the inputs' tangents, per trajectory.
-    coef = [m_dots[i].reshape(N, -1) if batched else
-            jnp.broadcast_to(m_dots[i].reshape(1, -1), (N, m_dots[i].size)) for i in m_which]
+    coef = [_symmetric_part(m_dots[i]) if sym else m_dots[i]
+            for i, sym in zip(m_which, symmetric)]
+    coef = [c.reshape(N, -1) if batched else jnp.broadcast_to(c.reshape(1, -1), (N, c.size))
+            for c in coef]
     coef += [y_dots[i].reshape(N, -1) for i in y_which]
     coef += [jnp.broadcast_to(tts[0], (N, 1))] if t_live else []
     dys = jax.tree_util.tree_map(
@@ -789,11 +816,14 @@ def simulate_batch(
       same saved values (to round-off) and same `stats` and `result` as the default.
       Differentiable in both modes (`jax.grad`, `jax.jacfwd`, w.r.t. the model, `y0s` and
       `ts`) by forward sensitivities: one solve carries, beside each state, its derivative
-      w.r.t. every differentiated element (p per trajectory: 9 for an inertia, 7 for an
+      w.r.t. every differentiated element (p per trajectory: 6 for an inertia, 7 for an
       initial state; per-trajectory models count their own only), by the same steps, so
-      the derivative equals reverse mode through the default path (to round-off). Its cost
-      grows with p, not with the number of tangents (measured ~4× the forward solve for a
-      3×3 inertia); `adjoint` is ignored. 256 lanes suit a CPU at 10³–10⁴ trajectories
+      the derivative equals reverse mode through the default path (to round-off). The
+      inertia is differentiated as the symmetric tensor it is: a tangent counts by its
+      symmetric part, and a gradient w.r.t. a raw J is symmetric, (g + gᵀ)/2 of the
+      default path's g (equal along every symmetric direction). The cost grows with p,
+      not with the number of tangents (measured ~3.2× the forward solve for an
+      inertia); `adjoint` is ignored. 256 lanes suit a CPU at 10³–10⁴ trajectories
       (see `benchmarks/`).
     - `devices`: with `lanes`, the number of local devices the batch is split over
       (default: all of the default backend; on CPU that is one unless XLA was started with
