@@ -11,10 +11,11 @@ float64, default solver (Tsit5). Cases:
 - `grad`: `jax.jit(jax.grad(loss))`, loss = Σ|ω − data|² over `simulate_batch` (plain path,
   `RecursiveCheckpointAdjoint`), N = 16, w.r.t. the 6 log-Cholesky parameters of J
   (`rb.inertia.from_log_cholesky`; evaluated at the true parameters + 0.05);
-- `jacfwd_lanes`: `jax.jit(jax.jacfwd(loss))`, the same loss through `lanes=16`;
-  both jitted with `compiler_options=rb.COMPILER_OPTIONS`, as rbdyn_jax advises for a
+- `jacfwd_lanes`, `grad_lanes`: `jax.jit(jax.jacfwd(loss))` and `jax.jit(jax.grad(loss))`,
+  the same loss through `lanes=16` (its forward sensitivities);
+  all jitted with `compiler_options=rb.COMPILER_OPTIONS`, as rbdyn_jax advises for a
   caller's own jit (its solves are compiled with them);
-- `grad_nan`, `jacfwd_lanes_nan`: the two gradients in a process started with
+- `grad_nan`, `jacfwd_lanes_nan`, `grad_lanes_nan`: the gradients in a process started with
   `EQX_ON_ERROR=nan` (equinox's switch: its checks give NaN instead of a host callback).
   The loss builds `RigidBody` from a traced θ, whose inertia check is otherwise a host
   callback in the caller's program, and JAX never caches a program with callbacks;
@@ -66,15 +67,18 @@ CASES = {  # name: (batch size, lanes)
     "lanes": (256, 64),
     "grad": (16, None),
     "jacfwd_lanes": (16, 16),
+    "grad_lanes": (16, 16),
     "grad_nan": (16, None),
     "jacfwd_lanes_nan": (16, 16),
+    "grad_lanes_nan": (16, 16),
     "bare_diffrax": (256, None),
 }
 YARDSTICK = "bare_diffrax"
 # The same gradient programs traced with equinox's checks as NaN (`EQX_ON_ERROR=nan` in the
 # child's environment): the caller's choice that makes its own program cacheable, since the
 # inertia check of a traced θ is otherwise a host callback.
-NAN_CASES = {"grad_nan": "grad", "jacfwd_lanes_nan": "jacfwd_lanes"}
+NAN_CASES = {"grad_nan": "grad", "jacfwd_lanes_nan": "jacfwd_lanes",
+             "grad_lanes_nan": "grad_lanes"}
 CACHE_ENV = ("JAX_COMPILATION_CACHE_DIR", "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS",
              "JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES", "JAX_ENABLE_COMPILATION_CACHE")
 
@@ -217,8 +221,8 @@ def build_call(case):
         return lambda: rb.simulate_batch(model, y0s, ts, rtol=TOL, atol=TOL, lanes=lanes)
     loss = _loss_fn(y0s, ts, jnp.asarray(_reference_omega(w0, ts_np)), lanes)
     theta = rb.inertia.to_log_cholesky(jnp.array(J_TRUE)) + 0.05
-    fn = jax.jit(jax.grad(loss) if NAN_CASES.get(case, case) == "grad" else jax.jacfwd(loss),
-                 compiler_options=rb.COMPILER_OPTIONS)
+    mode = jax.jacfwd if NAN_CASES.get(case, case) == "jacfwd_lanes" else jax.grad
+    fn = jax.jit(mode(loss), compiler_options=rb.COMPILER_OPTIONS)
     return lambda: fn(theta)
 
 
