@@ -182,6 +182,29 @@ def test_failures_stay_in_their_lane():
     assert_same_solves(lanes, plain)
 
 
+def test_failed_trajectories_leave_the_gradient_of_the_others_alone():
+    """A NaN start and a trajectory out of steps (its unsaved rows stay inf), masked out of
+    the loss by their codes: reverse mode through the lanes must give the others'
+    gradient, finite, equal to the default path's (its symmetric part, w.r.t. a raw J),
+    not inf · 0 = NaN in every shared parameter."""
+    y0s = initial_states()
+    omega = y0s.omega.at[2].set(jnp.nan).at[7].set(jnp.array([0.0, 400.0, 1.0]))
+    y0s = rb.State(omega, y0s.quat)
+
+    def loss(J, lanes):
+        tr = rb.simulate_batch(rb.RigidBody(J), y0s, TS, rtol=RTOL, atol=RTOL, max_steps=300,
+                               lanes=lanes)
+        ok = (tr.result == rb.RESULTS.successful)[:, None, None]
+        return (jnp.sum(jnp.sin(jnp.where(ok, tr.ys.omega, 0.0)))
+                + jnp.sum(jnp.where(ok, tr.ys.quat, 0.0)[..., 1:] ** 2))
+
+    lanes = jax.grad(loss)(J, LANES)
+    plain = jax.grad(loss)(J, None)
+    assert np.all(np.isfinite(plain))
+    sym = 0.5 * (plain + plain.T)
+    np.testing.assert_allclose(lanes, sym, rtol=0, atol=1e-10 * float(jnp.max(jnp.abs(sym))))
+
+
 def test_gradients_in_both_modes_match_reverse_mode_and_finite_differences():
     """d/dθ of a batched loss, θ the log-Cholesky inertia parameters: `jax.jacfwd` and
     `jax.grad` through the lane solver (its forward sensitivities) vs `jax.grad` through the
@@ -280,6 +303,34 @@ def test_inertia_gradients_are_taken_on_symmetric_tensors():
         assert float(jnp.max(jnp.abs(plain - sym))) > 1e-2  # plain's halves differ
         np.testing.assert_allclose(lanes, sym, rtol=0,
                                    atol=1e-10 * float(jnp.max(jnp.abs(sym))))
+
+
+class PrincipalBody(rb.RigidBody):
+    """A user's model whose `inertia` leaf is its three principal moments, shape (3,)."""
+
+    def __init__(self, moments):
+        self.inertia = moments
+        self.torque = rb.NoTorque()
+
+    def vector_field(self, t, y, args):
+        return rb.State(rb.dynamics.euler_rhs(jnp.diag(self.inertia), y.omega, jnp.zeros(3)),
+                        rb.rotation.quat_derivative(y.quat, y.omega))
+
+
+def test_an_inertia_that_is_not_a_tensor_takes_ordinary_columns():
+    """Only a 3×3 `inertia` is differentiated along symmetric directions; principal moments
+    (shape (3,)) take one column each, and equal reverse mode through `diffeqsolve`."""
+    y0s = initial_states()
+
+    def loss(moments, lanes):
+        tr = rb.simulate_batch(PrincipalBody(moments), y0s, TS, rtol=RTOL, atol=RTOL,
+                               lanes=lanes)
+        return jnp.sum(jnp.sin(tr.ys.omega))
+
+    moments = jnp.array([2.0, 3.0, 4.0])
+    plain = jax.grad(loss)(moments, None)
+    np.testing.assert_allclose(jax.grad(loss)(moments, LANES), plain, rtol=0,
+                               atol=1e-10 * float(jnp.max(jnp.abs(plain))))
 
 
 def _equations(jaxpr):
