@@ -13,6 +13,7 @@ compile on CPU, the same run time; `_xla.py`). Pass them to your own `jax.jit` a
 solve, a gradient of a loss say: `jax.jit(jax.grad(loss), compiler_options=COMPILER_OPTIONS)`.
 """
 
+import contextlib
 import functools
 import numbers
 
@@ -25,7 +26,7 @@ from jaxtyping import Array, ArrayLike, Float, PyTree
 
 from . import _traces
 from ._checks import as_float_array, checks_as_nan
-from ._xla import COMPILER_OPTIONS, filter_jit
+from ._xla import COMPILER_OPTIONS, filter_jit, top_level
 from .models import AbstractRigidBody
 
 
@@ -298,18 +299,23 @@ class _Sensitivity(eqx.Module):
         return f, jax.tree_util.tree_map(jnp.ravel, dS)
 
 
-def _lane_solve(model, y0s, ts, solver, controller, max_steps, dt0, model_axes, lanes):
-    """The lane solver (`_lane_loop`) and its `Trajectory`s.
+def _lane_solve(model, y0s, ts, solver, controller, max_steps, dt0, model_axes, lanes,
+                mesh=None):
+    """The lane solver (`_lane_loop`; on each device of `mesh`, `_lane_sharded`) and its
+    `Trajectory`s.
 
     Differentiable in both modes by forward sensitivities: the rule of its `custom_jvp`
     integrates, once, the variational equations for every input element with a tangent
     (`_Sensitivity`; p parameters per trajectory add p columns to each state; a model's
-    symmetric `inertia` six) by the same steps as the solve, and contracts them with the
-    tangents (an inertia's by their symmetric part). That contraction is linear,
-    so `jax.grad` transposes it, and `jax.jacfwd`'s tangents share the one solve; the
+    symmetric 3×3 `inertia` six) by the same steps as the solve, and contracts them with
+    the tangents (an inertia's by their symmetric part). That contraction is linear, so
+    `jax.grad` transposes it, and `jax.jacfwd`'s tangents share the one solve; the
     tangents never enter the loop. The derivative is that of the discrete solve
     (the step sizes are not differentiated, as in `diffeqsolve`); for `ts` it is
-    f(tᵢ, y(tᵢ)) at the output times and the column −f(t0, y0) for the start time."""
+    f(tᵢ, y(tᵢ)) at the output times and the column −f(t0, y0) for the start time. The
+    rule is outside the devices' `shard_map`, so that a gradient traced in place (inside
+    a caller's transformation) traces the sensitivities' solve alone, not the forward
+    solve first."""
     batched = model_axes is not None
     if batched:  # every array leaf with a leading trajectory axis
         model = eqx.filter_vmap(lambda m: m, in_axes=(model_axes,))(model)
@@ -317,8 +323,11 @@ def _lane_solve(model, y0s, ts, solver, controller, max_steps, dt0, model_axes, 
     tols, cstatic = eqx.partition(controller, eqx.is_array)
 
     def loop(m, y0s, ts, tols):
-        return _lane_loop(m, y0s, ts, eqx.combine(tols, cstatic), solver=solver,
-                          max_steps=max_steps, dt0=dt0, batched=batched, lanes=lanes)
+        run = functools.partial(_lane_loop, solver=solver, max_steps=max_steps, dt0=dt0,
+                                batched=batched, lanes=lanes)
+        if mesh is None or mesh.devices.size == 1:
+            return run(m, y0s, ts, eqx.combine(tols, cstatic))
+        return _lane_sharded(run, m, y0s, ts, tols, cstatic, batched, mesh)
 
     @jax.custom_jvp
     def solve(dyn, y0s, ts, tols):
@@ -332,6 +341,40 @@ def _lane_solve(model, y0s, ts, solver, controller, max_steps, dt0, model_axes, 
 
     return eqx.filter_vmap(finish, in_axes=(0 if batched else None, 0, 0, 0, 0))(
         model, ys, ok0, result, counts)
+
+
+def _lane_sharded(run, model, y0s, ts, tols, cstatic, batched, mesh):
+    """`run` (the lane loop) on each device's share of the batch (`shard_map`: every device
+    runs its own loop, no collective inside it), its raw outputs in the batch's order. The
+    batch is padded to a multiple of the devices by repeating its last trajectory and dealt
+    out in turn (device d takes trajectories d, d + devices, …), so that a batch ordered by
+    difficulty (a sweep over spin rates, say) still gives every device an equal share of
+    the work."""
+    from jax.sharding import PartitionSpec as P
+
+    n_dev = mesh.devices.size
+    N = jax.tree_util.tree_leaves(y0s)[0].shape[0]
+    pad = -N % n_dev
+
+    def padded(x):  # padded to P = N + pad, dealt: row d·(P/devices) + i holds i·devices + d
+        x = jnp.concatenate([x, jnp.repeat(x[-1:], pad, axis=0)]) if pad else x
+        return x.reshape((-1, n_dev) + x.shape[1:]).swapaxes(0, 1).reshape(x.shape)
+
+    def collected(x):  # the inverse of the deal, without the padding
+        return x.reshape((n_dev, -1) + x.shape[1:]).swapaxes(0, 1).reshape(x.shape)[:N]
+
+    y0s = jax.tree_util.tree_map(padded, y0s)
+    dyn, static = eqx.partition(model, eqx.is_array)
+    if batched:
+        dyn = jax.tree_util.tree_map(padded, dyn)
+    spec = P("batch") if batched else P()
+
+    def local(dyn, y0s, ts, tols):
+        return run(eqx.combine(dyn, static), y0s, ts, eqx.combine(tols, cstatic))
+
+    out = jax.shard_map(local, mesh=mesh, in_specs=(spec, P("batch"), P(), P()),
+                        out_specs=P("batch"), check_vma=False)(dyn, y0s, ts, tols)
+    return jax.tree_util.tree_map(collected, out)
 
 
 def _lane_jvp(loop, static, batched, primals, tangents):
@@ -682,49 +725,8 @@ def _mesh(devices) -> jax.sharding.Mesh:
     return jax.sharding.Mesh(np.asarray(available[:devices]), ("batch",))
 
 
-def _lane_solve_sharded(model, y0s, ts, solver, controller, max_steps, dt0, model_axes, lanes,
-                        mesh):
-    """`_lane_solve` on each device's share of the batch (`shard_map`: every device runs its
-    own loop, no collective inside it). The batch is padded to a multiple of the devices by
-    repeating its last trajectory and dealt out in turn (device d takes trajectories d,
-    d + devices, …), so that a batch ordered by difficulty (a sweep over spin rates, say)
-    still gives every device an equal share of the work."""
-    from jax.sharding import PartitionSpec as P
-
-    n_dev = mesh.devices.size
-    N = jax.tree_util.tree_leaves(y0s)[0].shape[0]
-    if model_axes is not None:  # every array leaf with a leading trajectory axis
-        model = eqx.filter_vmap(lambda m: m, in_axes=(model_axes,))(model)
-    if n_dev == 1:
-        return _lane_solve(model, y0s, ts, solver, controller, max_steps, dt0,
-                           None if model_axes is None else 0, lanes)
-    pad = -N % n_dev
-
-    def padded(x):  # padded to P = N + pad, dealt: row d·(P/devices) + i holds i·devices + d
-        x = jnp.concatenate([x, jnp.repeat(x[-1:], pad, axis=0)]) if pad else x
-        return x.reshape((-1, n_dev) + x.shape[1:]).swapaxes(0, 1).reshape(x.shape)
-
-    def collected(x):  # the inverse of the deal, without the padding
-        return x.reshape((n_dev, -1) + x.shape[1:]).swapaxes(0, 1).reshape(x.shape)[:N]
-
-    y0s = jax.tree_util.tree_map(padded, y0s)
-    dyn, static = eqx.partition(model, eqx.is_array)
-    if model_axes is not None:
-        dyn = jax.tree_util.tree_map(padded, dyn)
-    spec = P("batch") if model_axes is not None else P()
-
-    def local(dyn, y0s, ts):
-        m = eqx.combine(dyn, static)
-        return _lane_solve(m, y0s, ts, solver, controller, max_steps, dt0,
-                           None if model_axes is None else 0, lanes)
-
-    out = jax.shard_map(local, mesh=mesh, in_specs=(spec, P("batch"), P()),
-                        out_specs=P("batch"), check_vma=False)(dyn, y0s, ts)
-    return jax.tree_util.tree_map(collected, out)
-
-
 _solve_batch_jit = _compiled(_solve_batch)
-_lane_solve_jit = _compiled(_lane_solve_sharded)
+_lane_solve_jit = _compiled(_lane_solve)
 
 
 def _prepare(model, ts, rtol, atol, max_steps):
@@ -854,8 +856,17 @@ def simulate_batch(
     else:
         if not isinstance(lanes, numbers.Integral) or isinstance(lanes, bool) or lanes < 1:
             raise ValueError(f"`lanes` must be a positive int or None, got {lanes!r}.")
-        traj = _lane_solve_jit[cacheable](model, y0s, ts, solver, controller, max_steps, dt0,
-                                          model_axes, int(lanes), _mesh(devices))
+        args = (model, y0s, ts, solver, controller, max_steps, dt0, model_axes, int(lanes),
+                _mesh(devices))
+        if top_level():
+            traj = _lane_solve_jit[cacheable](*args)
+        else:
+            # Inside a caller's transformation, traced in place rather than as a nested
+            # jit, whose body would trace the forward solve before a gradient traces the
+            # sensitivities' rule (a caller's `jit(grad(loss))`: traced in 1.12 s, was 1.31 s).
+            with checks_as_nan(jitted=(diffrax.diffeqsolve,)) if cacheable else \
+                    contextlib.nullcontext():
+                traj = _lane_solve(*args)
     if throw:
         traj = traj.result.error_if(traj, jnp.any(traj.result != RESULTS.successful))
     return traj
