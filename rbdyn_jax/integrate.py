@@ -13,7 +13,6 @@ compile on CPU, the same run time; `_xla.py`). Pass them to your own `jax.jit` a
 solve, a gradient of a loss say: `jax.jit(jax.grad(loss), compiler_options=COMPILER_OPTIONS)`.
 """
 
-import contextlib
 import functools
 import numbers
 
@@ -26,7 +25,7 @@ from jaxtyping import Array, ArrayLike, Float, PyTree
 
 from . import _traces
 from ._checks import as_float_array, checks_as_nan
-from ._xla import COMPILER_OPTIONS, filter_jit, top_level
+from ._xla import COMPILER_OPTIONS, filter_jit
 from .models import AbstractRigidBody
 
 
@@ -313,9 +312,8 @@ def _lane_solve(model, y0s, ts, solver, controller, max_steps, dt0, model_axes, 
     tangents never enter the loop. The derivative is that of the discrete solve
     (the step sizes are not differentiated, as in `diffeqsolve`); for `ts` it is
     f(tᵢ, y(tᵢ)) at the output times and the column −f(t0, y0) for the start time. The
-    rule is outside the devices' `shard_map`, so that a gradient traced in place (inside
-    a caller's transformation) traces the sensitivities' solve alone, not the forward
-    solve first."""
+    rule is outside the devices' `shard_map`, which the sensitivities' solve enters as
+    the forward solve does."""
     batched = model_axes is not None
     if batched:  # every array leaf with a leading trajectory axis
         model = eqx.filter_vmap(lambda m: m, in_axes=(model_axes,))(model)
@@ -856,17 +854,8 @@ def simulate_batch(
     else:
         if not isinstance(lanes, numbers.Integral) or isinstance(lanes, bool) or lanes < 1:
             raise ValueError(f"`lanes` must be a positive int or None, got {lanes!r}.")
-        args = (model, y0s, ts, solver, controller, max_steps, dt0, model_axes, int(lanes),
-                _mesh(devices))
-        if top_level():
-            traj = _lane_solve_jit[cacheable](*args)
-        else:
-            # Inside a caller's transformation, traced in place rather than as a nested
-            # jit, whose body would trace the forward solve before a gradient traces the
-            # sensitivities' rule (a caller's `jit(grad(loss))`: traced in 1.12 s, was 1.31 s).
-            with checks_as_nan(jitted=(diffrax.diffeqsolve,)) if cacheable else \
-                    contextlib.nullcontext():
-                traj = _lane_solve(*args)
+        traj = _lane_solve_jit[cacheable](model, y0s, ts, solver, controller, max_steps, dt0,
+                                          model_axes, int(lanes), _mesh(devices))
     if throw:
         traj = traj.result.error_if(traj, jnp.any(traj.result != RESULTS.successful))
     return traj

@@ -341,6 +341,36 @@ def _equations(jaxpr):
             yield from _equations(sub)
 
 
+_COMPILES = []  # set to a list to record the XLA compilations (a listener stays registered)
+jax.monitoring.register_event_duration_secs_listener(
+    lambda event, secs, **_: _COMPILES.append(event)
+    if event == "/jax/core/compile/backend_compile_duration" else None)
+
+
+def test_eager_gradients_and_vmaps_reuse_their_compiled_solve():
+    """`jax.grad` and `jax.vmap` called eagerly (no jit of the caller's) around a lane solve
+    compile it once: later calls compile nothing. (A lane solve traced in place inside the
+    caller's transformation instead of as a nested jit recompiled its loop at every call,
+    2.3 s per eager gradient against 0.014 s, measured.)"""
+    y0s = initial_states()
+
+    def loss(J):
+        return jnp.sum(rb.simulate_batch(rb.RigidBody(J), y0s, TS, rtol=RTOL, atol=RTOL,
+                                         lanes=LANES).ys.omega ** 2)
+
+    def omegas(w):
+        return rb.simulate_batch(heavy_top(w), y0s, TS, rtol=RTOL, atol=RTOL,
+                                 lanes=LANES).ys.omega
+
+    for f, x in ((jax.grad(loss), J), (jax.vmap(omegas), jnp.array([0.5, 1.0]))):
+        for _ in range(2):
+            jax.block_until_ready(f(x))
+        other = jax.block_until_ready(x + 0.01)  # new values, not a new program
+        _COMPILES.clear()
+        jax.block_until_ready(f(other))
+        assert _COMPILES == [], f"{len(_COMPILES)} compilations on a repeated call"
+
+
 def test_a_jvp_runs_one_loop_with_the_sensitivities_and_the_same_steps():
     """The tangents never enter the loop: a `jax.jvp` holds one lane loop, which carries
     the states with their sensitivities (its saved values: a plain `scatter` promising
