@@ -503,7 +503,7 @@ def _lane_loop(model, y0s, ts, controller, *, solver, max_steps, dt0, batched, l
             ok, y, f = _start(m.model, y0[0], t0)
             term = WrapTerm(diffrax.ODETerm(_Guarded(m.model)), 1)
             y_aug = (y, _where_tree(ok, y0[1], 0.0))
-            f_aug = _where_tree(ok, m.vector_field(t0, y_aug, None), 0.0)
+            f_aug = m.vector_field(t0, y_aug, None)  # masked with `ok` below
         else:
             ok, y, f = _start(m, y0, t0)  # f = f(t0, y): y is the stand-in where not ok
             term = WrapTerm(diffrax.ODETerm(_Guarded(m)), 1)
