@@ -13,7 +13,17 @@ from jaxtyping import Array, ArrayLike
 
 
 def as_float_array(x: ArrayLike, name: str) -> Array:
-    """`jnp.asarray(x)` promoted to a floating dtype (JAX's default float for ints/bools)."""
+    """`jnp.asarray(x)` promoted to a floating dtype (JAX's default float for ints/bools).
+    A value that is not traced (NumPy, a list, a concrete array) stays concrete even while
+    a caller's function is traced (`jnp.asarray` alone would give a tracer there), so that
+    its checks run now, on values, instead of as runtime checks in the caller's program."""
+    if isinstance(x, jax.core.Tracer):
+        return _as_float_array(x, name)
+    with jax.ensure_compile_time_eval():
+        return _as_float_array(x, name)
+
+
+def _as_float_array(x, name):
     try:
         x = jnp.asarray(x)
     except TypeError as e:
@@ -41,9 +51,8 @@ def check_batch(x: ArrayLike, name: str) -> Array:
 
 
 def holds_now(check, *args) -> bool:
-    """Whether `check(*args)` (boolean arrays) is true everywhere, evaluated now: `False`
-    without evaluating it if any argument is traced, or if its result is traced (a concrete
-    argument inside a caller's `jit`).
+    """Whether `check(*args)` (boolean arrays) is true everywhere, evaluated now (also
+    inside a caller's trace): `False` without evaluating it if any argument is traced.
 
     The fast path of a value check on concrete input: `check` is one compiled call, and the
     caller skips `eqx.error_if` when it holds. (Eager, a check's dozen small operations each
@@ -51,7 +60,8 @@ def holds_now(check, *args) -> bool:
     caller takes its usual `eqx.error_if` path, which raises as always."""
     if any(isinstance(a, jax.core.Tracer) for a in jax.tree_util.tree_leaves(args)):
         return False
-    leaves = jax.tree_util.tree_leaves(check(*args))
+    with jax.ensure_compile_time_eval():  # concrete arguments: evaluated now, even inside
+        leaves = jax.tree_util.tree_leaves(check(*args))  # a caller's trace
     return not any(isinstance(f, jax.core.Tracer) for f in leaves) and all(
         bool(np.all(np.asarray(f))) for f in leaves)
 

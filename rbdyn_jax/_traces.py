@@ -22,9 +22,15 @@ never cached (it is traced, as without this module):
   every static value (numbers, strings, functions and classes of those libraries by name,
   numpy constants by content), and the shape, dtype and weak type of every array.
 
+Inside a caller's own transformation (its `jax.jit(jax.grad(loss))`, say) a solve is part
+of the caller's program, which rbdyn_jax cannot store. There the lane solver's loops, the
+expensive part of that trace, are stored alone (`embedded`) and called by `jax.export`'s
+`call`: the caller's trace then holds the stored loop instead of tracing it anew.
+
 `RBDYN_JAX_TRACE_CACHE=0` in the environment turns the cache off.
 """
 
+import contextvars
 import enum
 import functools
 import hashlib
@@ -39,7 +45,7 @@ import equinox as eqx
 import jax
 import numpy as np
 
-from ._xla import COMPILER_OPTIONS, export, jit, top_level
+from ._xla import COMPILER_OPTIONS, export, filter_jit, jit, top_level
 
 # The modules whose classes and functions a key may name: their code is versioned by
 # `_environment` (builtins by the Python version, which changes the bytecode cache anyway).
@@ -53,6 +59,9 @@ stats = {"hits": 0, "stores": 0, "uncacheable": 0}  # this process's use of the 
 _LOADED: dict[str, tuple] = {}  # key -> (jitted exported call, output treedef)
 _KEYS: dict[tuple, str | None] = {}  # `_memo_key`'s memo
 _UNEXPORTABLE: set[str] = set()  # keys whose trace `jax.export` refused
+_EMBEDDED: dict[str, tuple] = {}  # key -> (exported program, output treedef), for `embedded`
+# Set while a cached solve is traced inside a caller's transformation: `embedded` is on.
+_EMBEDDING = contextvars.ContextVar("rbdyn_jax_embedding", default=False)
 
 
 class _Unsafe(Exception):
@@ -237,14 +246,28 @@ def cached(fn, jitted):
     """`jitted` (`filter_jit(fn)`), with `fn`'s traced program stored on disk and reused
     by later processes where `directory()` is set, the call is made at the top level with
     concrete arrays, and `key` can describe it. `fn` must be traced with no host callback
-    (rbdyn_jax's checks-as-NaN solves), or it cannot be exported."""
+    (rbdyn_jax's checks-as-NaN solves), or it cannot be exported. Inside a caller's
+    transformation (with `directory()` set) `fn` is traced by a jit of its own with
+    `embedded` on."""
     name = f"{fn.__module__}.{fn.__qualname__}"
+
+    @functools.wraps(fn)
+    def embedding(*args):
+        token = _EMBEDDING.set(True)
+        try:
+            return fn(*args)
+        finally:
+            _EMBEDDING.reset(token)
+
+    nested = filter_jit(embedding)  # its own jit: its traces hold stored programs
 
     @functools.wraps(fn)
     def call(*args):
         where = directory()
-        if where is None or not top_level():
+        if where is None:
             return jitted(*args)
+        if not top_level():  # inside a caller's transformation: `embedded` is on
+            return nested(*args)
         leaves, treedef = jax.tree_util.tree_flatten(args)
         arrays = [x for x in leaves if eqx.is_array(x)]
         if any(isinstance(x, jax.core.Tracer) for x in arrays):
@@ -271,3 +294,81 @@ def cached(fn, jitted):
         return jax.tree_util.tree_unflatten(out_tree, run(*arrays))
 
     return call
+
+
+def embedder():
+    """`embedded` where a cached solve is being traced inside a caller's transformation
+    (`cached`), else a plain call. Read it while the solve is traced, and keep it for the
+    solve's derivative rules, which JAX traces later (outside `cached`'s call)."""
+    return embedded if _EMBEDDING.get() and directory() is not None else _plain
+
+
+def _plain(fn, *args):
+    return fn(*args)
+
+
+def embedded(fn, *args):
+    """`fn(*args)` with `fn`'s program stored on disk alone (where `directory()` is set),
+    and called as the stored program by a later process instead of tracing `fn`: inside a
+    caller's trace (`embedder`), which then holds it as one `call_exported`.
+
+    Its key describes the call as `key` does (shapes and dtypes of the arrays, traced or
+    not; every static value), with equinox's error mode, which changes the trace. The
+    stored program has neither a JVP nor a batching rule of its own: `jax.custom_jvp` and
+    `jax.custom_batching.custom_vmap` give it `fn`'s, traced only when a caller's
+    transformation reaches it (`jax.jvp` of `fn`; `jax.vmap` of `fn`), so any
+    transformation gives what `fn` itself would. `fn` must return a pytree of arrays."""
+    where = directory()
+    if where is None:
+        return fn(*args)
+    import equinox._errors as eqx_errors
+
+    mode = getattr(eqx_errors, "EQX_ON_ERROR", None)
+    name = f"{fn.__module__}.{fn.__qualname__}[embedded, {mode}]"
+    leaves, treedef = jax.tree_util.tree_flatten(args)
+    k = _memo_key(name, treedef, leaves)
+    if k is None or k in _UNEXPORTABLE:
+        stats["uncacheable"] += 1
+        return fn(*args)
+    dyn, static = eqx.partition(args, eqx.is_array)
+    arrays = [x for x in leaves if eqx.is_array(x)]
+    if k not in _EMBEDDED:
+        path = where / f"{k}.jaxexport"
+        entry = _load(path)
+        if entry is not None:
+            stats["hits"] += 1
+        else:
+            specs = [jax.ShapeDtypeStruct(x.shape, x.dtype, weak_type=jax.typeof(x).weak_type)
+                     for x in arrays]
+            entry = _export(path, fn, dyn, static, specs)
+        if entry is None:
+            _UNEXPORTABLE.add(k)
+            stats["uncacheable"] += 1
+            return fn(*args)
+        _EMBEDDED[k] = entry
+    exported, out_tree = _EMBEDDED[k]
+    dyn_tree = jax.tree_util.tree_structure(dyn)
+
+    def traced(*xs):  # `fn` itself, on the flat arrays: the transformations' fallback
+        out = fn(*eqx.combine(jax.tree_util.tree_unflatten(dyn_tree, list(xs)), static))
+        return tuple(jax.tree_util.tree_leaves(out))
+
+    @jax.custom_jvp
+    def run(*xs):
+        @jax.custom_batching.custom_vmap
+        def stored(*xs):
+            return tuple(exported.call(*xs))
+
+        @stored.def_vmap
+        def _(axis_size, in_batched, *xs):
+            axes = [0 if b else None for b in in_batched]
+            out = jax.vmap(traced, in_axes=axes, axis_size=axis_size)(*xs)
+            return out, tuple(True for _ in out)
+
+        return stored(*xs)
+
+    @run.defjvp
+    def _(primals, tangents):
+        return jax.jvp(traced, primals, tangents)
+
+    return jax.tree_util.tree_unflatten(out_tree, list(run(*arrays)))

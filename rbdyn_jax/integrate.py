@@ -320,12 +320,11 @@ def _lane_solve(model, y0s, ts, solver, controller, max_steps, dt0, model_axes, 
     dyn, static = eqx.partition(model, eqx.is_array)
     tols, cstatic = eqx.partition(controller, eqx.is_array)
 
+    stored = _traces.embedder()  # inside a caller's transformation, stored programs
+
     def loop(m, y0s, ts, tols):
-        run = functools.partial(_lane_loop, solver=solver, max_steps=max_steps, dt0=dt0,
-                                batched=batched, lanes=lanes)
-        if mesh is None or mesh.devices.size == 1:
-            return run(m, y0s, ts, eqx.combine(tols, cstatic))
-        return _lane_sharded(run, m, y0s, ts, tols, cstatic, batched, mesh)
+        return stored(_lane_run, m, y0s, ts, tols, cstatic, solver, max_steps, dt0, batched,
+                      lanes, mesh)
 
     @jax.custom_jvp
     def solve(dyn, y0s, ts, tols):
@@ -339,6 +338,15 @@ def _lane_solve(model, y0s, ts, solver, controller, max_steps, dt0, model_axes, 
 
     return eqx.filter_vmap(finish, in_axes=(0 if batched else None, 0, 0, 0, 0))(
         model, ys, ok0, result, counts)
+
+
+def _lane_run(m, y0s, ts, tols, cstatic, solver, max_steps, dt0, batched, lanes, mesh):
+    """The lane loop (`_lane_loop`), on one device or on each of `mesh`'s."""
+    run = functools.partial(_lane_loop, solver=solver, max_steps=max_steps, dt0=dt0,
+                            batched=batched, lanes=lanes)
+    if mesh is None or mesh.devices.size == 1:
+        return run(m, y0s, ts, eqx.combine(tols, cstatic))
+    return _lane_sharded(run, m, y0s, ts, tols, cstatic, batched, mesh)
 
 
 def _lane_sharded(run, model, y0s, ts, tols, cstatic, batched, mesh):

@@ -12,6 +12,7 @@ import diffrax
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 import rbdyn_jax as rb
 from rbdyn_jax import _traces
@@ -114,11 +115,11 @@ SCRIPT = textwrap.dedent("""
 """)
 
 
-def _run(cache, tmp_path, **env):
-    """The script in a fresh process: this process's use of the trace cache, and every
-    leaf of the three trajectories."""
-    script, out = tmp_path / "traced.py", tmp_path / "out.npz"
-    script.write_text(SCRIPT)
+def _run(cache, tmp_path, script=SCRIPT, **env):
+    """`script` in a fresh process: this process's use of the trace cache (and what else
+    the script prints), and the arrays it saved."""
+    text, script, out = script, tmp_path / "traced.py", tmp_path / "out.npz"
+    script.write_text(text)
     # One XLA device unless asked: another test module may have set XLA_FLAGS for two
     # (benchmarks/gradients.py does on import), and a two-device lane solve is not cached.
     base = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
@@ -203,9 +204,99 @@ def test_a_program_export_refuses_is_traced_as_without_the_cache(tmp_path, monke
     assert len(tries) == 1
 
 
+CALLER = textwrap.dedent("""
+    import json, sys
+    import jax
+    jax.config.update("jax_enable_x64", True)
+    if sys.argv[1] != "none":
+        jax.config.update("jax_compilation_cache_dir", sys.argv[1])
+    import jax.numpy as jnp, numpy as np
+    import rbdyn_jax as rb
+    from rbdyn_jax import _traces, integrate
+    traced = []  # the lane loops traced in this process
+    loop = integrate._lane_loop
+    integrate._lane_loop = lambda *a, **k: traced.append(1) or loop(*a, **k)
+    J = jnp.array([[2.0, 0.05, 0.0], [0.05, 3.0, 0.02], [0.0, 0.02, 4.0]])
+    w = jnp.asarray(np.random.default_rng(1).normal(size=(6, 3)))
+    y0s = rb.State(w, jnp.tile(jnp.array([1.0, 0, 0, 0]), (6, 1)))
+    ts = np.linspace(0.0, 3.0, 5)
+    def loss(theta, scale):
+        model = rb.RigidBody(rb.inertia.from_log_cholesky(theta))
+        tr = rb.simulate_batch(model, y0s, ts, lanes=2)
+        return jnp.sum(jnp.sin(tr.ys.omega * scale) ** 2) + jnp.sum(tr.ys.quat[..., 1:] ** 2)
+    th, one, two = rb.inertia.to_log_cholesky(J) + 0.05, 1.0, jnp.array([1.0, 0.5])
+    out = {"grad": jax.jit(jax.grad(loss))(th, one),
+           "jacfwd": jax.jit(jax.jacfwd(loss))(th, one)}
+    loops = len(traced)  # the caller's own programs so far: nothing else traced a loop
+    out["vmap_grad"] = jax.jit(jax.vmap(jax.grad(loss), in_axes=(None, 0)))(th, two)
+    out["hessian"] = jax.jit(jax.hessian(loss))(th, one)
+    np.savez(sys.argv[2], **{k: np.asarray(v) for k, v in out.items()})
+    print(json.dumps(dict(_traces.stats, loops=loops)))
+""")
+
+
+def test_a_callers_gradient_holds_the_stored_loops_and_gets_the_same_results(tmp_path):
+    """A caller's own `jit(grad)`, `jit(jacfwd)`, `jit(vmap(grad))` and `jit(hessian)` of a
+    loss through the lane solver, in three fresh processes: no cache; an empty cache (the
+    forward loop and the sensitivities' loop are stored); the same cache (both loaded, and
+    the gradients trace no lane loop at all). The vmap and the Hessian transform the
+    stored loops through `fn`'s own rules (`embedded`'s fallbacks). Every result bitwise
+    equal (the stored program is the traced one), but the Hessian's: its fallback wraps
+    `fn`'s jvp in another program structure, which XLA may fuse and round differently
+    (seen: 1 ulp), so it is compared to 1e-13 of its largest element."""
+    cache = tmp_path / "cache"
+    ref_stats, ref = _run("none", tmp_path, script=CALLER)
+    cold_stats, cold = _run(cache, tmp_path, script=CALLER)
+    warm_stats, warm = _run(cache, tmp_path, script=CALLER)
+    assert ref_stats == {"hits": 0, "stores": 0, "uncacheable": 0, "loops": 2}
+    assert cold_stats == {"hits": 0, "stores": 2, "uncacheable": 0, "loops": 2}
+    assert warm_stats == {"hits": 2, "stores": 0, "uncacheable": 0, "loops": 0}
+    for out in (cold, warm):
+        np.testing.assert_allclose(out.pop("hessian"), ref["hessian"], rtol=1e-13,
+                                   atol=1e-13 * np.abs(ref["hessian"]).max())
+    assert_same(cold, {k: v for k, v in ref.items() if k != "hessian"})
+    assert_same(warm, cold)
+    assert np.all(np.isfinite(ref["hessian"]))
+    np.testing.assert_allclose(ref["hessian"], ref["hessian"].T, rtol=1e-9, atol=1e-12)
+
+
 def test_memo_tells_signed_zeros_apart():
     """0.0 == -0.0 in Python, but a trace may hold either: the memo keys floats by repr."""
     keys = [_traces._memo_key("f", *reversed(jax.tree_util.tree_flatten((z,))))
             for z in (0.0, -0.0)]
     assert keys[0] != keys[1]
     assert keys == [_traces.key("f", (0.0,)), _traces.key("f", (-0.0,))]
+
+
+def _callbacks(jaxpr):
+    """The host callbacks in `jaxpr` and its sub-jaxprs (JAX never caches such a program)."""
+    found = []
+    for eqn in jaxpr.eqns:
+        if "callback" in eqn.primitive.name:
+            found.append(eqn.primitive.name)
+        for sub in jax.extend.core.jaxprs_in_params(eqn.params):
+            found += _callbacks(sub)
+    return found
+
+
+def test_numpy_inputs_inside_a_callers_trace_are_checked_now_not_at_run_time():
+    """NumPy `ts` and inertia inside a caller's `jit` stay concrete: they are checked while
+    tracing, and the caller's program holds no host callback (it can be cached). A traced
+    inertia still gets its runtime check, and so does a NumPy one that fails the check
+    (the error is raised by the caller's program, as before); bad `ts` raise at once."""
+    q = jnp.tile(jnp.array([1.0, 0, 0, 0]), (3, 1))
+
+    def omegas(w, Jm=np.asarray(J)):
+        traj = rb.simulate_batch(rb.RigidBody(Jm), rb.State(w, q), TS, lanes=2)
+        return traj.ys.omega
+
+    w = jnp.ones((3, 3))
+    assert _callbacks(jax.make_jaxpr(omegas)(w).jaxpr) == []
+    assert _callbacks(jax.make_jaxpr(omegas)(w, J).jaxpr) != []  # a traced inertia
+    bad = np.diag([1.0, 1.0, 3.0])  # violates the triangle inequality
+    with pytest.raises(Exception, match="inertia"):
+        jax.block_until_ready(jax.jit(lambda w: omegas(w, bad))(w))
+    ts_bad = TS[::-1]
+    with pytest.raises(ValueError, match="increasing"):
+        jax.make_jaxpr(lambda w: rb.simulate_batch(rb.RigidBody(J), rb.State(w, q),
+                                                    ts_bad, lanes=2))(w)
