@@ -242,6 +242,23 @@ def _memo_key(name, treedef, leaves):
     return k
 
 
+def _entry(where, k, fn, args, arrays):
+    """Key `k`'s stored program and output structure: loaded, or else traced from `fn(*args)`
+    with `arrays` (its arrays, or their shapes and dtypes) as inputs and stored; `None`
+    (remembered) if `jax.export` refuses it."""
+    path = where / f"{k}.jaxexport"
+    entry = _load(path)
+    if entry is not None:
+        stats["hits"] += 1
+        return entry
+    dyn, static = eqx.partition(args, eqx.is_array)
+    entry = _export(path, fn, dyn, static, arrays)
+    if entry is None:
+        _UNEXPORTABLE.add(k)
+        stats["uncacheable"] += 1
+    return entry
+
+
 def cached(fn, jitted):
     """`jitted` (`filter_jit(fn)`), with `fn`'s traced program stored on disk and reused
     by later processes where `directory()` is set, the call is made at the top level with
@@ -277,16 +294,8 @@ def cached(fn, jitted):
             stats["uncacheable"] += 1
             return jitted(*args)
         if k not in _LOADED:
-            path = where / f"{k}.jaxexport"
-            entry = _load(path)
-            if entry is not None:
-                stats["hits"] += 1
-            else:
-                dyn, static = eqx.partition(args, eqx.is_array)
-                entry = _export(path, fn, dyn, static, arrays)
+            entry = _entry(where, k, fn, args, arrays)
             if entry is None:  # not exportable: traced as without the cache, from now on
-                _UNEXPORTABLE.add(k)
-                stats["uncacheable"] += 1
                 return jitted(*args)
             exported, out_tree = entry
             _LOADED[k] = (jit(exported.call), out_tree)
@@ -330,23 +339,16 @@ def embedded(fn, *args):
     if k is None or k in _UNEXPORTABLE:
         stats["uncacheable"] += 1
         return fn(*args)
-    dyn, static = eqx.partition(args, eqx.is_array)
     arrays = [x for x in leaves if eqx.is_array(x)]
     if k not in _EMBEDDED:
-        path = where / f"{k}.jaxexport"
-        entry = _load(path)
-        if entry is not None:
-            stats["hits"] += 1
-        else:
-            specs = [jax.ShapeDtypeStruct(x.shape, x.dtype, weak_type=jax.typeof(x).weak_type)
-                     for x in arrays]
-            entry = _export(path, fn, dyn, static, specs)
+        specs = [jax.ShapeDtypeStruct(x.shape, x.dtype, weak_type=jax.typeof(x).weak_type)
+                 for x in arrays]  # traced or not: the stored program takes them as inputs
+        entry = _entry(where, k, fn, args, specs)
         if entry is None:
-            _UNEXPORTABLE.add(k)
-            stats["uncacheable"] += 1
             return fn(*args)
         _EMBEDDED[k] = entry
     exported, out_tree = _EMBEDDED[k]
+    dyn, static = eqx.partition(args, eqx.is_array)
     dyn_tree = jax.tree_util.tree_structure(dyn)
 
     def traced(*xs):  # `fn` itself, on the flat arrays: the transformations' fallback
