@@ -254,6 +254,12 @@ def _symmetric_part(dJ):
     return jnp.stack([0.5 * (dJ[..., i, j] + dJ[..., j, i]) for i, j in _SYMMETRIC], axis=-1)
 
 
+def _pick(tree, which):
+    """`tree`'s array leaves number `which` (`_with_leaves`' numbering)."""
+    leaves = jax.tree_util.tree_leaves(eqx.filter(tree, eqx.is_array))
+    return [leaves[i] for i in which]
+
+
 def _with_leaves(tree, which, new):
     """`tree` with its array leaves number `which` replaced by `new`."""
     dyn, static = eqx.partition(tree, eqx.is_array)
@@ -286,8 +292,7 @@ class _Sensitivity(eqx.Module):
     def vector_field(self, t, ys, args):
         y, S = ys
         S = jax.tree_util.tree_map(lambda s, x: s.reshape((self.P,) + x.shape), S, y)
-        p = [jax.tree_util.tree_leaves(eqx.filter(self.model, eqx.is_array))[i]
-             for i in self.which]
+        p = _pick(self.model, self.which)
 
         def field(p, y):
             return _with_leaves(self.model, self.which, p).vector_field(t, y, args)
@@ -418,8 +423,8 @@ def _lane_jvp(loop, static, batched, primals, tangents):
             np.zeros(x.shape, jax.dtypes.float0) for x in out[1:])
 
     def initial(m, y0):  # S at t0: the derivative of the normalised y0, and −f(t0, y0)
-        p = [jax.tree_util.tree_leaves(eqx.filter(m, eqx.is_array))[i] for i in m_which]
-        q = [jax.tree_util.tree_leaves(y0)[i] for i in y_which]
+        p = _pick(m, m_which)
+        q = _pick(y0, y_which)
 
         def start(p, q):
             return _with_leaves(m, m_which, p).normalise(_with_leaves(y0, y_which, q))[0]
