@@ -81,15 +81,47 @@ def _where_tree(pred, tree, fill):
     return jax.tree_util.tree_map(lambda x: jnp.where(pred, x, jnp.full_like(x, fill)), tree)
 
 
+# diffeqsolve's first step when given `dt0=None` (diffrax 0.7.2): its controller picks a step
+# by Hairer's heuristic only for a bare `ODETerm`, and diffeqsolve hands it the term wrapped
+# (`WrapTerm`), so it takes 0.01. Kept in the unit of `ts` when the solves run in the unit
+# time (`_unit_time`), so that they take the steps they took in t (tested against a plain
+# `diffeqsolve` in t, `test_benchmarks.py`).
+_FIRST_STEP = 0.01
+
+
+def _unit_time(ts, dt0):
+    """The solves run in the time s = (t − t0)/span ∈ [0, 1], `t0, span = ts[0], ts[-1] −
+    ts[0]`: returns `t0`, `span`, the output times in s and the first step in s (`dt0`, or
+    `_FIRST_STEP`, in the unit of `ts`).
+
+    diffeqsolve's `t0` and `t1` are then the constants 0 and 1, whatever `ts` is. It
+    computes its end-of-interval clip, t1 less 100 floats, as 100 chained `prevbefore`
+    calls: on a traced t1 (one compiled solve for all `ts`) they were ~1900 of a vmapped
+    solve's ~3450 XLA instructions, and on a constant XLA folds them. With dy/ds = span·f
+    and the first step given in t, the steps are those of the solve in t, to round-off
+    (the controller's error estimates and step factors do not depend on the time unit)."""
+    t0, span = ts[0], ts[-1] - ts[0]
+    return t0, span, (ts - t0) / span, (_FIRST_STEP if dt0 is None else dt0) / span
+
+
+def _per_unit_time(span, tree):
+    """A rate dy/dt as dy/ds (`_unit_time`)."""
+    return jax.tree_util.tree_map(lambda x: span * x, tree)
+
+
 class _Guarded(eqx.Module):
-    """The model's vector field, or dy/dt = 0 for a lane flagged bad (`args` = ok flag), so
-    a bad lane takes a few steps instead of stalling its batch. A module, not a closure, so
-    adjoints (BacksolveAdjoint) see the model's parameters as inputs."""
+    """The model's vector field in the unit time s (`_unit_time`), or dy/ds = 0 for a lane
+    flagged bad (`args` = ok flag), so a bad lane takes a few steps instead of stalling its
+    batch. A module, not a closure, so adjoints (BacksolveAdjoint) see the model's
+    parameters (and `t0`, `span`) as inputs."""
 
     model: AbstractRigidBody
+    t0: Array
+    span: Array
 
-    def __call__(self, t, y, ok):
-        return _where_tree(ok, self.model.vector_field(t, y, None), 0.0)
+    def __call__(self, s, y, ok):
+        f = self.model.vector_field(self.t0 + s * self.span, y, None)
+        return _per_unit_time(self.span, _where_tree(ok, f, 0.0))
 
 
 def _start(model, y0, t0):
@@ -130,15 +162,16 @@ def _finish(model, ts, ys, ok0, result, counts) -> Trajectory:
 def _solve(model, y0, ts, solver, controller, adjoint, max_steps, dt0) -> Trajectory:
     ts = eqx.error_if(ts, jnp.any(jnp.diff(ts) <= 0), "`ts` must be strictly increasing.")
     ok0, y0_run, _ = _start(model, y0, ts[0])
+    t0, span, s, ds0 = _unit_time(ts, dt0)
     sol = diffrax.diffeqsolve(
-        diffrax.ODETerm(_Guarded(model)),
+        diffrax.ODETerm(_Guarded(model, t0, span)),
         solver,
-        t0=ts[0],
-        t1=ts[-1],
-        dt0=dt0,
+        t0=0.0,  # constants, not arrays (`_unit_time`)
+        t1=1.0,
+        dt0=ds0,
         y0=y0_run,
         args=ok0,
-        saveat=diffrax.SaveAt(ts=ts),
+        saveat=diffrax.SaveAt(ts=s),
         stepsize_controller=controller,
         adjoint=adjoint,
         max_steps=max_steps,
@@ -173,19 +206,21 @@ _solve_jit = _compiled(_solve)
 
 class _LaneField(eqx.Module):
     """The vector field of `lanes` trajectories as one batched state (leading lane axis on
-    every leaf), each lane with its own time `t[:, 0]` and `ok` flag. diffrax's solver step
-    then runs on whole `(lanes, …)` arrays: its stage loop combines contiguous blocks
-    instead of a vmapped loop of tiny ones (measured 2.4× faster per step, bitwise the same
-    arithmetic). `model` carries a leading lane axis when `batched`."""
+    every leaf), each lane with its own unit time `s[:, 0]` (`_unit_time`) and `ok` flag.
+    diffrax's solver step then runs on whole `(lanes, …)` arrays: its stage loop combines
+    contiguous blocks instead of a vmapped loop of tiny ones (measured 2.4× faster per step,
+    bitwise the same arithmetic). `model` carries a leading lane axis when `batched`."""
 
     model: AbstractRigidBody
     batched: bool = eqx.field(static=True)
+    t0: Array
+    span: Array
 
-    def __call__(self, t, y, ok):
+    def __call__(self, s, y, ok):  # as `_Guarded`, per lane
         axis = 0 if self.batched else None
-        f = eqx.filter_vmap(lambda m, s, x: m.vector_field(s, x, None),
-                            in_axes=(axis, 0, 0))(self.model, t[:, 0], y)
-        return _where_tree(ok[:, None], f, 0.0)
+        f = eqx.filter_vmap(lambda m, t, x: m.vector_field(t, x, None),
+                            in_axes=(axis, 0, 0))(self.model, self.t0 + s[:, 0] * self.span, y)
+        return _per_unit_time(self.span, _where_tree(ok[:, None], f, 0.0))
 
 
 def _lane_select(mask, new, old, axis=0):
@@ -503,7 +538,8 @@ def _lane_loop(model, y0s, ts, controller, *, solver, max_steps, dt0, batched, l
     N = jax.tree_util.tree_leaves(y0s)[0].shape[0]
     L = min(lanes, N)
     n = ts.shape[0]
-    t0, t1 = ts[0], ts[-1]
+    start_time, span, ts, dt0 = _unit_time(ts, dt0)  # the loop runs in s ∈ [0, 1], as
+    t0, t1 = jnp.zeros((), ts.dtype), jnp.ones((), ts.dtype)  # `_solve` does
     t1_floor = _floats_below(t1, 100)  # diffeqsolve's clip: a step ending within 100
     # representable floats of t1 ends at t1
     dyn, static = eqx.partition(model, eqx.is_array)
@@ -513,13 +549,13 @@ def _lane_loop(model, y0s, ts, controller, *, solver, max_steps, dt0, batched, l
 
     def start(m, y0):
         if sens:
-            ok, y, f = _start(m.model, y0[0], t0)
-            term = WrapTerm(diffrax.ODETerm(_Guarded(m.model)), 1)
+            ok, y, f = _start(m.model, y0[0], start_time)
+            term = WrapTerm(diffrax.ODETerm(_Guarded(m.model, start_time, span)), 1)
             y_aug = (y, _where_tree(ok, y0[1], 0.0))
-            f_aug = m.vector_field(t0, y_aug, None)  # masked with `ok` below
+            f_aug = m.vector_field(start_time, y_aug, None)  # masked with `ok` below
         else:
-            ok, y, f = _start(m, y0, t0)  # f = f(t0, y): y is the stand-in where not ok
-            term = WrapTerm(diffrax.ODETerm(_Guarded(m)), 1)
+            ok, y, f = _start(m, y0, start_time)  # f = f(t0, y): y the stand-in where not ok
+            term = WrapTerm(diffrax.ODETerm(_Guarded(m, start_time, span)), 1)
             y_aug, f_aug = y, f
         tnext, cstate = controller.init(term, t0, t1, y, dt0, ok, solver.func,
                                         solver.error_order(term))
@@ -528,10 +564,10 @@ def _lane_loop(model, y0s, ts, controller, *, solver, max_steps, dt0, batched, l
             # An explicit FSAL Runge–Kutta step starts from f(t0, y0): give it now (what
             # `solver.init` would compute), so that a refilled lane does not make every
             # lane re-evaluate its first stage.
-            sstate = (jnp.array(False), _where_tree(ok, f_aug, 0.0))
+            sstate = (jnp.array(False), _per_unit_time(span, _where_tree(ok, f_aug, 0.0)))
         else:
-            sstate = solver.init(WrapTerm(diffrax.ODETerm(_Guarded(m)), 1), t0, tnext, y_aug,
-                                 ok)
+            sstate = solver.init(WrapTerm(diffrax.ODETerm(_Guarded(m, start_time, span)), 1),
+                                 t0, tnext, y_aug, ok)
         # How long the trajectory will take: |f(t0, y0)| in the controller's tolerance
         # scale, the rate the state moves at, which sets the step count of these rotational
         # problems (|ω| for a free body). An ordering only: no tangents through it.
@@ -547,7 +583,7 @@ def _lane_loop(model, y0s, ts, controller, *, solver, max_steps, dt0, batched, l
     # their step count, so that the last ones handed out are short and the lanes finish
     # together (a random order leaves a tail of idle lanes behind the slowest).
     order = jnp.argsort(-difficulty)
-    error_order = solver.error_order(diffrax.ODETerm(_Guarded(model)))
+    error_order = solver.error_order(diffrax.ODETerm(_Guarded(model, start_time, span)))
 
     def control(tprev, tnext, y, y1, y_error, cstate):
         y_error = jax.tree_util.tree_map(lambda x: jnp.where(jnp.isnan(x), jnp.inf, x), y_error)
@@ -595,7 +631,7 @@ def _lane_loop(model, y0s, ts, controller, *, solver, max_steps, dt0, batched, l
                  ok=ok0[lane], m=_take(dyn, lane) if batched else None)
     struct = jax.eval_shape(lambda: solver.step(
         WrapTerm(diffrax.ODETerm(_LaneField(eqx.combine(first["m"] if batched else dyn,
-                                                        static), batched)), 1),
+                                                        static), batched, start_time, span)), 1),
         first["tprev"][:, None], first["tnext"][:, None], first["y"], first["ok"],
         first["ss"], False)[2])
     carry = dict(
@@ -675,7 +711,7 @@ def _lane_loop(model, y0s, ts, controller, *, solver, max_steps, dt0, batched, l
         # (3) One solver step in every lane with nothing left to save.
         go = (c["idx"] < N) & ~c["pending"] & (c["tprev"] < t1) & (c["result"] == 0)
         m = eqx.combine(c["m"] if batched else dyn, static)
-        term = WrapTerm(diffrax.ODETerm(_LaneField(m, batched)), 1)
+        term = WrapTerm(diffrax.ODETerm(_LaneField(m, batched, start_time, span)), 1)
         y1, y_error, dense, ss1, _ = solver.step(
             term, c["tprev"][:, None], c["tnext"][:, None], c["y"], c["ok"], c["ss"], False)
         ss1 = jax.tree_util.tree_map(lambda a, b: jnp.broadcast_to(a, b.shape), ss1, c["ss"])
@@ -790,7 +826,8 @@ def simulate(
     - `rtol`, `atol`: tolerances of the step-size controller, positive scalars (passed to the
       compiled solve as arrays: changing them does not recompile; they may be traced).
     - `max_steps`: the most steps the solver may take.
-    - `dt0`: initial step; `None` lets diffrax choose.
+    - `dt0`: initial step; `None` takes 0.01 (in the unit of `ts`), what `diffeqsolve`
+      takes.
     - `throw`: raise a runtime error when the result is not `RESULTS.successful`;
       otherwise the code is returned in `Trajectory.result`.
 
