@@ -538,8 +538,9 @@ def _lane_loop(model, y0s, ts, controller, *, solver, max_steps, dt0, batched, l
     N = jax.tree_util.tree_leaves(y0s)[0].shape[0]
     L = min(lanes, N)
     n = ts.shape[0]
-    start_time, span, ts, dt0 = _unit_time(ts, dt0)  # the loop runs in s ∈ [0, 1], as
-    t0, t1 = jnp.zeros((), ts.dtype), jnp.ones((), ts.dtype)  # `_solve` does
+    # The loop runs in the unit time s ∈ [0, 1], as `_solve` does (`_unit_time`).
+    start_time, span, ts, dt0 = _unit_time(ts, dt0)
+    t0, t1 = jnp.zeros((), ts.dtype), jnp.ones((), ts.dtype)
     t1_floor = _floats_below(t1, 100)  # diffeqsolve's clip: a step ending within 100
     # representable floats of t1 ends at t1
     dyn, static = eqx.partition(model, eqx.is_array)
