@@ -238,26 +238,14 @@ def _as_result(values) -> RESULTS:
     return eqx.tree_at(lambda r: r._value, RESULTS.successful, values)
 
 
-def _floats_below(x, k: int) -> Array:
-    """`x` moved `k` floats towards −inf, as diffeqsolve's end-of-interval clip moves t1:
-    `k` times equinox's `prevbefore` (`jnp.nextafter(x, -inf)`, except that 0 goes to
-    −(smallest normal)), for finite `x` outside the subnormal range (where XLA:CPU flushes
-    the loop's results to zero), in a few operations. The bit patterns of floats,
-    read as sign-magnitude integers, are ordered as the floats are, so each move is an
-    integer subtraction on that ordering. (The loop of `k` calls it replaces was ~1400 of
-    the lane solver's ~3800 XLA instructions.) A threshold only: no tangent."""
-    x = jax.lax.stop_gradient(jnp.asarray(x))
-    int_type = {2: jnp.int16, 4: jnp.int32, 8: jnp.int64}[x.dtype.itemsize]
-    top, sign = jnp.iinfo(int_type).max, jnp.iinfo(int_type).min
-
-    def below(x, k):
-        bits = jax.lax.bitcast_convert_type(x, int_type)
-        key = jnp.where(bits < 0, -(bits & top), bits) - k  # the floats' order, as integers
-        bits = jnp.where(key < 0, (-key) | sign, key).astype(int_type)
-        return jax.lax.bitcast_convert_type(bits, x.dtype)
-
-    tiny = jnp.asarray(jnp.finfo(x.dtype).tiny, x.dtype)
-    return below(jnp.where(x == 0, -tiny, below(x, 1)), k - 1)
+def _clip_floor(dtype) -> np.ndarray:
+    """diffeqsolve's end-of-interval threshold (a step ending above it ends at t1) for the
+    unit time's t1 = 1 (`_unit_time`): 1 moved down by 100 floats, as its 100 calls of
+    equinox's `prevbefore` move t1. A constant, computed here in NumPy."""
+    x = np.ones((), dtype)
+    for _ in range(100):
+        x = np.nextafter(x, np.asarray(-np.inf, dtype))
+    return x
 
 
 def _take(tree, i):
@@ -541,8 +529,7 @@ def _lane_loop(model, y0s, ts, controller, *, solver, max_steps, dt0, batched, l
     # The loop runs in the unit time s ∈ [0, 1], as `_solve` does (`_unit_time`).
     start_time, span, ts, dt0 = _unit_time(ts, dt0)
     t0, t1 = jnp.zeros((), ts.dtype), jnp.ones((), ts.dtype)
-    t1_floor = _floats_below(t1, 100)  # diffeqsolve's clip: a step ending within 100
-    # representable floats of t1 ends at t1
+    t1_floor = jnp.asarray(_clip_floor(ts.dtype))  # diffeqsolve's clip
     dyn, static = eqx.partition(model, eqx.is_array)
     axis = 0 if batched else None
     sens = isinstance(model, _Sensitivity)
