@@ -16,7 +16,6 @@ from jaxtyping import Array, ArrayLike, Float
 
 from ._checks import check_batch, check_trailing, holds_now, sqrt_eps
 from ._custom_types import BoolArray, Matrix, MatrixLike, Scalar, Vector, VectorLike
-from ._xla import jit
 
 LogCholesky = Float[Array, "*batch 6"]
 LogCholeskyLike = Float[ArrayLike, "*batch 6"]
@@ -27,8 +26,8 @@ _NOT_PHYSICAL = (
 )
 
 
-def _transpose(m: Array) -> Array:
-    return jnp.swapaxes(m, -1, -2)
+def _transpose(m: Array, xp=jnp) -> Array:
+    return xp.swapaxes(m, -1, -2)
 
 
 def _align(x: Array, ndim: int) -> Array:
@@ -36,29 +35,41 @@ def _align(x: Array, ndim: int) -> Array:
     return jnp.reshape(x, (1,) * (ndim - x.ndim) + x.shape)
 
 
-def _eye_like(m: Array) -> Array:
+def _eye_like(m: Array, xp=jnp) -> Array:
     """The identity broadcast to the shape of the `(*batch, 3, 3)` array `m` (explicit ranks)."""
-    return jnp.broadcast_to(jnp.eye(3, dtype=m.dtype), m.shape)
+    return xp.broadcast_to(xp.eye(3, dtype=m.dtype), m.shape)
 
 
-def _trace(m: Array) -> Array:
-    return jnp.trace(m, axis1=-2, axis2=-1)
+def _trace(m: Array, xp=jnp) -> Array:
+    return xp.trace(m, axis1=-2, axis2=-1)
 
 
-def _max_abs(m: Array) -> Array:
-    return jnp.max(jnp.abs(m), axis=(-2, -1))
+def _max_abs(m: Array, xp=jnp) -> Array:
+    return xp.max(xp.abs(m), axis=(-2, -1))
 
 
-def _is_symmetric(J: Array) -> Array:
+def _planar(J: Array, xp=jnp) -> Array:
+    return 0.5 * _trace(J, xp)[..., None, None] * _eye_like(J, xp) - J
+
+
+# The value checks take the array namespace `xp`: jax.numpy in a program, NumPy for a concrete
+# J (`holds_now`), so that checking a model's inertia compiles nothing.
+
+
+def _is_symmetric(J: Array, xp=jnp) -> Array:
     """`max|J − Jᵀ| ≤ √eps · max|J|` (non-finite entries fail)."""
-    finite = jnp.all(jnp.isfinite(J), axis=(-2, -1))
-    return finite & (_max_abs(J - _transpose(J)) <= sqrt_eps(J.dtype) * _max_abs(J))
+    finite = xp.all(xp.isfinite(J), axis=(-2, -1))
+    return finite & (_max_abs(J - _transpose(J, xp), xp) <= sqrt_eps(J.dtype) * _max_abs(J, xp))
 
 
-def _planar_psd(J: Array) -> Array:
+def _planar_psd(J: Array, xp=jnp) -> Array:
     """Smallest eigenvalue of J' (of the symmetric part of `J`) ≥ −√eps · max|J|."""
-    Jp = planar(0.5 * (J + _transpose(J)))
-    return jnp.linalg.eigvalsh(Jp)[..., 0] >= -sqrt_eps(J.dtype) * _max_abs(J)
+    Jp = _planar(0.5 * (J + _transpose(J, xp)), xp)
+    return xp.linalg.eigvalsh(Jp)[..., 0] >= -sqrt_eps(J.dtype) * _max_abs(J, xp)
+
+
+def _physical(J: Array, xp=jnp) -> Array:
+    return _is_symmetric(J, xp) & _planar_psd(J, xp)
 
 
 def from_principal(moments: VectorLike, axes: MatrixLike | None = None) -> Matrix:
@@ -149,7 +160,7 @@ def planar(J: MatrixLike) -> Matrix:
     diagonal, products `Σ m x y`, … with a plus sign off it).
     """
     J = check_trailing(J, (3, 3), "J")
-    return 0.5 * _trace(J)[..., None, None] * _eye_like(J) - J
+    return _planar(J)
 
 
 def from_planar(Jp: MatrixLike) -> Matrix:
@@ -287,10 +298,7 @@ def is_physical(J: MatrixLike) -> BoolArray:
     A boolean array of shape `(*batch,)`.
     """
     J = jax.lax.stop_gradient(check_trailing(J, (3, 3), "J"))
-    return _is_symmetric(J) & _planar_psd(J)
-
-
-_is_physical_jit = jit(is_physical)  # `check_inertia`'s test of a concrete J, at once
+    return _physical(J)
 
 
 def check_inertia(J: MatrixLike, name: str = "inertia") -> Matrix:
@@ -298,7 +306,7 @@ def check_inertia(J: MatrixLike, name: str = "inertia") -> Matrix:
 
     The conditions are those of [`is_physical`][] (PHYSICS.md §3). Use the returned value:
     a traced `J` comes back carrying the `eqx.error_if` checks (gradients pass through
-    unchanged); a concrete one is checked at once, in one compiled call.
+    unchanged); a concrete one is checked at once, in NumPy.
 
     **Arguments:**
 
@@ -310,8 +318,8 @@ def check_inertia(J: MatrixLike, name: str = "inertia") -> Matrix:
     `J` as a float array, shape `(*batch, 3, 3)`.
     """
     J = check_trailing(J, (3, 3), name)
-    if holds_now(_is_physical_jit, J):
-        return J  # concrete and valid: checked now, in one compiled call
+    if holds_now(_physical, J):
+        return J  # concrete and valid: checked now, in NumPy
     Js = jax.lax.stop_gradient(J)
     symmetric = _is_symmetric(Js)
     J = eqx.error_if(J, ~symmetric, f"`{name}` is not symmetric (J must equal Jᵀ and be finite).")

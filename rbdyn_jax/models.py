@@ -22,7 +22,6 @@ from jaxtyping import Array, ArrayLike, Float, PyTree
 
 from . import rotation
 from ._checks import check_trailing, holds_now, sqrt_eps
-from ._xla import jit
 from .dynamics import euler_rhs, relative_rhs
 from .frames import AbstractFrame, Inertial
 from .inertia import check_inertia
@@ -42,17 +41,17 @@ def _inertia(J: Float[ArrayLike, "3 3"]) -> Float[Array, "3 3"]:
         )
     J = check_inertia(J, "inertia")
     if holds_now(_definite, J):
-        return J  # concrete and valid: checked now, in one compiled call
+        return J  # concrete and valid: checked now, in NumPy
     return eqx.error_if(J, ~_definite(jax.lax.stop_gradient(J)), "`inertia` must be positive "
                         "definite (a principal moment is zero: a rod or a point has no "
                         "rotational dynamics).")
 
 
-@jit
-def _definite(J):
-    """Whether the smallest principal moment exceeds √eps·max|J| (one compiled call)."""
-    smallest = jnp.linalg.eigvalsh(0.5 * (J + J.T))[0]
-    return smallest > sqrt_eps(J.dtype) * jnp.max(jnp.abs(J))
+def _definite(J, xp=jnp):
+    """Whether the smallest principal moment exceeds √eps·max|J| (`xp`: jax.numpy or NumPy,
+    as for the inertia checks)."""
+    smallest = xp.linalg.eigvalsh(0.5 * (J + J.T))[0]
+    return smallest > sqrt_eps(J.dtype) * xp.max(xp.abs(J))
 
 
 def _absolute_kinematics(t, omega, quat, gamma):

@@ -20,6 +20,7 @@ from hypothesis import given, settings
 from jax.test_util import check_grads
 
 from rbdyn_jax import inertia
+from rbdyn_jax._checks import holds_now
 
 EPS64 = np.finfo(np.float64).eps
 # Central finite differences with JAX's default step (≈1e-4 in float64): error O(step²).
@@ -254,6 +255,49 @@ def test_is_physical_matches_eigen_criterion(rng):
     ref = margin[keep] >= 0
     assert 0 < ref.sum() < ref.size
     np.testing.assert_array_equal(np.asarray(inertia.is_physical(S))[keep], ref)
+
+
+def test_concrete_check_in_numpy_decides_as_the_jax_check(rng):
+    """A concrete J is checked in NumPy (`holds_now(_physical, J)`: nothing compiled), a
+    traced one in JAX; both run the same code, `_physical(J, xp)`. They must decide alike,
+    also near the √eps tolerances of symmetry and of the triangle inequality: margins of
+    ½ and 2 tolerances, far from the ~1e-16 relative rounding where LAPACK builds differ."""
+    tol = float(np.sqrt(EPS64))
+    R = random_rotation_matrices(rng, N)
+    a, b = rng.uniform(0.5, 2.0, (2, N))
+
+    def rotated(c):
+        J = R @ (np.stack([a, b, c], -1)[..., None] * np.eye(3)) @ R.swapaxes(-1, -2)
+        return 0.5 * (J + J.swapaxes(-1, -2))
+
+    scale = np.abs(rotated(a + b)).max((-2, -1))  # max|J| on the triangle boundary C = a + b
+    # J' has the eigenvalue (A + B − C)/2 = −m·tol·max|J|: physical iff m ≤ 1.
+    m = np.resize([-2.0, -0.5, 0.5, 2.0], N)
+    J = rotated(a + b + 2.0 * m * tol * scale)
+    k = np.resize(np.repeat([0.0, 0.5, 2.0, 0.0], 4), N)  # max|J − Jᵀ| = k·tol·max|J|
+    J[:, 0, 1] += k * tol * scale
+    expect = (m <= 1.0) & (k <= 1.0)
+    assert 0 < expect.sum() < N
+    np.testing.assert_array_equal(inertia._physical(J, np), expect)
+    np.testing.assert_array_equal(np.asarray(jax.jit(inertia._physical)(J)), expect)
+    np.testing.assert_array_equal(np.asarray(inertia.is_physical(J)), expect)
+    for J1, ok in zip(J[:8], expect[:8], strict=True):
+        assert holds_now(inertia._physical, jnp.asarray(J1)) == ok
+
+
+def test_holds_now_evaluates_concrete_values_in_numpy():
+    seen = []
+
+    def positive(x, xp):
+        seen.append((xp, type(x)))
+        return x > 0
+
+    assert holds_now(positive, jnp.array([1.0, 2.0]))
+    assert not holds_now(positive, jnp.array([1.0, -2.0]))
+    assert seen == [(np, np.ndarray)] * 2
+    assert not holds_now(positive, np.array([1.0, np.inf]))  # not finite: not evaluated
+    assert jax.jit(lambda x: jnp.asarray(holds_now(positive, x)))(jnp.ones(2)) == False  # noqa: E712
+    assert len(seen) == 2  # a traced argument is never evaluated
 
 
 # ---------------------------------------------------------------- log-Cholesky
