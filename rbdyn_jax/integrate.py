@@ -124,6 +124,19 @@ class _Guarded(eqx.Module):
         return _per_unit_time(self.span, _where_tree(ok, f, 0.0))
 
 
+def _promoted(model, y0, t):
+    """`y0` with its floating leaves in the dtype its steps give it: that of the times, the
+    model's arrays and `y0` together (standard promotion; an explicit cast, so also under
+    the caller's strict promotion). A float32 `y0` with float64 times starts in float64,
+    and is normalised there."""
+    inexact = [x for x in jax.tree_util.tree_leaves((t, model, y0))
+               if eqx.is_array(x) and jnp.issubdtype(x.dtype, jnp.inexact)]
+    with jax.numpy_dtype_promotion("standard"):
+        dtype = jnp.result_type(*inexact)
+    return jax.tree_util.tree_map(
+        lambda y: y.astype(dtype) if jnp.issubdtype(y.dtype, jnp.inexact) else y, y0)
+
+
 def _start(model, y0, t0):
     """The normalised initial state, whether it (and its derivative) is finite, and the
     state actually integrated: a harmless stand-in for a non-finite one, which would make
@@ -133,7 +146,7 @@ def _start(model, y0, t0):
     is reported as non-finite). A state whose derivative is already non-finite (NaN
     parameters, a singular inertia) is caught here too. Also returns f(t0, ·) of the state
     integrated, for a caller that needs it."""
-    y0, _ = model.normalise(y0)
+    y0, _ = model.normalise(_promoted(model, y0, t0))
     ok0 = _all_finite(y0)
     y_run = _where_tree(ok0, y0, 1.0)
     f0 = model.vector_field(t0, y_run, None)
@@ -342,10 +355,16 @@ def _lane_solve(model, y0s, ts, solver, controller, max_steps, dt0, model_axes, 
     f(tᵢ, y(tᵢ)) at the output times and the column −f(t0, y0) for the start time. The
     rule is outside the devices' `shard_map`, which the sensitivities' solve enters as
     the forward solve does."""
+    if not isinstance(solver, diffrax.AbstractERK):
+        raise ValueError(
+            "`lanes` needs an explicit Runge–Kutta solver (a `diffrax.AbstractERK`: Tsit5, "
+            f"Dopri5, Dopri8, Bosh3, Heun, …), got {type(solver).__name__}; the default "
+            "path (`lanes=None`) takes any solver diffeqsolve takes.")
     batched = model_axes is not None
     if batched:  # every array leaf with a leading trajectory axis
         model = eqx.filter_vmap(lambda m: m, in_axes=(model_axes,))(model)
     dyn, static = eqx.partition(model, eqx.is_array)
+    y0s = _promoted(dyn, y0s, ts)  # before the loop's buffers take its dtype
     tols, cstatic = eqx.partition(controller, eqx.is_array)
 
     stored = _traces.embedder()  # inside a caller's transformation, stored programs

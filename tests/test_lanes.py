@@ -12,7 +12,8 @@ gradients in both modes (forward sensitivities) against reverse mode through
 `diffeqsolve` and finite differences, w.r.t. inertia, per-trajectory parameters, initial
 states and output times (and a jvp that runs one loop, writing its saved values without
 touching the whole output buffer), two XLA host devices
-(shared and per-trajectory models), input errors, and that the compiled program can enter
+(shared and per-trajectory models), float32 initial states, input errors (a solver the lanes
+cannot drive), and that the compiled program can enter
 JAX's persistent cache.
 """
 
@@ -383,8 +384,27 @@ def test_a_jvp_runs_one_loop_with_the_sensitivities_and_the_same_steps():
     assert float(jnp.max(jnp.abs(dtr.ys.omega))) > 1e-3
 
 
+def test_float32_initial_states_start_in_float64():
+    """float32 `y0s` with a float64 model and times (the tests run with strict dtype
+    promotion): both paths widen them to float64 before normalising (the lanes' buffers
+    must hold the steps' states), so they take the same steps, and the solve equals one
+    started from the widened float64 values."""
+    y32 = jax.tree_util.tree_map(lambda x: x.astype(jnp.float32), initial_states())
+    y64 = jax.tree_util.tree_map(lambda x: x.astype(jnp.float64), y32)  # exact
+    kw = dict(rtol=RTOL, atol=RTOL)
+    lanes = rb.simulate_batch(rb.RigidBody(J), y32, TS, lanes=LANES, **kw)
+    plain = rb.simulate_batch(rb.RigidBody(J), y32, TS, **kw)
+    assert lanes.ys.omega.dtype == plain.ys.omega.dtype == jnp.float64
+    assert_same_solves(lanes, plain)
+    assert_same_solves(plain, rb.simulate_batch(rb.RigidBody(J), y64, TS, **kw), tol=0.0)
+
+
 def test_argument_errors():
     y0s = initial_states()
+    for solver in (diffrax.Kvaerno5(), diffrax.Euler(), diffrax.ReversibleHeun()):
+        with pytest.raises(ValueError, match="explicit Runge–Kutta solver.*" +
+                           type(solver).__name__):
+            rb.simulate_batch(rb.RigidBody(J), y0s, TS, lanes=LANES, solver=solver)
     for bad in (0, -3, True, 2.5):
         with pytest.raises(ValueError, match="`lanes`"):
             rb.simulate_batch(rb.RigidBody(J), y0s, TS, lanes=bad)
