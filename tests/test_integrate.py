@@ -321,6 +321,11 @@ def test_simulate_throw_switch():
     assert "not finite" in message
     with pytest.raises(eqx.EquinoxRuntimeError, match=re.escape(message)):
         rb.simulate(gen_model(), y0, TS, rtol=1e-8, atol=1e-8, throw=True)
+    # A concrete result is read on the host; a traced one (the caller's jit) is checked by
+    # `error_if` in the caller's program: both raise.
+    jitted = eqx.filter_jit(lambda y: rb.simulate(gen_model(), y, TS, rtol=1e-8, atol=1e-8))
+    with pytest.raises(eqx.EquinoxRuntimeError, match=re.escape(message)):
+        jax.block_until_ready(jitted(y0))
     traj = rb.simulate(gen_model(), y0, TS, rtol=1e-8, atol=1e-8, throw=False)
     assert traj.result == rb.RESULTS.nonfinite_state
     assert np.all(np.isnan(traj.ys.omega))
