@@ -60,12 +60,12 @@ def holds_now(check, *args) -> bool:
     JAX the first check of a process traces, lowers and compiles a program (~0.35 s for the
     first model built, measured). Otherwise, and for non-finite input (some NumPy routines
     reject it), the caller takes its usual `eqx.error_if` path, which raises as always."""
-    leaves = jax.tree_util.tree_leaves(args)
-    if any(isinstance(a, jax.core.Tracer) for a in leaves):
+    if any(isinstance(a, jax.core.Tracer) for a in jax.tree_util.tree_leaves(args)):
         return False
-    if not all(np.all(np.isfinite(np.asarray(a))) for a in leaves):
+    args = jax.tree_util.tree_map(np.asarray, args)
+    if not all(np.all(np.isfinite(a)) for a in jax.tree_util.tree_leaves(args)):
         return False
-    return bool(np.all(check(*jax.tree_util.tree_map(np.asarray, args), xp=np)))
+    return bool(np.all(check(*args, xp=np)))
 
 
 def sqrt_eps(dtype) -> float:

@@ -146,7 +146,7 @@ def _start(model, y0, t0):
     is reported as non-finite). A state whose derivative is already non-finite (NaN
     parameters, a singular inertia) is caught here too. Also returns f(t0, ·) of the state
     integrated, for a caller that needs it."""
-    y0, _ = model.normalise(_promoted(model, y0, t0))
+    y0, _ = model.normalise(y0)
     ok0 = _all_finite(y0)
     y_run = _where_tree(ok0, y0, 1.0)
     f0 = model.vector_field(t0, y_run, None)
@@ -174,7 +174,7 @@ def _finish(model, ts, ys, ok0, result, counts) -> Trajectory:
 
 def _solve(model, y0, ts, solver, controller, adjoint, max_steps, dt0) -> Trajectory:
     ts = eqx.error_if(ts, jnp.any(jnp.diff(ts) <= 0), "`ts` must be strictly increasing.")
-    ok0, y0_run, _ = _start(model, y0, ts[0])
+    ok0, y0_run, _ = _start(model, _promoted(model, y0, ts), ts[0])
     t0, span, s, ds0 = _unit_time(ts, dt0)
     sol = diffrax.diffeqsolve(
         diffrax.ODETerm(_Guarded(model, t0, span)),
@@ -229,11 +229,10 @@ class _LaneField(eqx.Module):
     t0: Array
     span: Array
 
-    def __call__(self, s, y, ok):  # as `_Guarded`, per lane
+    def __call__(self, s, y, ok):  # `_Guarded` per lane: the default path's arithmetic
         axis = 0 if self.batched else None
-        f = eqx.filter_vmap(lambda m, t, x: m.vector_field(t, x, None),
-                            in_axes=(axis, 0, 0))(self.model, self.t0 + s[:, 0] * self.span, y)
-        return _per_unit_time(self.span, _where_tree(ok[:, None], f, 0.0))
+        return eqx.filter_vmap(lambda m, s, x, ok: _Guarded(m, self.t0, self.span)(s, x, ok),
+                               in_axes=(axis, 0, 0, 0))(self.model, s[:, 0], y, ok)
 
 
 def _lane_select(mask, new, old, axis=0):
@@ -251,14 +250,13 @@ def _as_result(values) -> RESULTS:
     return eqx.tree_at(lambda r: r._value, RESULTS.successful, values)
 
 
-def _clip_floor(dtype) -> np.ndarray:
+def _clip_floor(dtype) -> np.floating:
     """diffeqsolve's end-of-interval threshold (a step ending above it ends at t1) for the
     unit time's t1 = 1 (`_unit_time`): 1 moved down by 100 floats, as its 100 calls of
-    equinox's `prevbefore` move t1. A constant, computed here in NumPy."""
-    x = np.ones((), dtype)
-    for _ in range(100):
-        x = np.nextafter(x, np.asarray(-np.inf, dtype))
-    return x
+    equinox's `prevbefore` move t1, i.e. 1 − 100·ε⁻ (ε⁻ the spacing of the floats just
+    below 1; exact in the dtype). A NumPy constant."""
+    dtype = np.dtype(dtype)
+    return dtype.type(1) - dtype.type(100) * np.finfo(dtype).epsneg
 
 
 def _take(tree, i):
