@@ -84,6 +84,9 @@ from .models import (
 from .models import (
     RigidBody as RigidBody,
 )
+from .models import (
+    with_log_cholesky as with_log_cholesky,
+)
 from .state import (
     EulerState as EulerState,
 )

@@ -55,3 +55,23 @@ def random_rotation_matrices(rng, n):
     from scipy.spatial.transform import Rotation
 
     return Rotation.random(n, random_state=rng).as_matrix()
+
+
+def host_callbacks(jaxpr) -> list[str]:
+    """The host-callback primitives (`pure_callback`, `io_callback`, `debug_callback`) of a
+    (closed) jaxpr, nested jaxprs included: a program holding one is never stored in JAX's
+    persistent compilation cache."""
+    found = []
+
+    def walk(j):
+        for e in j.eqns:
+            if "callback" in e.primitive.name:
+                found.append(e.primitive.name)
+            for p in e.params.values():
+                for sub in p if isinstance(p, (list, tuple)) else (p,):
+                    inner = sub if hasattr(sub, "eqns") else getattr(sub, "jaxpr", None)
+                    if inner is not None:
+                        walk(inner if hasattr(inner, "eqns") else inner.jaxpr)
+
+    walk(getattr(jaxpr, "jaxpr", jaxpr))
+    return found

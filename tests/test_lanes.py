@@ -15,7 +15,8 @@ states and output times (and a jvp that runs one loop, writing its saved values 
 touching the whole output buffer), two XLA host devices
 (shared and per-trajectory models), float32 initial states, input errors (a solver the lanes
 cannot drive), and that the compiled program can enter
-JAX's persistent cache.
+JAX's persistent cache (and a caller's gradient program, built with `with_log_cholesky`,
+holds no host callback).
 """
 
 import os
@@ -30,6 +31,7 @@ import jax.extend.core
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import host_callbacks
 
 import rbdyn_jax as rb
 
@@ -201,7 +203,9 @@ def test_gradients_in_both_modes_match_reverse_mode_and_finite_differences():
     neither path differentiates the step sizes: the three agree to round-off. The finite
     differences (h = 1e-6 on O(1) θ, solves at rtol 1e-11) carry O(h²) + rtol/h ≈ 1e-5
     relative error. The loss reads the attitude too, whose sensitivities take another
-    path (quaternion kinematics)."""
+    path (quaternion kinematics). The lanes' loss builds its model with `with_log_cholesky`,
+    whose gradient program must hold no host callback (so that JAX's persistent cache can
+    store it), where the constructor's run-time inertia checks hold some."""
     y0s = initial_states(6, seed=1)
     ts = jnp.linspace(0.0, 3.0, 7)
     # data from a different body (not a multiple of J: torque-free ω(t) is scale-free)
@@ -210,14 +214,25 @@ def test_gradients_in_both_modes_match_reverse_mode_and_finite_differences():
     theta0 = rb.inertia.to_log_cholesky(J)
 
     def loss(theta, lanes):
-        model = rb.RigidBody(rb.inertia.from_log_cholesky(theta))
+        # the lanes take the model as `identify.fit` builds it (`with_log_cholesky`: no
+        # inertia check, physical by construction); the reference path, the constructor
+        if lanes is None:
+            model = rb.RigidBody(rb.inertia.from_log_cholesky(theta))
+        else:
+            model = rb.with_log_cholesky(rb.RigidBody(J), theta)
         tr = rb.simulate_batch(model, y0s, ts, rtol=1e-11, atol=1e-11, lanes=lanes)
         return (jnp.sum((tr.ys.omega - obs.omega) ** 2)
                 + jnp.sum((tr.ys.quat - obs.quat) ** 2))
 
     fwd = jax.jit(jax.jacfwd(lambda th: loss(th, LANES)))(theta0)
-    rev_lanes = jax.jit(jax.grad(lambda th: loss(th, LANES)))(theta0)
-    rev = jax.jit(jax.grad(lambda th: loss(th, None)))(theta0)
+    grad_lanes = jax.jit(jax.grad(lambda th: loss(th, LANES)))
+    rev_lanes = grad_lanes(theta0)
+    rev = jax.jit(jax.grad(lambda th: loss(th, None)))
+    # The caller's whole gradient program holds no host callback, so JAX's persistent
+    # cache can store it; the constructor's run-time inertia checks are callbacks.
+    assert host_callbacks(grad_lanes.trace(theta0).jaxpr) == []
+    assert host_callbacks(rev.trace(theta0).jaxpr) != []
+    rev = rev(theta0)
     assert float(jnp.max(jnp.abs(rev))) > 1e-2  # a real gradient, not round-off
     for g in (fwd, rev_lanes):
         np.testing.assert_allclose(g, rev, rtol=1e-9, atol=1e-12 * float(jnp.max(jnp.abs(rev))))

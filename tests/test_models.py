@@ -28,7 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import assert_quat_equal, skew, wxyz_to_xyzw, xyzw_to_wxyz
+from helpers import assert_quat_equal, host_callbacks, skew, wxyz_to_xyzw, xyzw_to_wxyz
 from scipy.spatial.transform import Rotation
 from scipy.special import ellipk
 
@@ -890,6 +890,85 @@ def test_eager_inertia_check_decides_as_the_traced_check():
     assert outcomes["rod"] == ["positive definite"]
     assert outcomes["nearly a rod"] == ["positive definite"]
     assert outcomes["NaN"] == ["not symmetric"]
+
+
+# ------------------------------------------------------------------------------------------
+# 9. Fitting an inertia: `with_log_cholesky`
+# ------------------------------------------------------------------------------------------
+
+
+def _fit_case(cls):
+    """A model of `cls` with a torque (and a frame) to keep, and a state of its form."""
+    torque = rb.UniformGravity(2.0, jnp.array([0.1, -0.2, 0.5]))
+    J0 = jnp.asarray(general_inertia(np.random.default_rng(3), [1.0, 2.0, 2.5]))
+    w, angles = np.array([0.3, -0.5, 0.8]), np.array([0.3, 1.3, -0.8])
+    q = xyzw_to_wxyz(Rotation.from_euler("ZXZ", angles).as_quat())
+    if cls is rb.RelativeRigidBody:
+        model = cls(J0, rb.ConstantRate(jnp.array([0.0, 0.3, 1.0])), torque)
+    else:
+        model = cls(J0, torque)
+    y = {rb.EulerAngleRigidBody: rb.EulerState(jnp.asarray(w), jnp.asarray(angles)),
+         rb.PoissonRigidBody: _poisson_state(w, q)}.get(cls, rb.State(jnp.asarray(w),
+                                                                       jnp.asarray(q)))
+    return model, y
+
+
+@pytest.mark.parametrize("cls", MODEL_CLASSES)
+def test_with_log_cholesky_is_the_constructed_model_without_host_callbacks(cls):
+    """`with_log_cholesky(model, θ)` must be the model the constructor builds from
+    `from_log_cholesky(θ)` with the model's other fields: the same leaves exactly, so the
+    same vector field and gradients. Its checks are skipped because they hold by
+    construction (PHYSICS.md §3): the constructor accepts every θ of a wide box (log-diagonal
+    and off-diagonal entries in [−3, 3]). And skipping them is the point: the gradient
+    program of a loss built with it holds no host callback (JAX's persistent cache can
+    store it), where the constructor's run-time checks of a traced θ are callbacks."""
+    model, y = _fit_case(cls)
+    thetas = jnp.asarray(np.random.default_rng(5).uniform(-3.0, 3.0, size=(20, 6)))
+    fields = [x for x in dir(model) if x in ("frame", "torque")]
+
+    def built(theta):
+        return cls(rb.inertia.from_log_cholesky(theta), *[getattr(model, f) for f in fields])
+
+    for theta in thetas[:3]:  # eager: every check of the constructor runs (and passes)
+        a, b = rb.with_log_cholesky(model, theta), built(theta)
+        assert type(a) is cls
+        assert jax.tree_util.tree_structure(a) == jax.tree_util.tree_structure(b)
+        for x, z in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)):
+            np.testing.assert_array_equal(x, z)
+    # the constructor's checks, traced once, accept the whole box
+    jax.block_until_ready(eqx.filter_jit(jax.vmap(lambda th: built(th).inertia))(thetas))
+
+    def loss(make, theta):
+        f = make(theta).vector_field(jnp.asarray(0.7), y, None)
+        return sum(jnp.sum(x**2) for x in jax.tree_util.tree_leaves(f))
+
+    ours = jax.jit(jax.grad(lambda th: loss(lambda t: rb.with_log_cholesky(model, t), th)))
+    ctor = jax.jit(jax.grad(lambda th: loss(built, th)))
+    assert host_callbacks(ours.trace(thetas[0]).jaxpr) == []
+    assert host_callbacks(ctor.trace(thetas[0]).jaxpr) != []
+    g = ours(thetas[0])
+    assert float(jnp.max(jnp.abs(g))) > 1e-3  # the field depends on the inertia
+    # the same arithmetic, fused differently by XLA around the checks: round-off of the
+    # largest component (seen 4e-16 on 0.04)
+    np.testing.assert_allclose(g, ctor(thetas[0]), rtol=0,
+                               atol=1e-13 * float(jnp.max(jnp.abs(g))))
+
+
+def test_with_log_cholesky_refuses_a_concrete_non_finite_theta_and_reports_a_traced_one():
+    """A concrete NaN θ is refused at once; a traced one cannot be checked without a host
+    callback, so it gives a NaN inertia, which the solve reports as `nonfinite_state`."""
+    model = rb.RigidBody(jnp.eye(3))
+    theta = jnp.array([0.0, 0.1, 0.2, 0.0, 0.0, jnp.nan])
+    with pytest.raises(ValueError, match="`theta` must be finite"):
+        rb.with_log_cholesky(model, theta)
+    with pytest.raises(ValueError, match="rigid-body model"):
+        rb.with_log_cholesky(jnp.eye(3), theta.at[-1].set(0.0))
+    bad = eqx.filter_jit(rb.with_log_cholesky)(model, theta)
+    assert np.any(np.isnan(bad.inertia))
+    y0 = rb.State(jnp.array([0.1, 0.2, 0.3]), jnp.array([1.0, 0.0, 0.0, 0.0]))
+    traj = rb.simulate(bad, y0, jnp.linspace(0.0, 1.0, N_OUT), rtol=RTOL, atol=ATOL,
+                       throw=False)
+    assert traj.result == rb.RESULTS.nonfinite_state
 
 
 def test_poisson_form_rejects_attitude_torques_at_trace_time():
