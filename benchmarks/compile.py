@@ -9,16 +9,19 @@ float64, default solver (Tsit5). Cases:
 - `batch`: `rb.simulate_batch`, plain path (vmapped `diffeqsolve`), N = 256;
 - `lanes`: `rb.simulate_batch(..., lanes=64)`, N = 256;
 - `grad`: `jax.jit(jax.grad(loss))`, loss = Σ|ω − data|² over `simulate_batch` (plain path,
-  `RecursiveCheckpointAdjoint`), N = 16, w.r.t. the 6 log-Cholesky parameters of J
-  (`rb.inertia.from_log_cholesky`; evaluated at the true parameters + 0.05);
+  `RecursiveCheckpointAdjoint`), N = 16, w.r.t. the 6 log-Cholesky parameters θ of J
+  (evaluated at the true parameters + 0.05), the model built as `identify.fit` builds it,
+  `rb.with_log_cholesky(model, θ)` (physical by construction, unchecked);
 - `jacfwd_lanes`, `grad_lanes`: `jax.jit(jax.jacfwd(loss))` and `jax.jit(jax.grad(loss))`,
   the same loss through `lanes=16` (its forward sensitivities);
   all jitted with `compiler_options=rb.COMPILER_OPTIONS`, as rbdyn_jax advises for a
   caller's own jit (its solves are compiled with them);
-- `grad_nan`, `jacfwd_lanes_nan`, `grad_lanes_nan`: the gradients in a process started with
-  `EQX_ON_ERROR=nan` (equinox's switch: its checks give NaN instead of a host callback).
-  The loss builds `RigidBody` from a traced θ, whose inertia check is otherwise a host
-  callback in the caller's program, and JAX never caches a program with callbacks;
+- `grad_lanes_ctor`: `grad_lanes` with the model built by the constructor,
+  `rb.RigidBody(rb.inertia.from_log_cholesky(θ))`, whose inertia checks of a traced θ are
+  run-time checks (`eqx.error_if`): host callbacks in the caller's program, and JAX never
+  caches a program with callbacks;
+- `grad_lanes_ctor_nan`: the same in a process started with `EQX_ON_ERROR=nan` (equinox's
+  switch: its checks give NaN instead of a host callback);
 - `bare_diffrax`: the machine's yardstick, no rbdyn_jax: `jax.jit(jax.vmap(solve))` of
   `diffrax.diffeqsolve` (Tsit5, `PIDController`, `SaveAt(ts=…)`) on the scipy baseline's
   right-hand side (`_baselines._numpy_rhs`) in `jax.numpy`, N = 256, compiled with JAX's
@@ -38,9 +41,10 @@ call with the same inputs (steady state). Three processes per case: (1) no persi
 it was cacheable); "cb skip" counts the programs JAX compiled during that call but refused
 to store because they hold host callbacks (taken from JAX's log; their names are in the
 JSON). "traces" counts the solves that (3) loaded from rbdyn_jax's cache of traced programs
-(`rbdyn_jax/_traces.py`, in the same directory) instead of tracing them; the gradients are
-the caller's own `jit`, which rbdyn_jax cannot store. The speed-up is first call without
-cache / first call warm.
+(`rbdyn_jax/_traces.py`, in the same directory) instead of tracing them; a gradient is
+the caller's own `jit`, which rbdyn_jax cannot store, but inside it the lane solver's two
+loops (forward and sensitivities) are loaded from there. The speed-up is first call
+without cache / first call warm.
 
 Run: `python benchmarks/compile.py [--cases simulate batch lanes grad jacfwd_lanes …]` — prints
 a table and writes results/benchmarks/compile.json (`--out DIR`). Sequential, ≈ 5 min at
@@ -69,17 +73,16 @@ CASES = {  # name: (batch size, lanes)
     "grad": (16, None),
     "jacfwd_lanes": (16, 16),
     "grad_lanes": (16, 16),
-    "grad_nan": (16, None),
-    "jacfwd_lanes_nan": (16, 16),
-    "grad_lanes_nan": (16, 16),
+    "grad_lanes_ctor": (16, 16),
+    "grad_lanes_ctor_nan": (16, 16),
     "bare_diffrax": (256, None),
 }
 YARDSTICK = "bare_diffrax"
-# The same gradient programs traced with equinox's checks as NaN (`EQX_ON_ERROR=nan` in the
-# child's environment): the caller's choice that makes its own program cacheable, since the
-# inertia check of a traced θ is otherwise a host callback.
-NAN_CASES = {"grad_nan": "grad", "jacfwd_lanes_nan": "jacfwd_lanes",
-             "grad_lanes_nan": "grad_lanes"}
+# Gradient cases whose loss builds the model with its constructor (run-time inertia checks),
+# and those of them run with equinox's checks as NaN (`EQX_ON_ERROR=nan` in the child's
+# environment): the caller's switch that makes such a program cacheable.
+CTOR_CASES = ("grad_lanes_ctor", "grad_lanes_ctor_nan")
+NAN_CASES = ("grad_lanes_ctor_nan",)
 CACHE_ENV = ("JAX_COMPILATION_CACHE_DIR", "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS",
              "JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES", "JAX_ENABLE_COMPILATION_CACHE")
 
@@ -152,14 +155,19 @@ def _reference_omega(w0, ts):
                                method="DOP853").y.T for w in w0])
 
 
-def _loss_fn(y0s, ts, data, lanes):
+def _loss_fn(y0s, ts, data, lanes, ctor):
     import diffrax
     import jax.numpy as jnp
 
     import rbdyn_jax as rb
 
+    base = rb.RigidBody(jnp.array(J_TRUE))
+
     def loss(theta):
-        model = rb.RigidBody(rb.inertia.from_log_cholesky(theta))
+        if ctor:  # run-time checks of the traced inertia: host callbacks
+            model = rb.RigidBody(rb.inertia.from_log_cholesky(theta))
+        else:  # physical by construction, unchecked (as `identify.fit` builds its models)
+            model = rb.with_log_cholesky(base, theta)
         traj = rb.simulate_batch(model, y0s, ts, rtol=TOL, atol=TOL, lanes=lanes,
                                  adjoint=diffrax.RecursiveCheckpointAdjoint())
         return jnp.sum((traj.ys.omega - data) ** 2)
@@ -220,9 +228,10 @@ def build_call(case):
     if case in ("batch", "lanes"):
         model = rb.RigidBody(jnp.array(J_TRUE))
         return lambda: rb.simulate_batch(model, y0s, ts, rtol=TOL, atol=TOL, lanes=lanes)
-    loss = _loss_fn(y0s, ts, jnp.asarray(_reference_omega(w0, ts_np)), lanes)
+    loss = _loss_fn(y0s, ts, jnp.asarray(_reference_omega(w0, ts_np)), lanes,
+                    case in CTOR_CASES)
     theta = rb.inertia.to_log_cholesky(jnp.array(J_TRUE)) + 0.05
-    mode = jax.jacfwd if NAN_CASES.get(case, case) == "jacfwd_lanes" else jax.grad
+    mode = jax.jacfwd if case == "jacfwd_lanes" else jax.grad
     fn = jax.jit(mode(loss), compiler_options=rb.COMPILER_OPTIONS)
     return lambda: fn(theta)
 
@@ -310,7 +319,7 @@ def measure(case):
 
 
 def print_table(rows):
-    head = (f"{'case':<16} {'import s':>8} {'build s':>7} | {'first call: no cache':>20} "
+    head = (f"{'case':<20} {'import s':>8} {'build s':>7} | {'first call: no cache':>20} "
             f"{'/ bare':>6} "
             f"{'cold':>7} {'warm':>7} | {'speed-up':>8} | {'steady':>7} | {'entries':>7} "
             f"{'cb skip':>7} {'traces':>6}")
@@ -318,7 +327,7 @@ def print_table(rows):
     print("-" * len(head))
     for r in rows:
         rel = f"{r['vs_bare']:>5.2f}x" if r.get("vs_bare") else f"{'—':>6}"
-        print(f"{r['case']:<16} {r['import_s']:>8.2f} {r['build_s']:>7.2f} | "
+        print(f"{r['case']:<20} {r['import_s']:>8.2f} {r['build_s']:>7.2f} | "
               f"{r['no_cache_s']:>20.2f} {rel} "
               f"{r['cold_s']:>7.2f} {r['warm_s']:>7.2f} | {r['speedup_warm']:>7.1f}x | "
               f"{r['steady_s']:>7.3f} | {r['entries']:>7} {len(r['callback_programs']):>7} "
