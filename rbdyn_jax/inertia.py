@@ -12,6 +12,7 @@ relative tolerance `√eps` of the dtype.
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from ._checks import check_batch, check_trailing, holds_now, sqrt_eps
@@ -347,16 +348,36 @@ def to_log_cholesky(J: MatrixLike) -> LogCholesky:
     `theta`, shape `(*batch, 6)`; [`from_log_cholesky`][] is its inverse.
     """
     J = check_inertia(J, "J")
-    L = jnp.linalg.cholesky(planar(0.5 * (J + _transpose(J))))
+    if not isinstance(J, jax.core.Tracer):  # concrete: in NumPy, compiling nothing
+        theta = _log_cholesky_now(np.asarray(J))
+        if theta is not None:
+            return jnp.asarray(theta, dtype=J.dtype)
+    L = jnp.linalg.cholesky(_planar(0.5 * (J + _transpose(J))))
     d = jnp.diagonal(L, axis1=-2, axis2=-1)
     bad = ~jnp.all(jax.lax.stop_gradient(d) > 0, axis=-1)  # NaN where cholesky fails
     msg = (
         "`J` is not strictly physical: its planar inertia J' is singular (a flat body or a "
         "rod), which has no finite log-Cholesky parameters."
     )
-    L = eqx.error_if(L, bad, msg)
-    d = jnp.diagonal(L, axis1=-2, axis2=-1)
-    return jnp.concatenate([jnp.log(d), L[..., 1, :1], L[..., 2, :2]], axis=-1)
+    return _theta_of(eqx.error_if(L, bad, msg))
+
+
+def _theta_of(L, xp=jnp):
+    """`(log L00, log L11, log L22, L10, L20, L21)` of lower-triangular factors `L`."""
+    d = xp.diagonal(L, axis1=-2, axis2=-1)
+    return xp.concatenate([xp.log(d), L[..., 1, :1], L[..., 2, :2]], axis=-1)
+
+
+def _log_cholesky_now(J):
+    """`to_log_cholesky` of a concrete, physical `J` in NumPy (an eager JAX evaluation
+    compiles each of its operations on first use: ~0.8 s in a fresh process, measured), or
+    `None` where J' is singular, for the JAX path to raise its error."""
+    try:
+        L = np.linalg.cholesky(_planar(0.5 * (J + _transpose(J, np)), np))
+    except np.linalg.LinAlgError:
+        return None
+    ok = np.all(np.diagonal(L, axis1=-2, axis2=-1) > 0)
+    return _theta_of(L, np) if ok else None
 
 
 def from_log_cholesky(theta: LogCholeskyLike) -> Matrix:
@@ -375,14 +396,21 @@ def from_log_cholesky(theta: LogCholeskyLike) -> Matrix:
     `J`, shape `(*batch, 3, 3)`; [`to_log_cholesky`][] is its inverse.
     """
     theta = check_trailing(theta, (6,), "theta")
-    l00, l11, l22, l10, l20, l21 = jnp.moveaxis(theta, -1, 0)
-    zero = jnp.zeros_like(l00)
-    L = jnp.stack(
+    if not isinstance(theta, jax.core.Tracer):  # concrete: in NumPy, compiling nothing
+        return jnp.asarray(_from_log_cholesky(np.asarray(theta), np), dtype=theta.dtype)
+    return _from_log_cholesky(theta)
+
+
+def _from_log_cholesky(theta, xp=jnp):
+    l00, l11, l22, l10, l20, l21 = xp.moveaxis(theta, -1, 0)
+    zero = xp.zeros_like(l00)
+    L = xp.stack(
         [
-            jnp.stack([jnp.exp(l00), zero, zero], axis=-1),
-            jnp.stack([l10, jnp.exp(l11), zero], axis=-1),
-            jnp.stack([l20, l21, jnp.exp(l22)], axis=-1),
+            xp.stack([xp.exp(l00), zero, zero], axis=-1),
+            xp.stack([l10, xp.exp(l11), zero], axis=-1),
+            xp.stack([l20, l21, xp.exp(l22)], axis=-1),
         ],
         axis=-2,
     )
-    return from_planar(L @ _transpose(L))
+    Jp = L @ _transpose(L, xp)
+    return _trace(Jp, xp)[..., None, None] * _eye_like(Jp, xp) - Jp  # from_planar
