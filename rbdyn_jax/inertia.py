@@ -176,7 +176,11 @@ def from_planar(Jp: MatrixLike) -> Matrix:
     `J`, shape `(*batch, 3, 3)`; the inverse of [`planar`][].
     """
     Jp = check_trailing(Jp, (3, 3), "Jp")
-    return _trace(Jp)[..., None, None] * _eye_like(Jp) - Jp
+    return _from_planar(Jp)
+
+
+def _from_planar(Jp: Array, xp=jnp) -> Array:
+    return _trace(Jp, xp)[..., None, None] * _eye_like(Jp, xp) - Jp
 
 
 def principal_axes(J: MatrixLike) -> tuple[Vector, Matrix]:
@@ -412,5 +416,4 @@ def _from_log_cholesky(theta, xp=jnp):
         ],
         axis=-2,
     )
-    Jp = L @ _transpose(L, xp)
-    return _trace(Jp, xp)[..., None, None] * _eye_like(Jp, xp) - Jp  # from_planar
+    return _from_planar(L @ _transpose(L, xp), xp)
