@@ -401,7 +401,9 @@ def from_log_cholesky(theta: LogCholeskyLike) -> Matrix:
     """
     theta = check_trailing(theta, (6,), "theta")
     if not isinstance(theta, jax.core.Tracer):  # concrete: in NumPy, compiling nothing
-        return jnp.asarray(_from_log_cholesky(np.asarray(theta), np), dtype=theta.dtype)
+        with np.errstate(all="ignore"):  # IEEE results, silently, as in JAX
+            J = _from_log_cholesky(np.asarray(theta), np)
+        return jnp.asarray(J, dtype=theta.dtype)
     return _from_log_cholesky(theta)
 
 
