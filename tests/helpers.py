@@ -3,6 +3,7 @@
 import importlib.util
 import pathlib
 
+import jax.extend.core
 import numpy as np
 
 EXAMPLES = pathlib.Path(__file__).resolve().parent.parent / "examples"
@@ -57,21 +58,16 @@ def random_rotation_matrices(rng, n):
     return Rotation.random(n, random_state=rng).as_matrix()
 
 
+
 def host_callbacks(jaxpr) -> list[str]:
     """The host-callback primitives (`pure_callback`, `io_callback`, `debug_callback`) of a
-    (closed) jaxpr, nested jaxprs included: a program holding one is never stored in JAX's
+    (closed) jaxpr and its sub-jaxprs: a program holding one is never stored in JAX's
     persistent compilation cache."""
+    jaxpr = getattr(jaxpr, "jaxpr", jaxpr)  # a ClosedJaxpr's own jaxpr
     found = []
-
-    def walk(j):
-        for e in j.eqns:
-            if "callback" in e.primitive.name:
-                found.append(e.primitive.name)
-            for p in e.params.values():
-                for sub in p if isinstance(p, (list, tuple)) else (p,):
-                    inner = sub if hasattr(sub, "eqns") else getattr(sub, "jaxpr", None)
-                    if inner is not None:
-                        walk(inner if hasattr(inner, "eqns") else inner.jaxpr)
-
-    walk(getattr(jaxpr, "jaxpr", jaxpr))
+    for eqn in jaxpr.eqns:
+        if "callback" in eqn.primitive.name:
+            found.append(eqn.primitive.name)
+        for sub in jax.extend.core.jaxprs_in_params(eqn.params):
+            found += host_callbacks(sub)
     return found

@@ -13,6 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import host_callbacks
 
 import rbdyn_jax as rb
 from rbdyn_jax import _traces
@@ -268,17 +269,6 @@ def test_memo_tells_signed_zeros_apart():
     assert keys == [_traces.key("f", (0.0,)), _traces.key("f", (-0.0,))]
 
 
-def _callbacks(jaxpr):
-    """The host callbacks in `jaxpr` and its sub-jaxprs (JAX never caches such a program)."""
-    found = []
-    for eqn in jaxpr.eqns:
-        if "callback" in eqn.primitive.name:
-            found.append(eqn.primitive.name)
-        for sub in jax.extend.core.jaxprs_in_params(eqn.params):
-            found += _callbacks(sub)
-    return found
-
-
 def test_numpy_inputs_inside_a_callers_trace_are_checked_now_not_at_run_time():
     """NumPy `ts` and inertia inside a caller's `jit` stay concrete: they are checked while
     tracing, and the caller's program holds no host callback (it can be cached). A traced
@@ -291,8 +281,8 @@ def test_numpy_inputs_inside_a_callers_trace_are_checked_now_not_at_run_time():
         return traj.ys.omega
 
     w = jnp.ones((3, 3))
-    assert _callbacks(jax.make_jaxpr(omegas)(w).jaxpr) == []
-    assert _callbacks(jax.make_jaxpr(omegas)(w, J).jaxpr) != []  # a traced inertia
+    assert host_callbacks(jax.make_jaxpr(omegas)(w).jaxpr) == []
+    assert host_callbacks(jax.make_jaxpr(omegas)(w, J).jaxpr) != []  # a traced inertia
     bad = np.diag([1.0, 1.0, 3.0])  # violates the triangle inequality
     with pytest.raises(Exception, match="inertia"):
         jax.block_until_ready(jax.jit(lambda w: omegas(w, bad))(w))
