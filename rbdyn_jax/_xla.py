@@ -47,6 +47,16 @@ def filter_jit(fn):
     return _dispatch(eqx.filter_jit, fn)
 
 
+def nested_filter_jit(fn):
+    """`eqx.filter_jit(fn)` for a function called only while a program is traced (it never
+    compiles a program of its own, so it needs no options). JAX traces it once per input
+    structure and the enclosing program holds one `jit` call per use; the trace, its
+    batching under `vmap` and its lowering are then shared by every use of that structure.
+    Its cached traces are cleared like `diffrax.diffeqsolve`'s when the check mode
+    changes (`_checks.checks_as_nan`)."""
+    return eqx.filter_jit(fn)
+
+
 def export(fn):
     """`jax.export.export(jax.jit(fn))`: `fn` traced and lowered, for storing (`_traces.py`).
     Nothing is compiled here; the exported program is compiled through `jit`."""

@@ -25,7 +25,7 @@ from jaxtyping import Array, ArrayLike, Float, PyTree
 
 from . import _traces
 from ._checks import as_float_array, checks_as_nan
-from ._xla import COMPILER_OPTIONS, filter_jit
+from ._xla import COMPILER_OPTIONS, filter_jit, nested_filter_jit
 from .models import AbstractRigidBody
 
 
@@ -109,6 +109,22 @@ def _per_unit_time(span, tree):
     return jax.tree_util.tree_map(lambda x: span * x, tree)
 
 
+@nested_filter_jit
+def _field(model, t, y):
+    """`model.vector_field(t, y, None)`, traced once per solve. A solve traces the field
+    four times (`_start`, diffeqsolve's check of the term, and the Runge–Kutta step of its
+    loop body twice: for the body's output structure and for the loop), and under `vmap`
+    JAX batches the loop body two or three times (its fixed point over which parts of the
+    loop's state are batched). As one `jit` the field is traced, batched and lowered once
+    (the default batch's first call 2.03 → 1.84 s; bitwise the same trajectories)."""
+    return model.vector_field(t, y, None)
+
+
+# The jitted functions a solve traces whose traces depend on the check mode (`_checks.
+# checks_as_nan`): their cached traces are dropped when the mode changes.
+MODE_DEPENDENT_JITS = (diffrax.diffeqsolve, _field)
+
+
 class _Guarded(eqx.Module):
     """The model's vector field in the unit time s (`_unit_time`), or dy/ds = 0 for a lane
     flagged bad (`args` = ok flag), so a bad lane takes a few steps instead of stalling its
@@ -120,7 +136,7 @@ class _Guarded(eqx.Module):
     span: Array
 
     def __call__(self, s, y, ok):
-        f = self.model.vector_field(self.t0 + s * self.span, y, None)
+        f = _field(self.model, self.t0 + s * self.span, y)
         return _per_unit_time(self.span, _where_tree(ok, f, 0.0))
 
 
@@ -149,7 +165,7 @@ def _start(model, y0, t0):
     y0, _ = model.normalise(y0)
     ok0 = _all_finite(y0)
     y_run = _where_tree(ok0, y0, 1.0)
-    f0 = model.vector_field(t0, y_run, None)
+    f0 = _field(model, t0, y_run)
     ok0 = ok0 & _all_finite(f0)
     return ok0, _where_tree(ok0, y0, 1.0), f0
 
@@ -203,7 +219,7 @@ def _compiled(fn):
 
     @functools.wraps(fn)
     def checks_nan(*args):
-        with checks_as_nan(jitted=(diffrax.diffeqsolve,)):
+        with checks_as_nan(jitted=MODE_DEPENDENT_JITS):
             return fn(*args)
 
     return {False: filter_jit(fn), True: _traces.cached(checks_nan, filter_jit(checks_nan))}

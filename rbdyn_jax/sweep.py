@@ -52,7 +52,7 @@ from . import invariants, rotation
 from ._checks import checks_as_nan
 from ._xla import jit
 from .frames import CircularOrbit, ConstantRate, EulerAngleFrame, HarmonicAngles, Inertial
-from .integrate import RESULTS, Trajectory, _lane_batch
+from .integrate import MODE_DEPENDENT_JITS, RESULTS, Trajectory, _lane_batch
 from .models import RelativeRigidBody, RigidBody
 from .state import State
 from .torques import (
@@ -760,7 +760,7 @@ class _Runner:
         arr = jax.make_array_from_callback(
             (self.size,), NamedSharding(self.mesh, P("batch")), lambda i: full[i])
         tols = jnp.asarray([self.scenario.rtol, self.scenario.atol])
-        with checks_as_nan():  # traced on the first call only
+        with checks_as_nan(jitted=MODE_DEPENDENT_JITS):  # traced on the first call only
             out = self.fn(arr, self.scenario.dists, key, tols)
         if jax.process_count() > 1:  # multi-host: every process gets the whole chunk
             from jax.experimental import multihost_utils

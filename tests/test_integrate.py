@@ -27,6 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import host_callbacks
 from jax.flatten_util import ravel_pytree
 from scipy.integrate import solve_ivp
 from scipy.spatial.transform import Rotation
@@ -386,6 +387,38 @@ def test_no_recompile_when_only_values_change(caplog):
     # Another model structure (another torque type) is compiled anew.
     other = rb.RigidBody(jnp.asarray(J_GEN), rb.GravityGradient(jnp.asarray(0.3)))
     assert compiles(caplog, lambda: rb.simulate(other, y0, ts)) >= 1
+
+
+def _jitted_calls(jaxpr, name):
+    """The jaxprs of the `jit` calls named `name` in `jaxpr` and its sub-jaxprs."""
+    found = []
+    for eqn in jaxpr.eqns:
+        if eqn.params.get("name") == name:
+            found.append(eqn.params["jaxpr"].jaxpr)
+        for sub in jax.extend.core.jaxprs_in_params(eqn.params):
+            found += _jitted_calls(sub, name)
+    return found
+
+
+@pytest.mark.parametrize("first", ["nan", "checked"])
+def test_the_shared_field_trace_keeps_its_check_mode(first):
+    """The vector field is one `jit` per solve (`integrate._field`), and JAX keys its
+    cached traces by the inputs, not by equinox's check mode. A solve of concrete times is
+    traced with its checks as NaN (cacheable), one of traced times with its checks as host
+    callbacks: neither may reuse the other's trace of the field, whichever comes first.
+    Here the field holds a check (the frame's `quat0` is normalised in it, and a zero one
+    is an error): a callback in the checked solve's field, none in the other's."""
+    frame = rb.frames.EulerAngleFrame(lambda t: jnp.stack([0.3 * t, 0.2 + 0.0 * t, 0.1 * t]),
+                                      quat0=jnp.array([1.0, 0.0, 0.0, 0.0]))
+    model = rb.RelativeRigidBody(jnp.asarray(J_GEN), frame)
+    y0, ts = state(W0, Q0), jnp.asarray(TS)
+    traced = {"nan": lambda: jax.make_jaxpr(lambda y: rb.simulate(model, y, ts))(y0),
+              "checked": lambda: jax.make_jaxpr(lambda t: rb.simulate(model, y0, t))(ts)}
+    for mode in (first, "checked" if first == "nan" else "nan"):
+        fields = _jitted_calls(traced[mode]().jaxpr, "_field")
+        assert fields, "the solve's field is not the jitted `_field`"
+        for field in fields:
+            assert (len(host_callbacks(field)) > 0) == (mode == "checked"), mode
 
 
 # ---------------------------------------------------------------------------------------
