@@ -115,8 +115,9 @@ def _field(model, t, y):
     four times (`_start`, diffeqsolve's check of the term, and the Runge–Kutta step of its
     loop body twice: for the body's output structure and for the loop), and under `vmap`
     JAX batches the loop body two or three times (its fixed point over which parts of the
-    loop's state are batched). As one `jit` the field is traced, batched and lowered once
-    (the default batch's first call 2.03 → 1.84 s; bitwise the same trajectories)."""
+    loop's state are batched). As one `jit` the field is traced, batched and lowered once,
+    and XLA inlines it again: the default batch's first call 2.08–2.10 → 1.90–1.91 s
+    (N = 256, interleaved), the same program and bitwise the same trajectories."""
     return model.vector_field(t, y, None)
 
 
