@@ -58,16 +58,18 @@ def random_rotation_matrices(rng, n):
     return Rotation.random(n, random_state=rng).as_matrix()
 
 
+def equations(jaxpr):
+    """Every equation of a (closed) jaxpr and of its sub-jaxprs (loop bodies, `jit` calls,
+    …)."""
+    jaxpr = getattr(jaxpr, "jaxpr", jaxpr)  # a ClosedJaxpr's own jaxpr
+    for eqn in jaxpr.eqns:
+        yield eqn
+        for sub in jax.extend.core.jaxprs_in_params(eqn.params):
+            yield from equations(sub)
+
 
 def host_callbacks(jaxpr) -> list[str]:
     """The host-callback primitives (`pure_callback`, `io_callback`, `debug_callback`) of a
     (closed) jaxpr and its sub-jaxprs: a program holding one is never stored in JAX's
     persistent compilation cache."""
-    jaxpr = getattr(jaxpr, "jaxpr", jaxpr)  # a ClosedJaxpr's own jaxpr
-    found = []
-    for eqn in jaxpr.eqns:
-        if "callback" in eqn.primitive.name:
-            found.append(eqn.primitive.name)
-        for sub in jax.extend.core.jaxprs_in_params(eqn.params):
-            found += host_callbacks(sub)
-    return found
+    return [e.primitive.name for e in equations(jaxpr) if "callback" in e.primitive.name]

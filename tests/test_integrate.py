@@ -27,7 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import host_callbacks
+from helpers import equations, host_callbacks
 from jax.flatten_util import ravel_pytree
 from scipy.integrate import solve_ivp
 from scipy.spatial.transform import Rotation
@@ -389,17 +389,6 @@ def test_no_recompile_when_only_values_change(caplog):
     assert compiles(caplog, lambda: rb.simulate(other, y0, ts)) >= 1
 
 
-def _jitted_calls(jaxpr, name):
-    """The jaxprs of the `jit` calls named `name` in `jaxpr` and its sub-jaxprs."""
-    found = []
-    for eqn in jaxpr.eqns:
-        if eqn.params.get("name") == name:
-            found.append(eqn.params["jaxpr"].jaxpr)
-        for sub in jax.extend.core.jaxprs_in_params(eqn.params):
-            found += _jitted_calls(sub, name)
-    return found
-
-
 @pytest.mark.parametrize("first", ["nan", "checked"])
 def test_the_shared_field_trace_keeps_its_check_mode(first):
     """The vector field is one `jit` per solve (`integrate._field`), and JAX keys its
@@ -415,7 +404,8 @@ def test_the_shared_field_trace_keeps_its_check_mode(first):
     traced = {"nan": lambda: jax.make_jaxpr(lambda y: rb.simulate(model, y, ts))(y0),
               "checked": lambda: jax.make_jaxpr(lambda t: rb.simulate(model, y0, t))(ts)}
     for mode in (first, "checked" if first == "nan" else "nan"):
-        fields = _jitted_calls(traced[mode]().jaxpr, "_field")
+        fields = [e.params["jaxpr"] for e in equations(traced[mode]())
+                  if e.params.get("name") == "_field"]
         assert fields, "the solve's field is not the jitted `_field`"
         for field in fields:
             assert (len(host_callbacks(field)) > 0) == (mode == "checked"), mode

@@ -27,11 +27,10 @@ import textwrap
 import diffrax
 import equinox as eqx
 import jax
-import jax.extend.core
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import host_callbacks
+from helpers import equations, host_callbacks
 
 import rbdyn_jax as rb
 
@@ -363,14 +362,6 @@ def test_an_inertia_that_is_not_a_tensor_takes_ordinary_columns():
                                atol=1e-10 * float(jnp.max(jnp.abs(plain))))
 
 
-def _equations(jaxpr):
-    """Every equation of `jaxpr` and of its sub-jaxprs (loop bodies, …)."""
-    for eqn in jaxpr.eqns:
-        yield eqn
-        for sub in jax.extend.core.jaxprs_in_params(eqn.params):
-            yield from _equations(sub)
-
-
 _COMPILES = []  # set to a list to record the XLA compilations (a listener stays registered)
 jax.monitoring.register_event_duration_secs_listener(
     lambda event, secs, **_: _COMPILES.append(event)
@@ -413,11 +404,11 @@ def test_a_jvp_runs_one_loop_with_the_sensitivities_and_the_same_steps():
         return rb.simulate_batch(rb.RigidBody(J), y0s, TS, rtol=RTOL, atol=RTOL, lanes=LANES)
 
     jaxpr = jax.make_jaxpr(lambda J, dJ: jax.jvp(solve, (J,), (dJ,)))(J, jnp.eye(3))
-    loops = [e for e in _equations(jaxpr.jaxpr) if e.primitive.name == "while"
+    loops = [e for e in equations(jaxpr.jaxpr) if e.primitive.name == "while"
              and any(s.primitive.name.startswith("scatter") for s in
-                     _equations(e.params["body_jaxpr"].jaxpr))]
+                     equations(e.params["body_jaxpr"].jaxpr))]
     assert len(loops) == 1
-    floats = [e for e in _equations(jaxpr.jaxpr) if e.primitive.name.startswith("scatter")
+    floats = [e for e in equations(jaxpr.jaxpr) if e.primitive.name.startswith("scatter")
               and jnp.issubdtype(e.invars[0].aval.dtype, jnp.floating)]
     assert floats
     for e in floats:
