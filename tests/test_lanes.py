@@ -31,8 +31,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from helpers import equations, host_callbacks
+from jax.interpreters import partial_eval as pe
 
 import rbdyn_jax as rb
+from rbdyn_jax import integrate
 
 J = jnp.array([[2.0, 0.05, 0.0], [0.05, 3.0, 0.02], [0.0, 0.02, 4.0]])
 TS = jnp.linspace(0.0, 6.0, 13)
@@ -242,6 +244,72 @@ def test_gradients_in_both_modes_match_reverse_mode_and_finite_differences():
     np.testing.assert_allclose(fwd, fd, rtol=1e-4, atol=1e-5 * np.max(np.abs(fd)))
 
 
+COUPLED = {  # model, and the state leaves each leaf's sensitivities need
+    "torque_free": (lambda: rb.RigidBody(J), [(0,), (0, 1)]),
+    "body_torque": (lambda: rb.RigidBody(J, rb.BodyTorque(jnp.array([0.1, -0.2, 0.3]))),
+                    [(0,), (0, 1)]),
+    "heavy_top": (lambda: heavy_top(1.0), [(0, 1), (0, 1)]),
+    "inertial_torque": (lambda: rb.RigidBody(J, rb.InertialTorque(jnp.array([0.1, 0, 0.2]))),
+                        [(0, 1), (0, 1)]),
+    "relative_rotating_frame": (lambda: rb.RelativeRigidBody(
+        J, rb.ConstantRate(jnp.array([0.0, 0.3, 1.0]))), [(0, 1), (0, 1)]),
+}
+
+
+@pytest.mark.parametrize("case", COUPLED)
+def test_closed_groups_follow_the_jacobian(case):
+    """`_closed_groups` reads which state leaves each leaf's rate depends on from the jaxpr
+    of the field's JVP. Checked against the Jacobian of the field itself (`jax.jacfwd`, at
+    a generic state): where ∂ω̇/∂q is not zero (a torque fixed in space, gravity, a turning
+    frame) ω's group holds q; for a free body or a torque fixed in the body, ∂ω̇/∂q is
+    exactly zero and ω's group is ω alone. q̇ = ½ q ⊗ ω reads both."""
+    make, expected = COUPLED[case]
+    model = make()
+    y = rb.State(jnp.array([0.3, -1.1, 0.7]), jnp.array([0.8, 0.1, -0.3, 0.5]) / jnp.sqrt(0.99))
+    jac = jax.jacfwd(lambda y: model.vector_field(0.4, y, None))(y)
+    coupled = float(jnp.max(jnp.abs(jac.omega.quat)))
+    assert (coupled > 1e-3) == (expected[0] == (0, 1)), coupled
+    assert coupled == 0.0 or expected[0] == (0, 1)
+    assert integrate._closed_groups(model, 0.4, y) == expected
+
+
+@pytest.mark.parametrize("reads", ["omega", "quat", "both", "omega_heavy_top"])
+def test_a_loss_integrates_the_sensitivities_it_reads(reads):
+    """A loss on a torque-free body's ω alone integrates ω's sensitivities alone (18 of
+    the 42 columns of six inertia parameters): JAX's dead-code elimination, which `jit`
+    runs before lowering, leaves the caller's program with the sensitivities' solve of ω's
+    group (`_cheapest`). A loss that reads the attitude runs the whole state's; so does a
+    heavy top's loss on ω (gravity couples ω̇ to q). Every gradient matches reverse mode
+    through the vmapped `diffeqsolve` to round-off (the same steps, tolerance as in the
+    test above)."""
+    heavy = reads == "omega_heavy_top"
+    y0s = initial_states(6, seed=2)
+    ts = jnp.linspace(0.0, 3.0, 7)
+    theta0 = rb.inertia.to_log_cholesky(J)
+
+    def loss(theta, lanes):
+        model = rb.with_log_cholesky(heavy_top(1.0) if heavy else rb.RigidBody(J), theta)
+        tr = rb.simulate_batch(model, y0s, ts, rtol=1e-11, atol=1e-11, lanes=lanes)
+        out = 0.0
+        if reads != "quat":
+            out = out + jnp.sum(jnp.sin(tr.ys.omega))
+        if reads in ("quat", "both"):
+            out = out + jnp.sum(tr.ys.quat[..., 1:] ** 2)
+        return out
+
+    grad = jax.jit(jax.grad(lambda th: loss(th, LANES)))
+    jaxpr = grad.trace(theta0).jaxpr
+    dced, _ = pe.dce_jaxpr(jaxpr.jaxpr, [True] * len(jaxpr.jaxpr.outvars))
+    (call,) = [e for e in equations(dced) if e.primitive.name == "rbdyn_cheapest"]
+    carried = {k[1] for k in call.params["keys"][call.params["chosen"]] if k[0] == "S"}
+    assert carried == ({0} if reads == "omega" else {0, 1})
+    assert len(call.params["programs"]) == (1 if heavy else 2)
+    rev = jax.jit(jax.grad(lambda th: loss(th, None)))(theta0)
+    assert float(jnp.max(jnp.abs(rev))) > 1e-2
+    np.testing.assert_allclose(grad(theta0), rev, rtol=1e-9,
+                               atol=1e-12 * float(jnp.max(jnp.abs(rev))))
+
+
 def test_hessian_forward_over_reverse_through_the_lanes():
     """Second derivatives: `jacfwd(jacrev)` through the lane solver differentiates its
     sensitivities' rule again (the rule is a `custom_jvp` of an ordinary loop), where the
@@ -404,10 +472,15 @@ def test_a_jvp_runs_one_loop_with_the_sensitivities_and_the_same_steps():
         return rb.simulate_batch(rb.RigidBody(J), y0s, TS, rtol=RTOL, atol=RTOL, lanes=LANES)
 
     jaxpr = jax.make_jaxpr(lambda J, dJ: jax.jvp(solve, (J,), (dJ,)))(J, jnp.eye(3))
-    loops = [e for e in equations(jaxpr.jaxpr) if e.primitive.name == "while"
-             and any(s.primitive.name.startswith("scatter") for s in
-                     equations(e.params["body_jaxpr"].jaxpr))]
-    assert len(loops) == 1
+    # The sensitivities' solves: one program per closed group of the state's leaves, of
+    # which the caller's program runs one (`_cheapest`); each is one loop.
+    (call,) = [e for e in equations(jaxpr.jaxpr) if e.primitive.name == "rbdyn_cheapest"]
+    assert len(call.params["programs"]) == 2  # ω alone, the whole state
+    for program in call.params["programs"]:
+        loops = [e for e in equations(program.jaxpr) if e.primitive.name == "while"
+                 and any(s.primitive.name.startswith("scatter") for s in
+                         equations(e.params["body_jaxpr"].jaxpr))]
+        assert len(loops) == 1
     floats = [e for e in equations(jaxpr.jaxpr) if e.primitive.name.startswith("scatter")
               and jnp.issubdtype(e.invars[0].aval.dtype, jnp.floating)]
     assert floats
