@@ -1,6 +1,6 @@
 """A call that runs the cheapest of several programs giving the outputs its caller reads.
 
-`cheapest(programs, args)` traces each program (a function of `args` returning a dict of
+`cheapest(programs, *args)` traces each program (a function of `args` returning a dict of
 named arrays, cheapest first, the last giving every name) and returns the last one's
 outputs. It is one equation in the caller's program, and JAX's dead-code elimination, which
 runs on the whole program before it is lowered (and so knows which outputs are read), swaps
@@ -26,18 +26,19 @@ cheapest_p = core.Primitive("rbdyn_cheapest")
 cheapest_p.multiple_results = True
 
 
-def cheapest(programs, args) -> dict:
+def cheapest(programs, *args) -> dict:
     """The outputs (a dict of arrays) of `programs[-1](*args)`, computed by the first of
     `programs` that gives every output the caller reads (see the module docstring). Each
-    program is a function of the arrays `args` returning a dict; each one's names must be
-    among the last one's, and a name means the same array in all of them."""
-    avals = [jax.ShapeDtypeStruct(x.shape, x.dtype) for x in args]
+    program is a function of `args` (pytrees of arrays) returning a dict; each one's names
+    must be among the last one's, and a name means the same array in all of them."""
+    leaves, treedef = jax.tree_util.tree_flatten(args)
+    avals = [jax.ShapeDtypeStruct(x.shape, x.dtype) for x in leaves]
     jaxprs, keys = [], []
     for program in programs:
         out_keys = []
 
         def flat(*a, program=program, out_keys=out_keys):
-            out = program(*a)
+            out = program(*jax.tree_util.tree_unflatten(treedef, a))
             out_keys.extend(out)
             return [out[k] for k in out_keys]
 
@@ -46,7 +47,7 @@ def cheapest(programs, args) -> dict:
     if not all(set(k) <= set(keys[-1]) for k in keys):
         raise ValueError("every program's outputs must be among the last program's")
     chosen = len(jaxprs) - 1
-    outs = cheapest_p.bind(*args, programs=tuple(jaxprs), keys=tuple(keys), chosen=chosen)
+    outs = cheapest_p.bind(*leaves, programs=tuple(jaxprs), keys=tuple(keys), chosen=chosen)
     return dict(zip(keys[chosen], outs))
 
 

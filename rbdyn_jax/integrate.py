@@ -561,24 +561,18 @@ def _lane_jvp(loop, static, batched, primals, tangents):
     groups = _closed_groups(one, ts[0], _take(y0s, 0))
     every = tuple(range(len(y_flat)))
     programs = sorted(set(groups) | {every}, key=lambda g: (len(g), g))
-    d_flat, d_def = jax.tree_util.tree_flatten(dyn)
-    t_flat, t_def = jax.tree_util.tree_flatten(tols)
-    cut = np.cumsum([len(d_flat), len(y_flat), len(S0), 1])
 
-    def program(carried, *args):
-        d, y0, s0, (ts_,), tl = (args[i:j] for i, j in zip([0, *cut], [*cut, len(args)]))
-        m = eqx.combine(jax.tree_util.tree_unflatten(d_def, list(d)), static)
-        aug = _Sensitivity(m, tuple(m_which), offsets[:len(m_which)], P, symmetric, carried)
-        (ys, S), ok0, result, counts = loop(
-            aug, (jax.tree_util.tree_unflatten(treedef, list(y0)),
-                  tuple(s0[i] for i in carried)), ts_,
-            jax.tree_util.tree_unflatten(t_def, list(tl)))
+    def program(carried, dyn, y0s, S0, ts, tols):
+        aug = _Sensitivity(eqx.combine(dyn, static), tuple(m_which), offsets[:len(m_which)],
+                           P, symmetric, carried)
+        (ys, S), ok0, result, counts = loop(aug, (y0s, tuple(S0[i] for i in carried)), ts,
+                                            tols)
         out = {("ys", i): y for i, y in enumerate(jax.tree_util.tree_leaves(ys))}
         out.update({("S", i): s for i, s in zip(carried, S)})
         return dict(out, ok0=ok0, result=result, counts=counts)
 
     got = _cheapest.cheapest([functools.partial(program, c) for c in programs],
-                             [*d_flat, *y_flat, *S0, ts, *t_flat])
+                             dyn, y0s, S0, ts, tols)
     ok0, result, counts = got["ok0"], got["result"], got["counts"]
     leaves = [got[("ys", i)] for i in every]
     # Rows never saved (a trajectory out of steps) stay +inf, and a row that diverged is not

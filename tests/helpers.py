@@ -73,3 +73,16 @@ def host_callbacks(jaxpr) -> list[str]:
     (closed) jaxpr and its sub-jaxprs: a program holding one is never stored in JAX's
     persistent compilation cache."""
     return [e.primitive.name for e in equations(jaxpr) if "callback" in e.primitive.name]
+
+
+def cheapest_call(jaxpr, eliminate=True):
+    """The one `rbdyn_cheapest` equation of a (closed) jaxpr, after JAX's dead-code
+    elimination (`dce_jaxpr`, which `jit` runs before lowering) unless `eliminate` is
+    false: its `params["chosen"]` is the program the compiled program runs."""
+    from jax.interpreters import partial_eval as pe
+
+    jaxpr = getattr(jaxpr, "jaxpr", jaxpr)
+    if eliminate:
+        jaxpr, _ = pe.dce_jaxpr(jaxpr, [True] * len(jaxpr.outvars))
+    (call,) = [e for e in equations(jaxpr) if e.primitive.name == "rbdyn_cheapest"]
+    return call

@@ -10,8 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import equations
-from jax.interpreters import partial_eval as pe
+from helpers import cheapest_call
 
 from rbdyn_jax._cheapest import cheapest
 
@@ -25,15 +24,12 @@ def large(x, y):
 
 
 def both(x, y):
-    return cheapest([small, large], [x, y])
+    return cheapest([small, large], x, y)
 
 
 def chosen(f, *args):
     """The program `f`'s `cheapest` equation runs after dead-code elimination."""
-    jaxpr = jax.make_jaxpr(f)(*args).jaxpr
-    dced, _ = pe.dce_jaxpr(jaxpr, [True] * len(jaxpr.outvars))
-    (call,) = [e for e in equations(dced) if e.primitive.name == "rbdyn_cheapest"]
-    return call.params["chosen"]
+    return cheapest_call(jax.make_jaxpr(f)(*args)).params["chosen"]
 
 
 X, Y = jnp.linspace(0.1, 1.0, 4), jnp.array(2.0)
@@ -76,4 +72,4 @@ def test_derivatives_of_the_chosen_program():
 
 def test_programs_must_give_names_of_the_last():
     with pytest.raises(ValueError, match="among the last"):
-        cheapest([large, small], [X, Y])
+        cheapest([large, small], X, Y)

@@ -30,8 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import equations, host_callbacks
-from jax.interpreters import partial_eval as pe
+from helpers import cheapest_call, equations, host_callbacks
 
 import rbdyn_jax as rb
 from rbdyn_jax import integrate
@@ -298,9 +297,7 @@ def test_a_loss_integrates_the_sensitivities_it_reads(reads):
         return out
 
     grad = jax.jit(jax.grad(lambda th: loss(th, LANES)))
-    jaxpr = grad.trace(theta0).jaxpr
-    dced, _ = pe.dce_jaxpr(jaxpr.jaxpr, [True] * len(jaxpr.jaxpr.outvars))
-    (call,) = [e for e in equations(dced) if e.primitive.name == "rbdyn_cheapest"]
+    call = cheapest_call(grad.trace(theta0).jaxpr)
     carried = {k[1] for k in call.params["keys"][call.params["chosen"]] if k[0] == "S"}
     assert carried == ({0} if reads == "omega" else {0, 1})
     assert len(call.params["programs"]) == (1 if heavy else 2)
@@ -474,7 +471,7 @@ def test_a_jvp_runs_one_loop_with_the_sensitivities_and_the_same_steps():
     jaxpr = jax.make_jaxpr(lambda J, dJ: jax.jvp(solve, (J,), (dJ,)))(J, jnp.eye(3))
     # The sensitivities' solves: one program per closed group of the state's leaves, of
     # which the caller's program runs one (`_cheapest`); each is one loop.
-    (call,) = [e for e in equations(jaxpr.jaxpr) if e.primitive.name == "rbdyn_cheapest"]
+    call = cheapest_call(jaxpr, eliminate=False)
     assert len(call.params["programs"]) == 2  # ω alone, the whole state
     for program in call.params["programs"]:
         loops = [e for e in equations(program.jaxpr) if e.primitive.name == "while"
