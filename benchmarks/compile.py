@@ -25,7 +25,8 @@ float64, default solver (Tsit5). Cases:
 - `bare_diffrax`: the machine's yardstick, no rbdyn_jax: `jax.jit(jax.vmap(solve))` of
   `diffrax.diffeqsolve` (Tsit5, `PIDController`, `SaveAt(ts=…)`) on the scipy baseline's
   right-hand side (`_baselines._numpy_rhs`) in `jax.numpy`, N = 256, compiled with JAX's
-  defaults. First calls vary with the machine (on this project's 2-core VMs, by 2× between
+  defaults (rbdyn_jax's cases start XLA with `rb.configure_xla()`, as the README advises).
+  First calls vary with the machine (on this project's 2-core VMs, by 2× between
   days), so the table gives each case's first call also as a multiple of this one, measured
   in the same run.
 
@@ -136,7 +137,9 @@ def _start_jax(cache, case):
     if case == YARDSTICK:
         import diffrax  # noqa: F401
     else:
-        import rbdyn_jax  # noqa: F401
+        import rbdyn_jax
+
+        rbdyn_jax.configure_xla()  # as the README advises; nothing has run yet
 
     return t1 - t0, time.perf_counter() - t1
 

@@ -30,17 +30,17 @@ max|g − g_ref| / max|g_ref| against g_ref = `jax.grad` (RecursiveCheckpointAdj
 loss solved at rtol = atol = 1e-12; for the two forward rows, |L − L_ref| / |L_ref| of the loss
 value. A method that fails has its error message in the table instead of numbers.
 
-Devices: unless XLA_FLAGS is already set, the script starts XLA with two host devices
-(`--xla_force_host_platform_device_count=2`), so the lane solver splits its batch over both
-cores; the vmapped `diffeqsolve` runs on one.
+XLA: the script starts it with `rb.configure_xla(host_devices=2)`, as the README advises:
+its while loops compiled whole, and two host devices (unless XLA_FLAGS sets a count), so the
+lane solver splits its batch over both cores; the vmapped `diffeqsolve` runs on one.
 
 Run: `python benchmarks/gradients.py [--n 64] [--out DIR]` — prints a table and writes
 DIR/gradients.json (DIR defaults to results/benchmarks).
 """
 
-import os
+import rbdyn_jax as rb  # JAX starts XLA at its first computation, after this
 
-os.environ.setdefault("XLA_FLAGS", "--xla_force_host_platform_device_count=2")
+rb.configure_xla(host_devices=2)
 
 import argparse  # noqa: E402
 import pathlib  # noqa: E402
@@ -54,8 +54,6 @@ jax.config.update("jax_enable_x64", True)
 import diffrax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
-
-import rbdyn_jax as rb  # noqa: E402
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
 import _report  # noqa: E402

@@ -44,7 +44,11 @@ import platform
 import time
 from importlib.metadata import version
 
-import jax
+import rbdyn_jax as rb  # JAX starts XLA at its first computation, after this
+
+rb.configure_xla()  # as the README advises: while loops compiled whole
+
+import jax  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 
@@ -54,7 +58,6 @@ from scipy.integrate import solve_ivp  # noqa: E402
 from scipy.optimize import least_squares  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
 
-import rbdyn_jax as rb  # noqa: E402
 from rbdyn_jax import identify as idf  # noqa: E402
 
 J_TRUE = np.array([[2.0, 0.1, -0.05], [0.1, 3.0, 0.08], [-0.05, 0.08, 3.5]])

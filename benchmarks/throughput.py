@@ -17,11 +17,12 @@ equations independently):
 
 rbdyn_jax uses Tsit5 (its default), numba and scipy RK45 use Dormand–Prince 5(4) with the
 same tolerances; the error columns show what each delivers. XLA runs a while loop on one
-core, so the script starts JAX with one host device per core
-(`XLA_FLAGS=--xla_force_host_platform_device_count=<cores>` unless XLA_FLAGS is set) and
-the lane solver splits the batch over them; numba uses its default thread count (the
-cores). The scipy loop is timed on at most `--scipy-max` trajectories and the plain
-vmapped solve on batches up to `--plain-max` (its lockstep cost grows with the batch).
+core, so the script starts XLA with one host device per core and its while loops compiled
+whole (`rb.configure_xla(host_devices=<cores>)`, as the README advises; a count already in
+XLA_FLAGS is kept) and the lane solver splits the batch over them; numba uses its default
+thread count (the cores). The scipy loop is timed on at most `--scipy-max` trajectories and
+the plain vmapped solve on batches up to `--plain-max` (its lockstep cost grows with the
+batch).
 Compilation is excluded from the rates (a first call is made per shape and reported).
 
 Run: `python benchmarks/throughput.py [--sizes 1 10 100 1000 10000] [--models …]
@@ -30,7 +31,9 @@ Run: `python benchmarks/throughput.py [--sizes 1 10 100 1000 10000] [--models �
 
 import os
 
-os.environ.setdefault("XLA_FLAGS", f"--xla_force_host_platform_device_count={os.cpu_count()}")
+import rbdyn_jax as rb  # JAX starts XLA at its first computation, after this
+
+rb.configure_xla(host_devices=os.cpu_count() or 1)
 
 import argparse  # noqa: E402
 import pathlib  # noqa: E402
@@ -43,8 +46,6 @@ jax.config.update("jax_enable_x64", True)
 
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
-
-import rbdyn_jax as rb  # noqa: E402
 
 sys.path.insert(0, str(pathlib.Path(__file__).parent))
 import _baselines  # noqa: E402

@@ -15,19 +15,20 @@ rotated back to the body axes. Error: max over trajectories and output times of 
 method (tolerances are runtime arrays: changing them does not recompile). Steps: mean
 accepted + rejected steps per trajectory.
 
-Devices: unless XLA_FLAGS is already set, the script starts XLA with two host devices
-(`--xla_force_host_platform_device_count=2`), so the lane solver splits its batch over both
-cores (`devices` default: all). The vmapped `diffeqsolve` runs on one device; numba runs
-`prange` over its default thread count (the cores).
+XLA: the script starts it with `rb.configure_xla(host_devices=2)`, as the README advises:
+its while loops compiled whole, and two host devices (unless XLA_FLAGS sets a count), so the
+lane solver splits its batch over both cores (`devices` default: all). The vmapped
+`diffeqsolve` runs on one device; numba runs `prange` over its default thread count (the
+cores).
 
 Run: `python benchmarks/work_precision.py [--n 512] [--tols 1e-5 1e-6 ...] [--out DIR]` —
 prints a table, writes DIR/work_precision.json and DIR/work_precision.png (log-log error
 vs µs per trajectory, one line per method); DIR defaults to results/benchmarks.
 """
 
-import os
+import rbdyn_jax as rb  # JAX starts XLA at its first computation, after this
 
-os.environ.setdefault("XLA_FLAGS", "--xla_force_host_platform_device_count=2")
+rb.configure_xla(host_devices=2)
 
 import argparse  # noqa: E402
 import pathlib  # noqa: E402
@@ -41,8 +42,6 @@ jax.config.update("jax_enable_x64", True)
 import diffrax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
-
-import rbdyn_jax as rb  # noqa: E402
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
 import _report  # noqa: E402

@@ -64,6 +64,9 @@ from .integrate import (
     Trajectory as Trajectory,
 )
 from .integrate import (
+    configure_xla as configure_xla,
+)
+from .integrate import (
     simulate as simulate,
 )
 from .integrate import (

@@ -12,7 +12,8 @@
 - `rbdyn demo`: the shipped default body, one trajectory, printed.
 
 On a CPU-only machine `rbdyn sweep` splits the host into `--devices` XLA devices (default:
-one per core), since one XLA CPU device uses about one core for these solves. It keeps
+one per core), since one XLA CPU device uses about one core for these solves. Every command
+starts XLA with `rbdyn_jax.configure_xla`'s flags (while loops compiled whole). It keeps
 compiled programs in JAX's persistent cache (`$RBDYN_JAX_CACHE_DIR`, default
 `~/.cache/rbdyn_jax/xla`; set it empty to turn this off).
 """
@@ -42,6 +43,7 @@ def _default_body():
 
 
 def demo(n_steps: int = 5, duration: float = 100.0) -> int:
+    _configure_xla()
     import jax
 
     jax.config.update("jax_enable_x64", True)
@@ -108,14 +110,14 @@ def demo(n_steps: int = 5, duration: float = 100.0) -> int:
     return 0
 
 
-def _host_devices(n: int | None) -> None:
-    """Ask XLA for `n` CPU devices (default: one per core) unless XLA_FLAGS already says;
-    must run before JAX initialises its backend. No effect on GPU/TPU devices."""
-    flags = os.environ.get("XLA_FLAGS", "")
-    if "xla_force_host_platform_device_count" in flags:
-        return
-    count = n if n is not None else (os.cpu_count() or 1)
-    os.environ["XLA_FLAGS"] = f"{flags} --xla_force_host_platform_device_count={count}".strip()
+def _configure_xla(devices: int | None = None) -> None:
+    """XLA's flags for the solves (`rbdyn_jax.configure_xla`: loops compiled whole), and for
+    `devices` CPU devices if given, when this process has not started JAX yet (when it has,
+    e.g. a test calling a command in-process, it runs as it is). No effect on GPU/TPU."""
+    from ._xla import _backend_started, configure_xla
+
+    if not _backend_started():
+        configure_xla(devices)
 
 
 def _table(rows: list[list[str]], header: list[str]) -> str:
@@ -151,7 +153,7 @@ def _compilation_cache(jax) -> None:
 
 
 def sweep_command(args) -> int:
-    _host_devices(args.devices)
+    _configure_xla(args.devices if args.devices is not None else (os.cpu_count() or 1))
     import jax
 
     jax.config.update("jax_enable_x64", True)
@@ -332,6 +334,7 @@ def fit_command(args) -> int:
     import json
     import pathlib
 
+    _configure_xla()
     import jax
 
     jax.config.update("jax_enable_x64", True)

@@ -11,6 +11,8 @@ With JAX's persistent compilation cache configured, the traced solves are stored
 `COMPILER_OPTIONS` are the XLA options of every program rbdyn_jax compiles (a shorter
 compile on CPU, the same run time; `_xla.py`). Pass them to your own `jax.jit` around a
 solve, a gradient of a loss say: `jax.jit(jax.grad(loss), compiler_options=COMPILER_OPTIONS)`.
+`configure_xla()`, called before JAX computes anything, sets XLA's process-wide flags for
+faster solves on CPU (its loops compiled whole; `_xla.py`).
 """
 
 import functools
@@ -26,7 +28,7 @@ from jaxtyping import Array, ArrayLike, Float, PyTree
 
 from . import _cheapest, _traces
 from ._checks import as_float_array, checks_as_nan
-from ._xla import COMPILER_OPTIONS, filter_jit, nested_filter_jit
+from ._xla import COMPILER_OPTIONS, configure_xla, filter_jit, nested_filter_jit
 from .models import AbstractRigidBody
 
 
@@ -1030,4 +1032,5 @@ def simulate_batch(
     return traj
 
 
-__all__ = ["COMPILER_OPTIONS", "RESULTS", "Trajectory", "simulate", "simulate_batch"]
+__all__ = ["COMPILER_OPTIONS", "RESULTS", "Trajectory", "configure_xla", "simulate",
+           "simulate_batch"]

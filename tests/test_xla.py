@@ -1,9 +1,13 @@
 """`_xla`: every program rbdyn_jax compiles gets `COMPILER_OPTIONS` when it is compiled at
 the top level, and stays callable inside a caller's transformations (JAX refuses compiler
-options on a nested jit)."""
+options on a nested jit); `configure_xla` sets XLA's flags, and a process started with them
+compiles every loop whole and gets the same trajectories and gradients."""
 
 import ast
+import os
 import pathlib
+import subprocess
+import sys
 
 import equinox as eqx
 import jax
@@ -81,3 +85,118 @@ def test_jit_checker_sees_a_direct_jit(tmp_path):
     bad.write_text('"""jax.jit in a docstring"""\nimport jax\nf = jax.jit(g)\n\n'
                    "@eqx.filter_jit\ndef h(): ...\n")
     assert direct_jits(bad) == [3, 5]
+
+
+# `configure_xla`: XLA's process-wide flags. The merge is checked on the string; what the
+# flags do is checked in a fresh process, since XLA reads them once, when JAX starts it.
+
+LOOP = f"{_xla.LOOP_OPTION}={_xla.LOOP_BYTES}"
+
+
+@pytest.fixture
+def flags(monkeypatch):
+    """`configure_xla` on a given XLA_FLAGS, as if JAX had not started XLA yet."""
+    monkeypatch.setattr(_xla, "_backend_started", lambda: False)
+
+    def run(old, **kwargs):
+        if old is None:
+            monkeypatch.delenv("XLA_FLAGS", raising=False)
+        else:
+            monkeypatch.setenv("XLA_FLAGS", old)
+        new = _xla.configure_xla(**kwargs)
+        assert os.environ["XLA_FLAGS"] == new
+        return new
+
+    return run
+
+
+def test_configure_xla_adds_its_flags(flags):
+    assert flags(None) == f"--xla_backend_extra_options={LOOP}"
+    assert flags("", host_devices=3) == (f"--xla_backend_extra_options={LOOP} "
+                                         "--xla_force_host_platform_device_count=3")
+    again = flags(flags("--xla_dump_to=/tmp/x", host_devices=2), host_devices=2)
+    assert again == (f"--xla_dump_to=/tmp/x --xla_backend_extra_options={LOOP} "
+                     "--xla_force_host_platform_device_count=2")  # idempotent
+
+
+def test_configure_xla_keeps_what_xla_flags_already_say(flags):
+    # Other backend options stay beside the loop threshold (XLA keeps only the last
+    # `--xla_backend_extra_options`, so they must share it).
+    assert flags("--xla_backend_extra_options=a=1,b=2") == (
+        f"--xla_backend_extra_options=a=1,b=2,{LOOP}")
+    mine = f"--xla_backend_extra_options={_xla.LOOP_OPTION}=0"
+    assert flags(mine) == mine  # the caller's threshold wins
+    count = "--xla_force_host_platform_device_count=1"
+    assert flags(count, host_devices=4) == f"{count} --xla_backend_extra_options={LOOP}"
+
+
+def test_configure_xla_refuses_what_would_have_no_effect(monkeypatch):
+    monkeypatch.setattr(_xla, "_backend_started", lambda: True)
+    monkeypatch.setenv("XLA_FLAGS", "")
+    with pytest.raises(RuntimeError, match="already running"):
+        _xla.configure_xla()
+    done = f"--xla_backend_extra_options={LOOP} --xla_force_host_platform_device_count=2"
+    monkeypatch.setenv("XLA_FLAGS", done)
+    assert _xla.configure_xla(host_devices=2) == done  # nothing to change: no error
+    for bad in (0, -1, 1.5, True, "2"):
+        with pytest.raises(ValueError, match="host_devices"):
+            _xla.configure_xla(host_devices=bad)
+
+
+def test_backend_started_is_true_in_a_running_process():
+    jnp.ones(2).block_until_ready()
+    assert _xla._backend_started()
+
+
+# A fresh process runs this with `configure_xla()` first; this process (XLA's defaults)
+# runs it too. Prints the number of while loops in the compiled gradient program and of
+# those compiled whole (XLA's `xla_cpu_small_call` attribute), then the outputs' file.
+_PROGRAM = """
+import re, sys
+import rbdyn_jax as rb
+if sys.argv[1] == "configure":
+    rb.configure_xla()
+import jax, jax.numpy as jnp, numpy as np
+jax.config.update("jax_enable_x64", True)
+J = jnp.array([[2.0, 0.05, 0.0], [0.05, 3.0, 0.02], [0.0, 0.02, 4.0]])
+w0 = np.random.default_rng(0).normal(size=(24, 3))
+y0s = rb.State(jnp.asarray(w0), jnp.tile(jnp.array([1.0, 0.0, 0.0, 0.0]), (24, 1)))
+ts = jnp.linspace(0.0, 10.0, 11)
+
+def loss(theta):
+    model = rb.RigidBody(rb.inertia.from_log_cholesky(theta))
+    traj = rb.simulate_batch(model, y0s, ts, lanes=4)
+    return jnp.sum(traj.ys.omega ** 2) + jnp.sum(traj.ys.quat[..., 1:] ** 2)
+
+theta = rb.inertia.to_log_cholesky(J)
+grad = jax.jit(jax.grad(loss), compiler_options=rb.COMPILER_OPTIONS)
+text = grad.lower(theta).compile().as_text()
+lanes = rb.simulate_batch(rb.RigidBody(J), y0s, ts, lanes=4)
+plain = rb.simulate_batch(rb.RigidBody(J), y0s, ts)
+np.savez(sys.argv[2], lanes_omega=lanes.ys.omega, lanes_quat=lanes.ys.quat,
+         plain_omega=plain.ys.omega, plain_quat=plain.ys.quat, grad=grad(theta),
+         steps=lanes.stats["num_steps"])
+print(len(re.findall(r"\\bwhile\\(", text)), text.count("xla_cpu_small_call"))
+"""
+
+
+def test_configured_xla_compiles_every_loop_whole_with_the_same_results(tmp_path):
+    script = tmp_path / "program.py"
+    script.write_text(_PROGRAM)
+    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+    run = subprocess.run([sys.executable, str(script), "configure", str(tmp_path / "on.npz")],
+                         env=env, capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr[-3000:]
+    loops, whole = map(int, run.stdout.split()[-2:])
+    assert loops >= 2 and whole == loops  # the lane loop and its stage loop, and more
+    here = subprocess.run([sys.executable, str(script), "default", str(tmp_path / "off.npz")],
+                          env=env, capture_output=True, text=True, timeout=600)
+    assert here.returncode == 0, here.stderr[-3000:]
+    loops_default, whole_default = map(int, here.stdout.split()[-2:])
+    assert loops_default == loops and whole_default < loops  # XLA's own threshold is small
+    on, off = np.load(tmp_path / "on.npz"), np.load(tmp_path / "off.npz")
+    # The same arithmetic, compiled into one function instead of kernel by kernel: equal
+    # to round-off (observed: bitwise), with the same steps.
+    np.testing.assert_array_equal(on["steps"], off["steps"])
+    for key in ("lanes_omega", "lanes_quat", "plain_omega", "plain_quat", "grad"):
+        np.testing.assert_allclose(on[key], off[key], rtol=1e-13, atol=1e-13, err_msg=key)
