@@ -25,8 +25,7 @@ float64, default solver (Tsit5). Cases:
 - `bare_diffrax`: the machine's yardstick, no rbdyn_jax: `jax.jit(jax.vmap(solve))` of
   `diffrax.diffeqsolve` (Tsit5, `PIDController`, `SaveAt(ts=…)`) on the scipy baseline's
   right-hand side (`_baselines._numpy_rhs`) in `jax.numpy`, N = 256, compiled with JAX's
-  defaults (rbdyn_jax's cases start XLA with `rb.configure_xla()`, as the README advises).
-  First calls vary with the machine (on this project's 2-core VMs, by 2× between
+  defaults. First calls vary with the machine (on this project's 2-core VMs, by 2× between
   days), so the table gives each case's first call also as a multiple of this one, measured
   in the same run.
 
@@ -47,7 +46,12 @@ the caller's own `jit`, which rbdyn_jax cannot store, but inside it the lane sol
 loops (forward and sensitivities) are loaded from there. The speed-up is first call
 without cache / first call warm.
 
-Run: `python benchmarks/compile.py [--cases simulate batch lanes grad jacfwd_lanes …]` — prints
+`--configure-xla`: rbdyn_jax's cases start XLA with `rb.configure_xla()` (every while loop
+compiled whole: faster solves, a longer compile); without it, with XLA's defaults, as a
+program that does not call it. The yardstick always runs with XLA's defaults.
+
+Run: `python benchmarks/compile.py [--cases simulate batch lanes grad jacfwd_lanes …]
+[--configure-xla]` — prints
 a table and writes results/benchmarks/compile.json (`--out DIR`). Sequential, ≈ 5 min at
 the defaults on a 2-core CPU; `--cases simulate` is a quick smoke test.
 """
@@ -79,6 +83,7 @@ CASES = {  # name: (batch size, lanes)
     "bare_diffrax": (256, None),
 }
 YARDSTICK = "bare_diffrax"
+CONFIGURE = "RBDYN_BENCH_CONFIGURE_XLA"  # parent to children: call `rb.configure_xla()`
 # Gradient cases whose loss builds the model with its constructor (run-time inertia checks),
 # and those of them run with equinox's checks as NaN (`EQX_ON_ERROR=nan` in the child's
 # environment): the caller's switch that makes such a program cacheable.
@@ -139,7 +144,8 @@ def _start_jax(cache, case):
     else:
         import rbdyn_jax
 
-        rbdyn_jax.configure_xla()  # as the README advises; nothing has run yet
+        if os.environ.get(CONFIGURE) == "1":  # `--configure-xla`; nothing has run yet
+            rbdyn_jax.configure_xla()
 
     return t1 - t0, time.perf_counter() - t1
 
@@ -288,8 +294,9 @@ def child(case, cache):
 # ----------------------------------------------------------------------------------------
 
 
-def run_child(case, cache):
+def run_child(case, cache, configure=False):
     env = {k: v for k, v in os.environ.items() if k not in CACHE_ENV + ("EQX_ON_ERROR",)}
+    env[CONFIGURE] = "1" if configure else "0"
     if case in NAN_CASES:
         env["EQX_ON_ERROR"] = "nan"
     proc = subprocess.run([sys.executable, os.path.abspath(__file__), "--child", case,
@@ -300,14 +307,14 @@ def run_child(case, cache):
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
-def measure(case):
+def measure(case, configure=False):
     """The three conditions of one case: no cache, cold cache, warm cache."""
     tmp = tempfile.mkdtemp(prefix=f"rbdyn_compile_{case}_")
     try:
         runs = {}
         for cond, cache in (("no_cache", None), ("cold", tmp), ("warm", tmp)):
             print(f"  {case}: {cond} …", flush=True)
-            runs[cond] = run_child(case, cache)
+            runs[cond] = run_child(case, cache, configure)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     imports = sorted(r["import_jax_s"] + r["import_rbdyn_jax_s"] for r in runs.values())
@@ -341,9 +348,9 @@ def print_table(rows):
                   f"{', '.join(sorted(set(r['callback_programs'])))}")
 
 
-def main(cases=tuple(CASES), out="results/benchmarks"):
+def main(cases=tuple(CASES), out="results/benchmarks", configure=False):
     t0 = time.perf_counter()
-    rows = [measure(c) for c in cases]
+    rows = [measure(c, configure) for c in cases]
     bare = next((r["no_cache_s"] for r in rows if r["case"] == YARDSTICK), None)
     for r in rows:  # first call without cache as a multiple of the yardstick's, same run
         r["vs_bare"] = r["no_cache_s"] / bare if bare else None
@@ -354,7 +361,7 @@ def main(cases=tuple(CASES), out="results/benchmarks"):
             "equinox": version("equinox"), "diffrax": version("diffrax"),
             "backend": rows[0]["runs"]["no_cache"]["backend"] if rows else None,
             "inertia": J_TRUE, "t_end": T_END, "n_out": N_OUT, "rtol": TOL, "atol": TOL,
-            "seed": SEED, "total_s": time.perf_counter() - t0}
+            "seed": SEED, "configure_xla": configure, "total_s": time.perf_counter() - t0}
     (path / "compile.json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=2))
     print(f"wrote {path / 'compile.json'} ({meta['total_s']:.0f} s)")
     return rows
@@ -364,10 +371,12 @@ if __name__ == "__main__":
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--cases", nargs="+", choices=list(CASES), default=list(CASES))
     p.add_argument("--out", default="results/benchmarks")
+    p.add_argument("--configure-xla", action="store_true",
+                   help="rbdyn_jax's cases call rb.configure_xla() first")
     p.add_argument("--child", choices=list(CASES), help=argparse.SUPPRESS)
     p.add_argument("--cache", default="none", help=argparse.SUPPRESS)
     args = p.parse_args()
     if args.child:
         child(args.child, None if args.cache == "none" else args.cache)
     else:
-        main(tuple(args.cases), args.out)
+        main(tuple(args.cases), args.out, args.configure_xla)

@@ -46,7 +46,8 @@ from importlib.metadata import version
 
 import rbdyn_jax as rb  # JAX starts XLA at its first computation, after this
 
-rb.configure_xla()  # as the README advises: while loops compiled whole
+if __name__ == "__main__":  # a script: before JAX starts (imported by a test: as is)
+    rb.configure_xla()
 
 import jax  # noqa: E402
 

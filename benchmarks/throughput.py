@@ -33,7 +33,8 @@ import os
 
 import rbdyn_jax as rb  # JAX starts XLA at its first computation, after this
 
-rb.configure_xla(host_devices=os.cpu_count() or 1)
+if __name__ == "__main__":  # a script: before JAX starts (imported by a test: as is)
+    rb.configure_xla(host_devices=os.cpu_count() or 1)
 
 import argparse  # noqa: E402
 import pathlib  # noqa: E402

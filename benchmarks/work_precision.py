@@ -28,7 +28,8 @@ vs µs per trajectory, one line per method); DIR defaults to results/benchmarks.
 
 import rbdyn_jax as rb  # JAX starts XLA at its first computation, after this
 
-rb.configure_xla(host_devices=2)
+if __name__ == "__main__":  # a script: before JAX starts (imported by a test: as is)
+    rb.configure_xla(host_devices=2)
 
 import argparse  # noqa: E402
 import pathlib  # noqa: E402

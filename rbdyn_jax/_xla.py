@@ -46,11 +46,11 @@ def configure_xla(host_devices: int | None = None) -> str:
     """Set `XLA_FLAGS` for rbdyn_jax's solves on CPU; call it before JAX computes anything.
 
     - Every while loop XLA:CPU can compile as one function is compiled so (`LOOP_OPTION`),
-      without its runtime's dispatch of each kernel at every iteration. The solves then run
-      faster (measured on 2 cores: the lane solver 1.2× at 256 lanes and 3× at 16, the
-      vmapped `diffeqsolve` 1.3–1.7×; a gradient through the lanes 1.5×) and the lane
-      solver compiles ~0.2 s slower (benchmarks/README.md, stop 23). The trajectories are
-      the same (tested).
+      without its runtime's dispatch of each kernel at every iteration. Measured on 2
+      cores against XLA's defaults (benchmarks/README.md, stop 23): the lane solver runs
+      1.11–1.15× faster at 256 lanes and ~2.5× at 16, the vmapped `diffeqsolve`
+      1.13–1.6×, a gradient through the lanes ~1.4×; a first call compiles 0.15–0.35 s
+      longer. The trajectories, steps and gradients are the same (tested).
     - `host_devices`: if given, XLA starts that many CPU devices
       (`--xla_force_host_platform_device_count`), so that the lane solver and the sweep
       can use every core (`simulate_batch(..., devices=…)`).
