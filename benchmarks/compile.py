@@ -42,8 +42,9 @@ it was cacheable); "cb skip" counts the programs JAX compiled during that call b
 to store because they hold host callbacks (taken from JAX's log; their names are in the
 JSON). "traces" counts the solves that (3) loaded from rbdyn_jax's cache of traced programs
 (`rbdyn_jax/_traces.py`, in the same directory) instead of tracing them; a gradient is
-the caller's own `jit`, which rbdyn_jax cannot store, but inside it the lane solver's two
-loops (forward and sensitivities) are loaded from there. The speed-up is first call
+the caller's own `jit`, which rbdyn_jax cannot store, but inside it the lane solver's
+loops (the forward solve, and the sensitivities' solves of ω's group and of the whole state)
+are loaded from there. The speed-up is first call
 without cache / first call warm.
 
 `--configure-xla`: rbdyn_jax's cases start XLA with `rb.configure_xla()` (every while loop

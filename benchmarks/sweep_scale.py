@@ -4,8 +4,8 @@ Setting: the shipped scenario `torque_free_flip` (or `--scenario NAME`), seed 0,
 CPU only (`JAX_PLATFORMS=cpu`), each configuration in a fresh subprocess whose XLA host
 device count is set with `XLA_FLAGS=--xla_force_host_platform_device_count=D` (default
 D = os.cpu_count(), all cores as host devices) and whose XLA otherwise starts as the README
-advises (`rb.configure_xla()`, while loops compiled whole). Per run, from the `progress` callback of
-`sweep.run`: the wall time of the first chunk (it includes the compilation) and of the
+advises (`rb.configure_xla()`, while loops compiled whole). Per run, from the `progress`
+callback of `sweep.run`: the wall time of the first chunk (it includes the compilation) and of the
 rest, trajectories/s over the chunks after the first (steady state; a padded last chunk
 costs a full one), and the peak RSS of the process (`ru_maxrss`; "base" = the peak right
 after importing rbdyn_jax and starting JAX, before the sweep).

@@ -22,8 +22,8 @@ whole (`rb.configure_xla(host_devices=<cores>)`, as the README advises; a count 
 XLA_FLAGS is kept) and the lane solver splits the batch over them; numba uses its default
 thread count (the cores). The scipy loop is timed on at most `--scipy-max` trajectories and
 the plain vmapped solve on batches up to `--plain-max` (its lockstep cost grows with the
-batch).
-Compilation is excluded from the rates (a first call is made per shape and reported).
+batch). Compilation is excluded from the rates (a first call is made per shape and
+reported).
 
 Run: `python benchmarks/throughput.py [--sizes 1 10 100 1000 10000] [--models …]
 [--lanes 256]` — prints a table per model and writes results/benchmarks/throughput.json.

@@ -17,6 +17,7 @@ read once when JAX starts its backend.
 """
 
 import functools
+import numbers
 import os
 
 import equinox as eqx
@@ -64,7 +65,7 @@ def configure_xla(host_devices: int | None = None) -> str:
     change: XLA read them when it started, so they would have no effect.
     """
     if host_devices is not None and (
-            isinstance(host_devices, bool) or not isinstance(host_devices, int)
+            isinstance(host_devices, bool) or not isinstance(host_devices, numbers.Integral)
             or host_devices < 1):
         raise ValueError(f"`host_devices` must be a positive int or None, got {host_devices!r}.")
     old = os.environ.get("XLA_FLAGS", "")
@@ -80,7 +81,7 @@ def configure_xla(host_devices: int | None = None) -> str:
             flags[i] = extra + ",".join([*options, f"{LOOP_OPTION}={LOOP_BYTES}"])
     count = "--xla_force_host_platform_device_count"
     if host_devices is not None and not any(f.startswith(count) for f in flags):
-        flags.append(f"{count}={host_devices}")
+        flags.append(f"{count}={int(host_devices)}")
     new = " ".join(flags)
     if new != old:
         if _backend_started():

@@ -1009,11 +1009,10 @@ def simulate_batch(
       `configure_xla`, ~4.2× a forward solve 2.5× faster); `adjoint` is ignored. Second
       derivatives: forward mode over either mode (`jax.jacfwd(jax.jacrev(loss))`, a
       Hessian); reverse mode over either is refused by JAX's while loop. 256 lanes suit a
-      CPU at 10³–10⁴ trajectories
-      (see `benchmarks/`).
+      CPU at 10³–10⁴ trajectories with XLA's defaults (see `benchmarks/`).
     - `devices`: with `lanes`, the number of local devices the batch is split over
       (default: all of the default backend; on CPU that is one unless XLA was started with
-      several host devices, e.g. `XLA_FLAGS=--xla_force_host_platform_device_count=2`).
+      several host devices, e.g. by `configure_xla(host_devices=2)` first).
 
     **Returns:** a `Trajectory` with a leading batch axis on every leaf (including `ts`,
     `stats` and `result`).

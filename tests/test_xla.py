@@ -138,9 +138,10 @@ def test_configure_xla_refuses_what_would_have_no_effect(monkeypatch):
     done = f"--xla_backend_extra_options={LOOP} --xla_force_host_platform_device_count=2"
     monkeypatch.setenv("XLA_FLAGS", done)
     assert _xla.configure_xla(host_devices=2) == done  # nothing to change: no error
-    for bad in (0, -1, 1.5, True, "2"):
+    for bad in (0, -1, 1.5, True, "2", np.int64(0)):
         with pytest.raises(ValueError, match="host_devices"):
             _xla.configure_xla(host_devices=bad)
+    assert _xla.configure_xla(host_devices=np.int64(2)) == done  # a NumPy int is an int
 
 
 def test_backend_started_is_true_in_a_running_process():
@@ -148,8 +149,8 @@ def test_backend_started_is_true_in_a_running_process():
     assert _xla._backend_started()
 
 
-# A fresh process runs this with `configure_xla()` first; this process (XLA's defaults)
-# runs it too. Prints the number of while loops in the compiled gradient program and of
+# Run in two fresh processes, one calling `configure_xla()` first, one with XLA's defaults.
+# Prints the number of while loops in the compiled gradient program and of
 # those compiled whole (XLA's `xla_cpu_small_call` attribute), then the outputs' file.
 _PROGRAM = """
 import re, sys
