@@ -14,12 +14,36 @@ from ._checks import check_trailing
 from ._custom_types import Matrix, MatrixLike, Vector, VectorLike
 from .inertia import planar
 
+# The arithmetic below works on a vector's three components as separate arrays and stacks
+# them once, where a function returns. XLA:CPU fuses a stack (a concatenation) with all
+# that is computed upstream of it and recomputes that, unvectorised, for every component it
+# writes; a stack between two operations (a vector sum, say) is one that XLA cannot cancel
+# against the slices that follow. It matters for the sensitivities' field, whose vectors
+# carry a column axis (`integrate._Sensitivity` says what it saves), not for the model's own.
 
-def _matvec(J, v):
+
+def _components(v):
+    return [v[..., i] for i in range(3)]
+
+
+def _matvec_parts(J, v):
     # Written out: XLA:CPU runs a batched 3×3 einsum as a slow library call (measured
     # ~5 µs per 512 lanes, more than the rest of the right-hand side).
-    return jnp.stack([J[..., i, 0] * v[..., 0] + J[..., i, 1] * v[..., 1] + J[..., i, 2] * v[..., 2]
-                      for i in range(3)], axis=-1)
+    return [J[..., i, 0] * v[0] + J[..., i, 1] * v[1] + J[..., i, 2] * v[2] for i in range(3)]
+
+
+def _cross_parts(a, b):
+    return [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+
+
+def _matvec(J, v):
+    """`J v` for arrays `(…, 3, 3)` and `(…, 3)`."""
+    return jnp.stack(_matvec_parts(J, _components(v)), axis=-1)
+
+
+def _cross(a, b):
+    """`a × b` for arrays `(…, 3)`."""
+    return jnp.stack(_cross_parts(_components(a), _components(b)), axis=-1)
 
 
 def _prepare(J, vectors: dict[str, VectorLike]) -> tuple[Matrix, list[Vector]]:
@@ -44,13 +68,13 @@ def _cholesky(J):
 
 def _cholesky_solve(L, b):
     l00, l10, l11, l20, l21, l22 = L
-    y0 = b[..., 0] / l00
-    y1 = (b[..., 1] - l10 * y0) / l11
-    y2 = (b[..., 2] - l20 * y0 - l21 * y1) / l22
+    y0 = b[0] / l00
+    y1 = (b[1] - l10 * y0) / l11
+    y2 = (b[2] - l20 * y0 - l21 * y1) / l22
     x2 = y2 / l22
     x1 = (y1 - l21 * x2) / l11
     x0 = (y0 - l10 * x1 - l20 * x2) / l00
-    return jnp.stack([x0, x1, x2], axis=-1)
+    return [x0, x1, x2]
 
 
 @jax.custom_jvp
@@ -59,7 +83,7 @@ def _solve(J, b):
     factorisation (reads the lower triangle). Elementwise arithmetic only: no LAPACK call
     per right-hand-side evaluation (measured 1.4× faster in vmapped solves). Its derivative
     is `dx = J⁻¹ (db − dJ x)` (`_solve_jvp`)."""
-    return _cholesky_solve(_cholesky(J), b)
+    return jnp.stack(_cholesky_solve(_cholesky(J), _components(b)), axis=-1)
 
 
 def _solve_jvp(primals, tangents):
@@ -71,16 +95,15 @@ def _solve_jvp(primals, tangents):
     solve, measured)."""
     (J, b), (dJ, db) = primals, tangents
     L = _cholesky(J)
-    x = _cholesky_solve(L, b)
-    rhs = None if isinstance(db, SymbolicZero) else db
+    x = _cholesky_solve(L, _components(b))
+    rhs = None if isinstance(db, SymbolicZero) else _components(db)
     if not isinstance(dJ, SymbolicZero):
         def entry(i, j):
             return dJ[..., max(i, j), min(i, j)]
 
-        dJx = jnp.stack([sum(entry(i, j) * x[..., j] for j in range(3)) for i in range(3)],
-                        axis=-1)
-        rhs = -dJx if rhs is None else rhs - dJx
-    return x, _cholesky_solve(L, rhs)
+        dJx = [sum(entry(i, j) * x[j] for j in range(3)) for i in range(3)]
+        rhs = [-d for d in dJx] if rhs is None else [r - d for r, d in zip(rhs, dJx)]
+    return jnp.stack(x, axis=-1), jnp.stack(_cholesky_solve(L, rhs), axis=-1)
 
 
 _solve.defjvp(_solve_jvp, symbolic_zeros=True)
@@ -100,7 +123,9 @@ def euler_rhs(J: MatrixLike, omega: VectorLike, moment: VectorLike) -> Vector:
     **Returns:** `(*batch, 3)` the body-component derivative `dω/dt`.
     """
     J, (omega, moment) = _prepare(J, {"omega": omega, "moment": moment})
-    return _solve(J, jnp.cross(_matvec(J, omega), omega) + moment)
+    w = _components(omega)
+    rhs = [c + m for c, m in zip(_cross_parts(_matvec_parts(J, w), w), _components(moment))]
+    return _solve(J, jnp.stack(rhs, axis=-1))
 
 
 def transport_moment(J: MatrixLike, omega_e: VectorLike, eps_e: VectorLike) -> Vector:
@@ -110,7 +135,9 @@ def transport_moment(J: MatrixLike, omega_e: VectorLike, eps_e: VectorLike) -> V
     angular velocity and acceleration, both in body components.
     """
     J, (omega_e, eps_e) = _prepare(J, {"omega_e": omega_e, "eps_e": eps_e})
-    return -_matvec(J, eps_e) + jnp.cross(_matvec(J, omega_e), omega_e)
+    w_e = _components(omega_e)
+    return jnp.stack([c - a for a, c in zip(_matvec_parts(J, _components(eps_e)),
+                                            _cross_parts(_matvec_parts(J, w_e), w_e))], axis=-1)
 
 
 def coriolis_moment(J: MatrixLike, omega_r: VectorLike, omega_e: VectorLike) -> Vector:
@@ -120,7 +147,8 @@ def coriolis_moment(J: MatrixLike, omega_r: VectorLike, omega_e: VectorLike) -> 
     with `J' = ½ tr(J) I − J` the planar inertia tensor (PHYSICS.md §3, §5).
     """
     J, (omega_r, omega_e) = _prepare(J, {"omega_r": omega_r, "omega_e": omega_e})
-    return 2.0 * jnp.cross(omega_r, _matvec(planar(J), omega_e))
+    c = _cross_parts(_components(omega_r), _matvec_parts(planar(J), _components(omega_e)))
+    return jnp.stack([2.0 * ci for ci in c], axis=-1)
 
 
 def relative_rhs(
@@ -148,14 +176,14 @@ def relative_rhs(
     J, (omega_r, omega_e, eps_e, moment) = _prepare(
         J, {"omega_r": omega_r, "omega_e": omega_e, "eps_e": eps_e, "moment": moment}
     )
-    rhs = (
-        jnp.cross(_matvec(J, omega_r), omega_r)
-        - _matvec(J, eps_e)
-        + jnp.cross(_matvec(J, omega_e), omega_e)
-        + 2.0 * jnp.cross(omega_r, _matvec(planar(J), omega_e))
-        + moment
-    )
-    return _solve(J, rhs)
+    w_r, w_e = _components(omega_r), _components(omega_e)
+    terms = (_cross_parts(_matvec_parts(J, w_r), w_r),
+             _matvec_parts(J, _components(eps_e)),
+             _cross_parts(_matvec_parts(J, w_e), w_e),
+             _cross_parts(w_r, _matvec_parts(planar(J), w_e)),
+             _components(moment))
+    rhs = [a - b + c + 2.0 * d + m for a, b, c, d, m in zip(*terms)]
+    return _solve(J, jnp.stack(rhs, axis=-1))
 
 
 __all__ = ["coriolis_moment", "euler_rhs", "relative_rhs", "transport_moment"]

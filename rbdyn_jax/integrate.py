@@ -327,8 +327,8 @@ def _with_leaves(tree, which, new):
 class _Sensitivity(eqx.Module):
     """A model extended by its forward sensitivities: the state `(y, S)`, `S` a tuple with
     one array per state leaf numbered in `carried` (`y`'s leaves, flattened order): that
-    leaf's `P` columns, stacked and flattened (so that a lane's time step broadcasts
-    against the one axis of every leaf), and
+    leaf's `P` columns as a `(*shape, P)` array, flattened (so that a lane's time step
+    broadcasts against the one axis of every leaf), and
 
         dy/dt = f(t, y; p),    dS/dt = ∂f/∂y · S + ∂f/∂p,
 
@@ -338,7 +338,16 @@ class _Sensitivity(eqx.Module):
     enter it with zero columns, so `carried` must be closed (`_closed_groups`): the carried
     leaves' rates do not read the others' columns. Integrated by the same explicit
     Runge–Kutta steps as y, S is exactly the derivative of the discrete solution for those
-    steps (Runge–Kutta methods commute with linearisation)."""
+    steps (Runge–Kutta methods commute with linearisation).
+
+    The columns are the last axis, of S and of the vmapped `jvp`, so that each element of a
+    leaf is a contiguous block of S. XLA:CPU fuses the concatenation that assembles a leaf
+    from its elements with all that is computed upstream of it, and recomputes that for
+    every number it writes; with the columns first, that concatenation is on the minor
+    axis, a select per number, unvectorised. With the columns last and the written-out
+    arithmetic of `dynamics.py`, the lane gradient of `benchmarks/gradients.py` costs
+    ~30 % less (`benchmarks/README.md`, stop 24); the written-out arithmetic alone gained
+    nothing, the layout alone ~10 %."""
 
     model: AbstractRigidBody
     which: tuple[int, ...] = eqx.field(static=True)
@@ -350,17 +359,17 @@ class _Sensitivity(eqx.Module):
     def vector_field(self, t, ys, args):
         y, S = ys
         leaves, treedef = jax.tree_util.tree_flatten(y)
-        cols = [jnp.zeros((self.P,) + x.shape, x.dtype) for x in leaves]
+        cols = [jnp.zeros(x.shape + (self.P,), x.dtype) for x in leaves]
         for i, s in zip(self.carried, S):
-            cols[i] = s.reshape((self.P,) + leaves[i].shape)
+            cols[i] = s.reshape(leaves[i].shape + (self.P,))
         p = _pick(self.model, self.which)
 
         def field(p, y):
             return _with_leaves(self.model, self.which, p).vector_field(t, y, args)
 
         basis = _unit_columns(p, self.offsets, self.P, self.symmetric)
-        f, dS = jax.vmap(lambda b, s: jax.jvp(field, (p, y), (b, s)),
-                         out_axes=(None, 0))(basis, jax.tree_util.tree_unflatten(treedef, cols))
+        f, dS = jax.vmap(lambda b, s: jax.jvp(field, (p, y), (b, s)), in_axes=(0, -1),
+                         out_axes=(None, -1))(basis, jax.tree_util.tree_unflatten(treedef, cols))
         dS = jax.tree_util.tree_leaves(dS)
         return f, tuple(jnp.ravel(dS[i]) for i in self.carried)
 
@@ -551,7 +560,7 @@ def _lane_jvp(loop, static, batched, primals, tangents):
         if t_live:
             f0 = m.vector_field(ts[0], m.normalise(y0)[0], None)
             S0 = jax.tree_util.tree_map(lambda s, f: s.at[-1].set(-f), S0, f0)
-        return [jnp.ravel(s) for s in jax.tree_util.tree_leaves(S0)]
+        return [jnp.ravel(jnp.moveaxis(s, 0, -1)) for s in jax.tree_util.tree_leaves(S0)]
 
     S0 = eqx.filter_vmap(initial, in_axes=(0 if batched else None, 0))(model, y0s)
     # One sensitivity solve per closed group of the state's leaves (`_closed_groups`), the
@@ -604,9 +613,9 @@ def _lane_jvp(loop, static, batched, primals, tangents):
                 model, jax.tree_util.tree_unflatten(treedef, leaves), ok0))
     dys = []
     for i, y in enumerate(leaves):
-        s = got[("S", i)].reshape(y.shape[:2] + (P,) + y.shape[2:])
+        s = got[("S", i)].reshape(y.shape + (P,))
         # The tangent: S contracted with the inputs' tangents, per trajectory.
-        d = jnp.einsum("ntp...,np->nt...", masked(s), jnp.concatenate(
+        d = jnp.einsum("nt...p,np->nt...", masked(s), jnp.concatenate(
             [c.astype(s.dtype) for c in coef], axis=1))
         if t_live:
             d = d + masked(F[i]) * tts.reshape((1, -1) + (1,) * (y.ndim - 2))

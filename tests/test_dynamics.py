@@ -192,6 +192,22 @@ def test_solve_derivative_is_the_inverse_rule_on_the_lower_triangle(rng):
                                atol=TOL)
 
 
+def test_written_out_products_match_numpy(rng):
+    """The component-wise `J v`, `a × b` and `J⁻¹ b` (the torques use the first two) against
+    numpy on a batch of non-symmetric matrices and vectors: a wrong index or sign in the
+    written-out arithmetic shows at round-off level."""
+    M = rng.normal(size=(5, 3, 3))
+    a, b = rng.normal(size=(2, 5, 3))
+    np.testing.assert_allclose(dynamics._matvec(jnp.asarray(M), jnp.asarray(a)),
+                               np.einsum("nij,nj->ni", M, a), rtol=1e-14, atol=1e-14)
+    np.testing.assert_allclose(dynamics._cross(jnp.asarray(a), jnp.asarray(b)),
+                               np.cross(a, b), rtol=1e-14, atol=1e-14)
+    J = np.einsum("nij,nkj->nik", M, M) + np.eye(3)  # symmetric positive definite
+    # cond(J) is small here: 1e-12 is ~1e4 ulps of slack for the two triangular solves.
+    np.testing.assert_allclose(dynamics._solve(jnp.asarray(J), jnp.asarray(a)),
+                               np.linalg.solve(J, a[..., None])[..., 0], rtol=1e-12, atol=1e-13)
+
+
 def test_shapes_are_checked():
     with pytest.raises(ValueError, match="`J`"):
         dynamics.euler_rhs(jnp.eye(2), jnp.zeros(3), jnp.zeros(3))

@@ -197,7 +197,11 @@ def test_configured_xla_compiles_every_loop_whole_with_the_same_results(tmp_path
     assert loops_default == loops and whole_default < loops  # XLA's own threshold is small
     on, off = np.load(tmp_path / "on.npz"), np.load(tmp_path / "off.npz")
     # The same arithmetic, compiled into one function instead of kernel by kernel: equal
-    # to round-off (observed: bitwise), with the same steps.
+    # to round-off, with the same steps. The trajectories were bitwise equal. XLA fuses the
+    # two programs differently and may contract a multiply-add in one and not the other;
+    # the gradient, a sum over 264 outputs of the sensitivities' products, differed by
+    # 2.4e-13 relative (about a thousand ulps).
     np.testing.assert_array_equal(on["steps"], off["steps"])
-    for key in ("lanes_omega", "lanes_quat", "plain_omega", "plain_quat", "grad"):
+    for key in ("lanes_omega", "lanes_quat", "plain_omega", "plain_quat"):
         np.testing.assert_allclose(on[key], off[key], rtol=1e-13, atol=1e-13, err_msg=key)
+    np.testing.assert_allclose(on["grad"], off["grad"], rtol=1e-11, atol=0, err_msg="grad")
