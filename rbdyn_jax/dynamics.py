@@ -86,13 +86,28 @@ def _solve(J, b):
     return jnp.stack(_cholesky_solve(_cholesky(J), _components(b)), axis=-1)
 
 
+def _inverse_parts(L):
+    """The entries `(a00, a01, a02, a11, a12, a22)` of the symmetric `J⁻¹ = L⁻ᵀ L⁻¹` from
+    the Cholesky factor `L` of `J` (`_cholesky`)."""
+    l00, l10, l11, l20, l21, l22 = L
+    i00, i11, i22 = 1.0 / l00, 1.0 / l11, 1.0 / l22  # L⁻¹, lower triangular
+    i10 = -l10 * i00 * i11
+    i21 = -l21 * i11 * i22
+    i20 = -(l20 * i00 + l21 * i10) * i22
+    return (i00 * i00 + i10 * i10 + i20 * i20, i10 * i11 + i20 * i21, i20 * i22,
+            i11 * i11 + i21 * i21, i21 * i22, i22 * i22)
+
+
 def _solve_jvp(primals, tangents):
     """`dx = J⁻¹ (db − dJ x)` with the factor of the solve itself, dJ the symmetric matrix
     of dJ's lower triangle (what `_solve` reads). The factor's own tangents are never
-    formed: a sensitivity column per inertia element (`integrate._Sensitivity`) costs two
-    triangular solves instead of the derivative of the factorisation (the gradient of a
+    formed: a sensitivity column per inertia element (`integrate._Sensitivity`) costs a
+    product with J⁻¹ instead of the derivative of the factorisation (the gradient of a
     batched loss w.r.t. a 3×3 inertia through the lane solver: 5.5× → 4.0× its forward
-    solve, measured)."""
+    solve, measured). J⁻¹'s six entries are formed from the factor, so that each component
+    of dx is a three-term sum: by two triangular solves, each component is the end of a
+    chain through the others, which XLA recomputes for each (the lane gradient of
+    `benchmarks/gradients.py` on one device: 7–18 % less, three interleaved pairs)."""
     (J, b), (dJ, db) = primals, tangents
     L = _cholesky(J)
     x = _cholesky_solve(L, _components(b))
@@ -103,7 +118,11 @@ def _solve_jvp(primals, tangents):
 
         dJx = [sum(entry(i, j) * x[j] for j in range(3)) for i in range(3)]
         rhs = [-d for d in dJx] if rhs is None else [r - d for r, d in zip(rhs, dJx)]
-    return jnp.stack(x, axis=-1), jnp.stack(_cholesky_solve(L, rhs), axis=-1)
+    a00, a01, a02, a11, a12, a22 = _inverse_parts(L)
+    r0, r1, r2 = rhs
+    dx = [a00 * r0 + a01 * r1 + a02 * r2, a01 * r0 + a11 * r1 + a12 * r2,
+          a02 * r0 + a12 * r1 + a22 * r2]
+    return jnp.stack(x, axis=-1), jnp.stack(dx, axis=-1)
 
 
 _solve.defjvp(_solve_jvp, symbolic_zeros=True)
