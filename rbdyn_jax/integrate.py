@@ -1012,13 +1012,13 @@ def simulate_batch(
       inertia is differentiated as the symmetric tensor it is: a tangent counts by its
       symmetric part, and a gradient w.r.t. a raw J is symmetric, (g + gᵀ)/2 of the
       default path's g (equal along every symmetric direction). The cost grows with p,
-      not with the number of tangents (measured with XLA's defaults: ~3.2× the forward
-      solve for an inertia, ~2.4× for a loss on a torque-free body's ω alone, whose
-      sensitivities need no attitude's: only those the caller reads are integrated; with
-      `configure_xla`, ~4.2× a forward solve 2.5× faster); `adjoint` is ignored. Second
-      derivatives: forward mode over either mode (`jax.jacfwd(jax.jacrev(loss))`, a
-      Hessian); reverse mode over either is refused by JAX's while loop. 256 lanes suit a
-      CPU at 10³–10⁴ trajectories with XLA's defaults (see `benchmarks/`).
+      not with the number of tangents (measured with `configure_xla`: ~4.1–4.5× the
+      forward solve for an inertia, ~2.7–3.1× for a loss on a torque-free body's ω
+      alone, whose sensitivities need no attitude's: only those the caller reads are
+      integrated); `adjoint` is ignored. Second derivatives: forward mode over either
+      mode (`jax.jacfwd(jax.jacrev(loss))`, a Hessian); reverse mode over either is
+      refused by JAX's while loop. 256 lanes suit a CPU at 10³–10⁴ trajectories with
+      XLA's defaults (see `benchmarks/`).
     - `devices`: with `lanes`, the number of local devices the batch is split over
       (default: all of the default backend; on CPU that is one unless XLA was started with
       several host devices, e.g. by `configure_xla(host_devices=2)` first).
