@@ -345,9 +345,9 @@ class _Sensitivity(eqx.Module):
     from its elements with all that is computed upstream of it, and recomputes that for
     every number it writes; with the columns first, that concatenation is on the minor
     axis, a select per number, unvectorised. With the columns last and the written-out
-    arithmetic of `dynamics.py`, the lane gradient of `benchmarks/gradients.py` costs
-    ~30 % less (`benchmarks/README.md`, stop 24); the written-out arithmetic alone gained
-    nothing, the layout alone ~10 %."""
+    arithmetic of `dynamics.py`, the lane gradient of `benchmarks/gradients.py` cost
+    ~15 % less on 2 devices and ~30 % less on one (`benchmarks/README.md`, stop 24); the
+    written-out arithmetic alone gained nothing, the layout alone ~10 %."""
 
     model: AbstractRigidBody
     which: tuple[int, ...] = eqx.field(static=True)
