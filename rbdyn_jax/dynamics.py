@@ -13,6 +13,7 @@ from jax.custom_derivatives import SymbolicZero
 from ._checks import check_trailing
 from ._custom_types import Matrix, MatrixLike, Vector, VectorLike
 from .inertia import planar
+from .rotation import _cross_parts
 
 # The arithmetic below works on a vector's three components as separate arrays and stacks
 # them once, where a function returns. XLA:CPU fuses a stack (a concatenation) with all
@@ -32,18 +33,9 @@ def _matvec_parts(J, v):
     return [J[..., i, 0] * v[0] + J[..., i, 1] * v[1] + J[..., i, 2] * v[2] for i in range(3)]
 
 
-def _cross_parts(a, b):
-    return [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
-
-
 def _matvec(J, v):
     """`J v` for arrays `(…, 3, 3)` and `(…, 3)`."""
     return jnp.stack(_matvec_parts(J, _components(v)), axis=-1)
-
-
-def _cross(a, b):
-    """`a × b` for arrays `(…, 3)`."""
-    return jnp.stack(_cross_parts(_components(a), _components(b)), axis=-1)
 
 
 def _prepare(J, vectors: dict[str, VectorLike]) -> tuple[Matrix, list[Vector]]:

@@ -437,7 +437,7 @@ def _lane_solve(model, y0s, ts, solver, controller, max_steps, dt0, model_axes, 
     the forward solve does. Only the columns of the state leaves the caller reads are
     integrated, where the field allows (`_closed_groups`, `_cheapest`): a loss on a
     torque-free body's ω alone carries 18 of the 42 columns of six inertia parameters
-    (`gradients.py`, N = 64: `grad` 3.23 → 2.43× the lane forward)."""
+    (`gradients.py`, N = 64, XLA's defaults: `grad` 3.23 → 2.43× the lane forward)."""
     if not isinstance(solver, diffrax.AbstractERK):
         raise ValueError(
             "`lanes` needs an explicit Runge–Kutta solver (a `diffrax.AbstractERK`: Tsit5, "

@@ -45,10 +45,15 @@ def _split(x: Array) -> list[Array]:
     return list(jnp.moveaxis(x, -1, 0))
 
 
+def _cross_parts(a: list[Array], b: list[Array]) -> list[Array]:
+    """`a × b` on vectors given as their three components (`dynamics.py` says why)."""
+    ax, ay, az = a
+    bx, by, bz = b
+    return [ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx]
+
+
 def _cross(a: Array, b: Array) -> Array:
-    ax, ay, az = _split(a)
-    bx, by, bz = _split(b)
-    return jnp.stack([ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx], axis=-1)
+    return jnp.stack(_cross_parts(_split(a), _split(b)), axis=-1)
 
 
 def _dot(a: Array, b: Array) -> Array:

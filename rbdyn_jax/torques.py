@@ -18,7 +18,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from . import rotation
 from ._checks import as_float_array, check_trailing
-from .dynamics import _cross, _matvec, transport_moment  # written out: fast on CPU
+from .dynamics import _matvec, transport_moment  # _matvec: J v elementwise (fast on CPU)
 from .state import Kinematics
 
 _E_Z = (0.0, 0.0, 1.0)
@@ -233,7 +233,7 @@ class GravityGradient(AbstractTorque):
 
     def __call__(self, kin, inertia):
         g = kin.gamma
-        return self.eps * _cross(g, _matvec(inertia, g))
+        return self.eps * rotation._cross(g, _matvec(inertia, g))
 
     def potential(self, kin, inertia):
         g = kin.gamma
