@@ -23,10 +23,12 @@ XLA_FLAGS is kept) and the lane solver splits the batch over them; numba uses it
 thread count (the cores). The scipy loop is timed on at most `--scipy-max` trajectories and
 the plain vmapped solve on batches up to `--plain-max` (its lockstep cost grows with the
 batch). Compilation is excluded from the rates (a first call is made per shape and
-reported).
+reported). The lane solver runs 64 lanes per device by default, as `rbdyn sweep` does: with
+the loops compiled whole, 64 lanes ran 0–20 % faster than 256 at 10³ and the same
+within 5 % at 10⁴ (benchmarks/README.md, stop 25); 256 suited XLA's defaults.
 
 Run: `python benchmarks/throughput.py [--sizes 1 10 100 1000 10000] [--models …]
-[--lanes 256]` — prints a table per model and writes results/benchmarks/throughput.json.
+[--lanes 64]` — prints a table per model and writes results/benchmarks/throughput.json.
 """
 
 import os
@@ -212,7 +214,7 @@ if __name__ == "__main__":
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--sizes", type=int, nargs="+", default=[1, 10, 100, 1000, 10000])
     p.add_argument("--models", nargs="+", default=list(MODELS), choices=MODELS)
-    p.add_argument("--lanes", type=int, default=256)
+    p.add_argument("--lanes", type=int, default=64)
     p.add_argument("--scipy-max", type=int, default=20)
     p.add_argument("--plain-max", type=int, default=1000)
     p.add_argument("--ref-max", type=int, default=1000)

@@ -1017,8 +1017,9 @@ def simulate_batch(
       alone, whose sensitivities need no attitude's: only those the caller reads are
       integrated); `adjoint` is ignored. Second derivatives: forward mode over either
       mode (`jax.jacfwd(jax.jacrev(loss))`, a Hessian); reverse mode over either is
-      refused by JAX's while loop. 256 lanes suit a CPU at 10³–10⁴ trajectories with
-      XLA's defaults (see `benchmarks/`).
+      refused by JAX's while loop. On a CPU at 10³–10⁴ trajectories, 64 lanes per device
+      suit XLA configured by `configure_xla` (as `rbdyn sweep` runs), 256 XLA's
+      defaults (see `benchmarks/`).
     - `devices`: with `lanes`, the number of local devices the batch is split over
       (default: all of the default backend; on CPU that is one unless XLA was started with
       several host devices, e.g. by `configure_xla(host_devices=2)` first).
