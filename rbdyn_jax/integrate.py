@@ -1013,7 +1013,7 @@ def simulate_batch(
       symmetric part, and a gradient w.r.t. a raw J is symmetric, (g + gᵀ)/2 of the
       default path's g (equal along every symmetric direction). The cost grows with p,
       not with the number of tangents (measured with `configure_xla`: ~4.1–4.5× the
-      forward solve for an inertia, ~2.7–3.1× for a loss on a torque-free body's ω
+      forward solve for an inertia, ~2.7–3.5× for a loss on a torque-free body's ω
       alone, whose sensitivities need no attitude's: only those the caller reads are
       integrated); `adjoint` is ignored. Second derivatives: forward mode over either
       mode (`jax.jacfwd(jax.jacrev(loss))`, a Hessian); reverse mode over either is
