@@ -13,7 +13,7 @@ from jax.custom_derivatives import SymbolicZero
 from ._checks import check_trailing
 from ._custom_types import Matrix, MatrixLike, Vector, VectorLike
 from .inertia import planar
-from .rotation import _cross_parts
+from .rotation import _cross_parts, _split
 
 # The arithmetic below works on a vector's three components as separate arrays and stacks
 # them once, where a function returns. XLA:CPU fuses a stack (a concatenation) with all
@@ -21,10 +21,6 @@ from .rotation import _cross_parts
 # writes; a stack between two operations (a vector sum, say) is one that XLA cannot cancel
 # against the slices that follow. It matters for the sensitivities' field, whose vectors
 # carry a column axis (`integrate._Sensitivity` says what it saves), not for the model's own.
-
-
-def _components(v):
-    return [v[..., i] for i in range(3)]
 
 
 def _matvec_parts(J, v):
@@ -35,7 +31,7 @@ def _matvec_parts(J, v):
 
 def _matvec(J, v):
     """`J v` for arrays `(…, 3, 3)` and `(…, 3)`."""
-    return jnp.stack(_matvec_parts(J, _components(v)), axis=-1)
+    return jnp.stack(_matvec_parts(J, _split(v)), axis=-1)
 
 
 def _prepare(J, vectors: dict[str, VectorLike]) -> tuple[Matrix, list[Vector]]:
@@ -75,7 +71,7 @@ def _solve(J, b):
     factorisation (reads the lower triangle). Elementwise arithmetic only: no LAPACK call
     per right-hand-side evaluation (measured 1.4× faster in vmapped solves). Its derivative
     is `dx = J⁻¹ (db − dJ x)` (`_solve_jvp`)."""
-    return jnp.stack(_cholesky_solve(_cholesky(J), _components(b)), axis=-1)
+    return jnp.stack(_cholesky_solve(_cholesky(J), _split(b)), axis=-1)
 
 
 def _inverse_parts(L):
@@ -102,8 +98,8 @@ def _solve_jvp(primals, tangents):
     `benchmarks/gradients.py` on one device: 7–18 % less, three interleaved pairs)."""
     (J, b), (dJ, db) = primals, tangents
     L = _cholesky(J)
-    x = _cholesky_solve(L, _components(b))
-    rhs = None if isinstance(db, SymbolicZero) else _components(db)
+    x = _cholesky_solve(L, _split(b))
+    rhs = None if isinstance(db, SymbolicZero) else _split(db)
     if not isinstance(dJ, SymbolicZero):
         def entry(i, j):
             return dJ[..., max(i, j), min(i, j)]
@@ -134,8 +130,8 @@ def euler_rhs(J: MatrixLike, omega: VectorLike, moment: VectorLike) -> Vector:
     **Returns:** `(*batch, 3)` the body-component derivative `dω/dt`.
     """
     J, (omega, moment) = _prepare(J, {"omega": omega, "moment": moment})
-    w = _components(omega)
-    rhs = [c + m for c, m in zip(_cross_parts(_matvec_parts(J, w), w), _components(moment))]
+    w = _split(omega)
+    rhs = [c + m for c, m in zip(_cross_parts(_matvec_parts(J, w), w), _split(moment))]
     return _solve(J, jnp.stack(rhs, axis=-1))
 
 
@@ -146,8 +142,8 @@ def transport_moment(J: MatrixLike, omega_e: VectorLike, eps_e: VectorLike) -> V
     angular velocity and acceleration, both in body components.
     """
     J, (omega_e, eps_e) = _prepare(J, {"omega_e": omega_e, "eps_e": eps_e})
-    w_e = _components(omega_e)
-    return jnp.stack([c - a for a, c in zip(_matvec_parts(J, _components(eps_e)),
+    w_e = _split(omega_e)
+    return jnp.stack([c - a for a, c in zip(_matvec_parts(J, _split(eps_e)),
                                             _cross_parts(_matvec_parts(J, w_e), w_e))], axis=-1)
 
 
@@ -158,7 +154,7 @@ def coriolis_moment(J: MatrixLike, omega_r: VectorLike, omega_e: VectorLike) -> 
     with `J' = ½ tr(J) I − J` the planar inertia tensor (PHYSICS.md §3, §5).
     """
     J, (omega_r, omega_e) = _prepare(J, {"omega_r": omega_r, "omega_e": omega_e})
-    c = _cross_parts(_components(omega_r), _matvec_parts(planar(J), _components(omega_e)))
+    c = _cross_parts(_split(omega_r), _matvec_parts(planar(J), _split(omega_e)))
     return jnp.stack([2.0 * ci for ci in c], axis=-1)
 
 
@@ -187,12 +183,12 @@ def relative_rhs(
     J, (omega_r, omega_e, eps_e, moment) = _prepare(
         J, {"omega_r": omega_r, "omega_e": omega_e, "eps_e": eps_e, "moment": moment}
     )
-    w_r, w_e = _components(omega_r), _components(omega_e)
+    w_r, w_e = _split(omega_r), _split(omega_e)
     terms = (_cross_parts(_matvec_parts(J, w_r), w_r),
-             _matvec_parts(J, _components(eps_e)),
+             _matvec_parts(J, _split(eps_e)),
              _cross_parts(_matvec_parts(J, w_e), w_e),
              _cross_parts(w_r, _matvec_parts(planar(J), w_e)),
-             _components(moment))
+             _split(moment))
     rhs = [a - b + c + 2.0 * d + m for a, b, c, d, m in zip(*terms)]
     return _solve(J, jnp.stack(rhs, axis=-1))
 

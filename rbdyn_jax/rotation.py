@@ -42,7 +42,8 @@ _AXIS_INDEX = {"x": 0, "y": 1, "z": 2}
 
 
 def _split(x: Array) -> list[Array]:
-    return list(jnp.moveaxis(x, -1, 0))
+    """The components of `x` along its last axis, as separate arrays."""
+    return [x[..., i] for i in range(x.shape[-1])]
 
 
 def _cross_parts(a: list[Array], b: list[Array]) -> list[Array]:
