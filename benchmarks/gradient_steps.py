@@ -76,22 +76,6 @@ class _ZeroField(integrate._Sensitivity):
         return self.model.vector_field(t, y, args), tuple(jnp.zeros_like(s) for s in S)
 
 
-class _StatePart(integrate._Sensitivity):
-    """The columns' rates without the parameter part: ∂f/∂y · S only."""
-
-    def vector_field(self, t, ys, args):
-        y, S = ys
-        leaves, treedef = jax.tree_util.tree_flatten(y)
-        cols = [jnp.zeros(x.shape + (self.P,), x.dtype) for x in leaves]
-        for i, s in zip(self.carried, S):
-            cols[i] = s.reshape(leaves[i].shape + (self.P,))
-        f, dS = jax.vmap(lambda s: jax.jvp(lambda y: self.model.vector_field(t, y, args),
-                                           (y,), (s,)), in_axes=-1, out_axes=(None, -1))(
-            jax.tree_util.tree_unflatten(treedef, cols))
-        dS = jax.tree_util.tree_leaves(dS)
-        return f, tuple(jnp.ravel(dS[i]) for i in self.carried)
-
-
 class _OmegaGroup(eqx.Module):
     """ω's rate alone, the attitude held: ω's closed group for a torque-free body."""
 
@@ -130,10 +114,12 @@ def _loops(lanes, steps, kind_list):
 
     S0 = (jnp.zeros((lanes, 3 * P)),)
     fns = {"forward": jax.jit(lambda y0: stepper(model, y0))}
-    for name, cls in (("sensitivities", integrate._Sensitivity),
-                      ("sensitivities, field zeroed", _ZeroField),
-                      ("sensitivities, no parameter part", _StatePart)):
-        fns[name] = jax.jit(lambda y0, cls=cls: stepper(cls(model, *args), (y0, S0)))
+    for name, aug in (("sensitivities", integrate._Sensitivity(model, *args)),
+                      ("sensitivities, field zeroed", _ZeroField(model, *args)),
+                      # no parameter leaf differentiated: ∂f/∂y·S alone, the same P columns
+                      ("sensitivities, no parameter part",
+                       integrate._Sensitivity(model, (), (), P, (), (0,)))):
+        fns[name] = jax.jit(lambda y0, aug=aug: stepper(aug, (y0, S0)))
 
     # The reverse pass: per-lane inertia (a batched model), ω recorded at each step start.
     Jl = jnp.broadcast_to(jnp.asarray(J), (lanes, 3, 3))
