@@ -31,7 +31,8 @@ Setting: `gradients.py`'s body (J with products of inertia) and ω0 ~ N(0, 1) pe
 (`default_rng(0)`) on `--lanes` lanes (default 16, as `gradients.py`), identity attitude,
 Tsit5, float64, steps of 0.005 in the unit time of a 20 s solve (the cost of a step does
 not depend on its size). XLA as the README advises (`rb.configure_xla()`: its while loops
-compiled whole), one device: the steps of one device's loop.
+compiled whole), one device: the steps of one device's loop, each loop compiled with
+`rb.COMPILER_OPTIONS` as rbdyn_jax compiles its own.
 
 Run: `python benchmarks/gradient_steps.py [--lanes 16] [--steps 300] [--rounds 20]
 [--out DIR]` — prints a table and writes DIR/gradient_steps.json (DIR defaults to
@@ -86,6 +87,11 @@ class _OmegaGroup(eqx.Module):
         return self.model.vector_field(t, rb.State(w, self.quat), args).omega
 
 
+def _jit(fn):
+    """`jax.jit` with the options rbdyn_jax compiles its own programs with (`_xla.py`)."""
+    return jax.jit(fn, compiler_options=rb.COMPILER_OPTIONS)
+
+
 def _loops(lanes, steps, kind_list):
     """name -> a function of no arguments running its compiled loop; and the check."""
     model = rb.RigidBody(jnp.asarray(J))
@@ -113,13 +119,13 @@ def _loops(lanes, steps, kind_list):
         return jax.lax.fori_loop(0, steps, body, (y0, (jnp.array(False), f0)))[0]
 
     S0 = (jnp.zeros((lanes, 3 * P)),)
-    fns = {"forward": jax.jit(lambda y0: stepper(model, y0))}
+    fns = {"forward": _jit(lambda y0: stepper(model, y0))}
     for name, aug in (("sensitivities", integrate._Sensitivity(model, *args)),
                       ("sensitivities, field zeroed", _ZeroField(model, *args)),
                       # no parameter leaf differentiated: ∂f/∂y·S alone, the same P columns
                       ("sensitivities, no parameter part",
                        integrate._Sensitivity(model, (), (), P, (), (0,)))):
-        fns[name] = jax.jit(lambda y0, aug=aug: stepper(aug, (y0, S0)))
+        fns[name] = _jit(lambda y0, aug=aug: stepper(aug, (y0, S0)))
 
     # The reverse pass: per-lane inertia (a batched model), ω recorded at each step start.
     Jl = jnp.broadcast_to(jnp.asarray(J), (lanes, 3, 3))
@@ -157,28 +163,25 @@ def _loops(lanes, steps, kind_list):
 
             return jax.lax.fori_loop(0, steps, body, (lam, jnp.zeros_like(Jl)))
 
-        return jax.jit(run)
+        run = _jit(run)
+        return lambda: run(ws, lam)
 
-    ws = jax.jit(record)(w0)
+    ws = _jit(record)(w0)
     lam = jnp.asarray(np.random.default_rng(1).normal(size=(lanes, 3)))
+    calls = {name: (lambda f=f: f(y0)) for name, f in fns.items()}
     for kind in kind_list:
-        fns[f"reverse, diffrax VJP (scan_kind={kind})"] = reverse(kind)
-
-    def call(name):
-        if name.startswith("reverse"):
-            return lambda: fns[name](ws, lam)
-        return lambda: fns[name](y0)
+        calls[f"reverse, diffrax VJP (scan_kind={kind})"] = reverse(kind)
 
     def check():
         """max |g_sens − g_rev| / max |g_sens| of d(λ·ω_K)/dθ over the six parameters."""
-        S = fns["sensitivities"](y0)[1][0].reshape(lanes, 3, P)
+        S = calls["sensitivities"]()[1][0].reshape(lanes, 3, P)
         g_sens = jnp.einsum("lip,li->lp", S, lam)
-        dJ = fns[f"reverse, diffrax VJP (scan_kind={kind_list[0]})"](ws, lam)[1]
+        dJ = calls[f"reverse, diffrax VJP (scan_kind={kind_list[0]})"]()[1]
         g_rev = jnp.stack([dJ[:, i, i] if i == j else dJ[:, i, j] + dJ[:, j, i]
                            for i, j in integrate._SYMMETRIC], axis=-1)
         return float(jnp.max(jnp.abs(g_sens - g_rev)) / jnp.max(jnp.abs(g_sens)))
 
-    return {name: call(name) for name in fns}, check
+    return calls, check
 
 
 def main(lanes=16, steps=300, rounds=20, kinds=("bounded", "checkpointed"),
