@@ -12,8 +12,8 @@ from jax.custom_derivatives import SymbolicZero
 
 from ._checks import check_trailing
 from ._custom_types import Matrix, MatrixLike, Vector, VectorLike
+from ._vector import cross_parts, matvec_parts, split
 from .inertia import planar
-from .rotation import _cross_parts, _split
 
 # The arithmetic below works on a vector's three components as separate arrays and stacks
 # them once, where a function returns. XLA:CPU fuses a stack (a concatenation) with all
@@ -21,17 +21,6 @@ from .rotation import _cross_parts, _split
 # writes; a stack between two operations (a vector sum, say) is one that XLA cannot cancel
 # against the slices that follow. It matters for the sensitivities' field, whose vectors
 # carry a column axis (`integrate._Sensitivity` says what it saves), not for the model's own.
-
-
-def _matvec_parts(J, v):
-    # Written out: XLA:CPU runs a batched 3×3 einsum as a slow library call (measured
-    # ~5 µs per 512 lanes, more than the rest of the right-hand side).
-    return [J[..., i, 0] * v[0] + J[..., i, 1] * v[1] + J[..., i, 2] * v[2] for i in range(3)]
-
-
-def _matvec(J, v):
-    """`J v` for arrays `(…, 3, 3)` and `(…, 3)`."""
-    return jnp.stack(_matvec_parts(J, _split(v)), axis=-1)
 
 
 def _prepare(J, vectors: dict[str, VectorLike]) -> tuple[Matrix, list[Vector]]:
@@ -71,7 +60,7 @@ def _solve(J, b):
     factorisation (reads the lower triangle). Elementwise arithmetic only: no LAPACK call
     per right-hand-side evaluation (measured 1.4× faster in vmapped solves). Its derivative
     is `dx = J⁻¹ (db − dJ x)` (`_solve_jvp`)."""
-    return jnp.stack(_cholesky_solve(_cholesky(J), _split(b)), axis=-1)
+    return jnp.stack(_cholesky_solve(_cholesky(J), split(b)), axis=-1)
 
 
 def _inverse_parts(L):
@@ -98,8 +87,8 @@ def _solve_jvp(primals, tangents):
     `benchmarks/gradients.py` on one device: 7–18 % less, three interleaved pairs)."""
     (J, b), (dJ, db) = primals, tangents
     L = _cholesky(J)
-    x = _cholesky_solve(L, _split(b))
-    rhs = None if isinstance(db, SymbolicZero) else _split(db)
+    x = _cholesky_solve(L, split(b))
+    rhs = None if isinstance(db, SymbolicZero) else split(db)
     if not isinstance(dJ, SymbolicZero):
         def entry(i, j):
             return dJ[..., max(i, j), min(i, j)]
@@ -130,8 +119,8 @@ def euler_rhs(J: MatrixLike, omega: VectorLike, moment: VectorLike) -> Vector:
     **Returns:** `(*batch, 3)` the body-component derivative `dω/dt`.
     """
     J, (omega, moment) = _prepare(J, {"omega": omega, "moment": moment})
-    w = _split(omega)
-    rhs = [c + m for c, m in zip(_cross_parts(_matvec_parts(J, w), w), _split(moment))]
+    w = split(omega)
+    rhs = [c + m for c, m in zip(cross_parts(matvec_parts(J, w), w), split(moment))]
     return _solve(J, jnp.stack(rhs, axis=-1))
 
 
@@ -142,9 +131,9 @@ def transport_moment(J: MatrixLike, omega_e: VectorLike, eps_e: VectorLike) -> V
     angular velocity and acceleration, both in body components.
     """
     J, (omega_e, eps_e) = _prepare(J, {"omega_e": omega_e, "eps_e": eps_e})
-    w_e = _split(omega_e)
-    return jnp.stack([c - a for a, c in zip(_matvec_parts(J, _split(eps_e)),
-                                            _cross_parts(_matvec_parts(J, w_e), w_e))], axis=-1)
+    w_e = split(omega_e)
+    return jnp.stack([c - a for a, c in zip(matvec_parts(J, split(eps_e)),
+                                            cross_parts(matvec_parts(J, w_e), w_e))], axis=-1)
 
 
 def coriolis_moment(J: MatrixLike, omega_r: VectorLike, omega_e: VectorLike) -> Vector:
@@ -154,7 +143,7 @@ def coriolis_moment(J: MatrixLike, omega_r: VectorLike, omega_e: VectorLike) -> 
     with `J' = ½ tr(J) I − J` the planar inertia tensor (PHYSICS.md §3, §5).
     """
     J, (omega_r, omega_e) = _prepare(J, {"omega_r": omega_r, "omega_e": omega_e})
-    c = _cross_parts(_split(omega_r), _matvec_parts(planar(J), _split(omega_e)))
+    c = cross_parts(split(omega_r), matvec_parts(planar(J), split(omega_e)))
     return jnp.stack([2.0 * ci for ci in c], axis=-1)
 
 
@@ -183,12 +172,12 @@ def relative_rhs(
     J, (omega_r, omega_e, eps_e, moment) = _prepare(
         J, {"omega_r": omega_r, "omega_e": omega_e, "eps_e": eps_e, "moment": moment}
     )
-    w_r, w_e = _split(omega_r), _split(omega_e)
-    terms = (_cross_parts(_matvec_parts(J, w_r), w_r),
-             _matvec_parts(J, _split(eps_e)),
-             _cross_parts(_matvec_parts(J, w_e), w_e),
-             _cross_parts(w_r, _matvec_parts(planar(J), w_e)),
-             _split(moment))
+    w_r, w_e = split(omega_r), split(omega_e)
+    terms = (cross_parts(matvec_parts(J, w_r), w_r),
+             matvec_parts(J, split(eps_e)),
+             cross_parts(matvec_parts(J, w_e), w_e),
+             cross_parts(w_r, matvec_parts(planar(J), w_e)),
+             split(moment))
     rhs = [a - b + c + 2.0 * d + m for a, b, c, d, m in zip(*terms)]
     return _solve(J, jnp.stack(rhs, axis=-1))
 

@@ -18,6 +18,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from . import rotation
 from ._checks import check_trailing
+from ._vector import parse_seq
 
 
 def _quat0(quat0, dtype=None) -> Array:
@@ -75,7 +76,7 @@ class EulerAngleFrame(AbstractFrame):
     quat0: Float[Array, "4"] | None = None
 
     def __check_init__(self):
-        rotation._parse_seq(self.seq)  # ValueError naming `seq` for a bad string
+        parse_seq(self.seq)  # ValueError naming `seq` for a bad string
         if self.quat0 is not None and jnp.shape(self.quat0)[-1:] != (4,):
             raise ValueError(f"`quat0` must have shape (4,), got {jnp.shape(self.quat0)}.")
         if not callable(self.angles_fn):

@@ -10,7 +10,12 @@
   (§7); state `PoissonState(omega, gamma)`.
 
 All share `dynamics.euler_rhs` / `relative_rhs` and the torques of `torques.py`. The
-inertia is checked (symmetric, physical) when the model is built.
+inertia is checked (symmetric, physical) when the model is built, by its field's converter
+(`eqx.field(converter=...)`, run by the constructor only: `eqx.tree_at` and pytree
+unflattening keep a leaf as it is); a `torque` or `frame` of `None` (the default) becomes
+`NoTorque()` / `Inertial()` the same way. Equinox runs the converters after any `__init__`,
+a subclass's own too: a subclass whose inertia leaf is not one 3×3 tensor re-declares the
+field without one (`inertia: Array`).
 `with_log_cholesky(model, theta)` swaps in an inertia that is physical by construction,
 unchecked: the way to fit an inertia.
 """
@@ -48,6 +53,16 @@ def _inertia(J: Float[ArrayLike, "3 3"]) -> Float[Array, "3 3"]:
     return eqx.error_if(J, ~_definite(jax.lax.stop_gradient(J)), "`inertia` must be positive "
                         "definite (a principal moment is zero: a rod or a point has no "
                         "rotational dynamics).")
+
+
+def _torque(torque: AbstractTorque | None) -> AbstractTorque:
+    """The model's torque: `NoTorque()` for `None` (the default)."""
+    return NoTorque() if torque is None else torque
+
+
+def _frame(frame: AbstractFrame | None) -> AbstractFrame:
+    """A relative model's transport frame: `Inertial()` for `None` (the default)."""
+    return Inertial() if frame is None else frame
 
 
 def _definite(J, xp=jnp):
@@ -105,12 +120,8 @@ class RigidBody(AbstractRigidBody):
     `NoTorque()`).
     """
 
-    inertia: Float[Array, "3 3"]
-    torque: AbstractTorque
-
-    def __init__(self, inertia: Float[ArrayLike, "3 3"], torque: AbstractTorque | None = None):
-        self.inertia = _inertia(inertia)
-        self.torque = NoTorque() if torque is None else torque
+    inertia: Float[Array, "3 3"] = eqx.field(converter=_inertia)
+    torque: AbstractTorque = eqx.field(default=None, converter=_torque)
 
     def kinematics(self, t, y: State) -> Kinematics:
         return _absolute_kinematics(t, y.omega, y.quat, _z_in_body(y.quat))
@@ -137,19 +148,9 @@ class RelativeRigidBody(AbstractRigidBody):
     **Fields:** `inertia`, `frame` (an `AbstractFrame`, default `Inertial()`), `torque`.
     """
 
-    inertia: Float[Array, "3 3"]
-    frame: AbstractFrame
-    torque: AbstractTorque
-
-    def __init__(
-        self,
-        inertia: Float[ArrayLike, "3 3"],
-        frame: AbstractFrame | None = None,
-        torque: AbstractTorque | None = None,
-    ):
-        self.inertia = _inertia(inertia)
-        self.frame = Inertial() if frame is None else frame
-        self.torque = NoTorque() if torque is None else torque
+    inertia: Float[Array, "3 3"] = eqx.field(converter=_inertia)
+    frame: AbstractFrame = eqx.field(default=None, converter=_frame)
+    torque: AbstractTorque = eqx.field(default=None, converter=_torque)
 
     def kinematics(self, t, y: State) -> Kinematics:
         q_e, w_e1, e_e1 = self.frame(t)
@@ -180,12 +181,8 @@ class EulerAngleRigidBody(AbstractRigidBody):
     **Fields:** `inertia`, `torque`.
     """
 
-    inertia: Float[Array, "3 3"]
-    torque: AbstractTorque
-
-    def __init__(self, inertia: Float[ArrayLike, "3 3"], torque: AbstractTorque | None = None):
-        self.inertia = _inertia(inertia)
-        self.torque = NoTorque() if torque is None else torque
+    inertia: Float[Array, "3 3"] = eqx.field(converter=_inertia)
+    torque: AbstractTorque = eqx.field(default=None, converter=_torque)
 
     def kinematics(self, t, y: EulerState) -> Kinematics:
         theta, phi = y.angles[1], y.angles[2]
@@ -214,12 +211,8 @@ class PoissonRigidBody(AbstractRigidBody):
     **Fields:** `inertia`, `torque`.
     """
 
-    inertia: Float[Array, "3 3"]
-    torque: AbstractTorque
-
-    def __init__(self, inertia: Float[ArrayLike, "3 3"], torque: AbstractTorque | None = None):
-        self.inertia = _inertia(inertia)
-        self.torque = NoTorque() if torque is None else torque
+    inertia: Float[Array, "3 3"] = eqx.field(converter=_inertia)
+    torque: AbstractTorque = eqx.field(default=None, converter=_torque)
 
     def kinematics(self, t, y: PoissonState) -> Kinematics:
         return _absolute_kinematics(t, y.omega, None, y.gamma)

@@ -28,33 +28,16 @@ from ._custom_types import (
     Vector,
     VectorLike,
 )
+from ._vector import cross, parse_seq, split
 
 # Second angles closer than this to the singular set are treated as gimbal lock by
 # `quat_to_euler`; the same value as scipy's `Rotation.as_euler`.
 GIMBAL_LOCK_EPS = 1e-7
 
-_AXIS_INDEX = {"x": 0, "y": 1, "z": 2}
-
 
 # ---------------------------------------------------------------------------------------
 # small helpers
 # ---------------------------------------------------------------------------------------
-
-
-def _split(x: Array) -> list[Array]:
-    """The components of `x` along its last axis, as separate arrays."""
-    return [x[..., i] for i in range(x.shape[-1])]
-
-
-def _cross_parts(a: list[Array], b: list[Array]) -> list[Array]:
-    """`a × b` on vectors given as their three components (`dynamics.py` says why)."""
-    ax, ay, az = a
-    bx, by, bz = b
-    return [ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx]
-
-
-def _cross(a: Array, b: Array) -> Array:
-    return jnp.stack(_cross_parts(_split(a), _split(b)), axis=-1)
 
 
 def _dot(a: Array, b: Array) -> Array:
@@ -103,8 +86,8 @@ def quat_multiply(q1: QuaternionLike, q2: QuaternionLike) -> Quaternion:
     q1 = check_trailing(q1, (4,), "q1")
     q2 = check_trailing(q2, (4,), "q2")
     q1, q2 = _broadcast(q1, q2, trailing=(1, 1))
-    w1, x1, y1, z1 = _split(q1)
-    w2, x2, y2, z2 = _split(q2)
+    w1, x1, y1, z1 = split(q1)
+    w2, x2, y2, z2 = split(q2)
     return jnp.stack(
         [
             w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
@@ -145,8 +128,8 @@ def quat_rotate(q: QuaternionLike, v: VectorLike) -> Vector:
     q, v = _broadcast(q, v, trailing=(1, 1))
     w = q[..., :1]
     u = q[..., 1:]
-    t = 2.0 * _cross(u, v)
-    return v + w * t + _cross(u, t)
+    t = 2.0 * cross(u, v)
+    return v + w * t + cross(u, t)
 
 
 def quat_to_dcm(q: QuaternionLike) -> Matrix:
@@ -158,7 +141,7 @@ def quat_to_dcm(q: QuaternionLike) -> Matrix:
     **Returns:** `(*batch, 3, 3)` rotation matrix.
     """
     q = check_trailing(q, (4,), "q")
-    w, x, y, z = _split(q)
+    w, x, y, z = split(q)
     s = 2.0 / (w * w + x * x + y * y + z * z)
     xx, yy, zz = s * x * x, s * y * y, s * z * z
     xy, xz, yz = s * x * y, s * x * z, s * y * z
@@ -267,27 +250,9 @@ def slerp(q0: QuaternionLike, q1: QuaternionLike, t: ScalarLike) -> Quaternion:
 # ---------------------------------------------------------------------------------------
 
 
-def _parse_seq(seq: str) -> tuple[list[int], bool]:
-    """Axis indices of `seq` and whether it is extrinsic; `ValueError` for a bad string."""
-    if not isinstance(seq, str) or len(seq) != 3:
-        raise ValueError(f"`seq` must be a 3-character string such as 'ZXZ', got {seq!r}.")
-    if seq.isupper() and set(seq) <= set("XYZ"):
-        extrinsic = False
-    elif seq.islower() and set(seq) <= set("xyz"):
-        extrinsic = True
-    else:
-        raise ValueError(
-            f"`seq` must be three of 'XYZ' (intrinsic) or three of 'xyz' (extrinsic), "
-            f"not mixed, got {seq!r}."
-        )
-    if seq[0] == seq[1] or seq[1] == seq[2]:
-        raise ValueError(f"`seq` must not repeat an axis consecutively, got {seq!r}.")
-    return [_AXIS_INDEX[c] for c in seq.lower()], extrinsic
-
-
 def _as_intrinsic(angles: Array, seq: str) -> tuple[Array, list[int]]:
     """Angles and axes of the intrinsic sequence equal to `seq` ("abc" ≡ "CBA" reversed)."""
-    axes, extrinsic = _parse_seq(seq)
+    axes, extrinsic = parse_seq(seq)
     if extrinsic:
         return angles[..., ::-1], axes[::-1]
     return angles, axes
@@ -343,7 +308,7 @@ def quat_to_euler(
 
     **Returns:** `(*batch, 3)` angles in radians, and the `(*batch,)` mask if asked.
     """
-    axes, extrinsic = _parse_seq(seq)
+    axes, extrinsic = parse_seq(seq)
     q = quat_normalize(q)
     # Bernardes & Viollet work on the extrinsic form: intrinsic "ABC" is extrinsic "cba".
     i, j, k = axes if extrinsic else axes[::-1]
@@ -404,7 +369,7 @@ def gimbal_lock_distance(angles: AnglesLike, seq: str) -> Scalar:
     ones (e.g. XYZ). Returns `min_k |β − β_k|` over that set, in [0, π/2].
     """
     angles = check_trailing(angles, (3,), "angles")
-    axes, _ = _parse_seq(seq)
+    axes, _ = parse_seq(seq)
     beta = angles[..., 1]
     if axes[0] != axes[2]:
         beta = beta - 0.5 * jnp.pi
@@ -430,7 +395,7 @@ def _rate_columns(angles: Array, seq: str) -> tuple[Array, Array, Array]:
 
 def _reorder(x: Array, seq: str) -> Array:
     """Map between the caller's angle order and the intrinsic order of `_rate_columns`."""
-    _, extrinsic = _parse_seq(seq)
+    _, extrinsic = parse_seq(seq)
     return x[..., ::-1] if extrinsic else x
 
 
@@ -450,7 +415,7 @@ def euler_rates_to_omega(angles: AnglesLike, rates: AnglesLike, seq: str) -> Vec
     rates = check_trailing(rates, (3,), "rates")
     angles, rates = _broadcast(angles, rates, trailing=(1, 1))
     cols = _rate_columns(angles, seq)
-    r = _split(_reorder(rates, seq))
+    r = split(_reorder(rates, seq))
     return r[0][..., None] * cols[0] + r[1][..., None] * cols[1] + r[2][..., None] * cols[2]
 
 
@@ -473,7 +438,7 @@ def omega_to_euler_rates(angles: AnglesLike, omega: VectorLike, seq: str) -> Ang
     angles, omega = _broadcast(angles, omega, trailing=(1, 1))
     ca, cb, cc = _rate_columns(angles, seq)
     # Rows of the inverse of the matrix with columns (ca, cb, cc) are (cb×cc, cc×ca, ca×cb)/det.
-    rows = (_cross(cb, cc), _cross(cc, ca), _cross(ca, cb))
+    rows = (cross(cb, cc), cross(cc, ca), cross(ca, cb))
     det = _dot(ca, rows[0])
     rates = jnp.stack([_dot(r, omega) for r in rows], axis=-1) / det[..., None]
     return _reorder(rates, seq)
@@ -487,7 +452,7 @@ def omega_to_euler_rates(angles: AnglesLike, omega: VectorLike, seq: str) -> Ang
 def skew(v: VectorLike) -> Matrix:
     """`[v]×`, the matrix with `[v]× u = v × u`."""
     v = check_trailing(v, (3,), "v")
-    x, y, z = _split(v)
+    x, y, z = split(v)
     o = jnp.zeros_like(x)
     rows = [[o, -z, y], [z, o, -x], [-y, x, o]]
     return jnp.stack([jnp.stack(r, axis=-1) for r in rows], axis=-2)
@@ -543,7 +508,7 @@ def poisson(gamma: VectorLike, omega: VectorLike) -> Vector:
     gamma = check_trailing(gamma, (3,), "gamma")
     omega = check_trailing(omega, (3,), "omega")
     gamma, omega = _broadcast(gamma, omega, trailing=(1, 1))
-    return _cross(gamma, omega)
+    return cross(gamma, omega)
 
 
 __all__ = [

@@ -18,7 +18,8 @@ from jaxtyping import Array, ArrayLike, Float
 
 from . import rotation
 from ._checks import as_float_array, check_trailing
-from .dynamics import _matvec, transport_moment  # _matvec: J v elementwise (fast on CPU)
+from ._vector import cross, matvec  # written out: fast on CPU (`_vector` says why)
+from .dynamics import transport_moment
 from .state import Kinematics
 
 _E_Z = (0.0, 0.0, 1.0)
@@ -233,11 +234,11 @@ class GravityGradient(AbstractTorque):
 
     def __call__(self, kin, inertia):
         g = kin.gamma
-        return self.eps * rotation._cross(g, _matvec(inertia, g))
+        return self.eps * cross(g, matvec(inertia, g))
 
     def potential(self, kin, inertia):
         g = kin.gamma
-        return 0.5 * self.eps * jnp.dot(g, _matvec(inertia, g))
+        return 0.5 * self.eps * jnp.dot(g, matvec(inertia, g))
 
 
 class BalancingTransport(AbstractTorque):

@@ -15,7 +15,7 @@ import pytest
 from jax.test_util import check_grads
 from scipy.spatial.transform import Rotation
 
-from rbdyn_jax import dynamics, inertia, rotation
+from rbdyn_jax import dynamics, inertia
 
 # A handful of float64 operations and one 3×3 solve of a well-conditioned J (cond ≲ 10):
 # agreement to ~1e-13 is rounding; 1e-11 leaves margin and still catches any sign error.
@@ -192,16 +192,12 @@ def test_solve_derivative_is_the_inverse_rule_on_the_lower_triangle(rng):
                                atol=TOL)
 
 
-def test_written_out_products_match_numpy(rng):
-    """The component-wise `J v`, `a × b` (`rotation`'s) and `J⁻¹ b` (the torques use the
-    first two) against numpy on a batch of non-symmetric matrices and vectors: a wrong
-    index or sign in the written-out arithmetic shows at round-off level."""
+def test_written_out_solve_matches_numpy(rng):
+    """The component-wise `J⁻¹ b` against numpy on a batch of symmetric positive-definite
+    matrices: a wrong index or sign in the written-out arithmetic shows at round-off level.
+    (The written-out `J v` and `a × b` it shares with the torques: tests/test_vector.py.)"""
     M = rng.normal(size=(5, 3, 3))
-    a, b = rng.normal(size=(2, 5, 3))
-    np.testing.assert_allclose(dynamics._matvec(jnp.asarray(M), jnp.asarray(a)),
-                               np.einsum("nij,nj->ni", M, a), rtol=1e-14, atol=1e-14)
-    np.testing.assert_allclose(rotation._cross(jnp.asarray(a), jnp.asarray(b)),
-                               np.cross(a, b), rtol=1e-14, atol=1e-14)
+    a = rng.normal(size=(5, 3))
     J = np.einsum("nij,nkj->nik", M, M) + np.eye(3)  # symmetric positive definite
     # cond(J) is small here: 1e-12 is ~1e4 ulps of slack for the two triangular solves.
     np.testing.assert_allclose(dynamics._solve(jnp.asarray(J), jnp.asarray(a)),

@@ -1,13 +1,10 @@
-"""Models, torques, frames and solves against independent references (PHYSICS.md §1–7).
+"""Models and solves against independent references (PHYSICS.md §1–7).
 
-References that cannot be wrong in the same way as the library:
+The torques and frames the models use are tested on their own in test_torques.py and
+test_frames.py. References that cannot be wrong in the same way as the library:
 
-- torques: the hand formulas of PHYSICS.md §4–7 in NumPy, with attitudes, Euler angles and
-  axis directions from `scipy.spatial.transform.Rotation`;
-- potentials: central finite differences of V along explicit rotation paths built with scipy
-  (−dV/dt = ω·M), and `jax.jvp` along the hand quaternion kinematics;
-- frames: central finite differences of the frame's own attitude, `R_eᵀ R_e' = [ω_e¹]×`, and
-  scipy's `from_euler` / `from_rotvec`;
+- the kinematics record a torque sees (relative ω, ω_e, ε_e, γ, attitudes) recomputed with
+  scipy attitudes and hand derivatives of the frame angles;
 - relative motion (§5): the same physical motion solved in absolute terms by `RigidBody`;
 - first integrals of §5–7 and the closed forms of the pitch libration of §7 (linear frequency,
   and the exact pendulum period through the complete elliptic integral K).
@@ -28,7 +25,23 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import assert_quat_equal, host_callbacks, skew, wxyz_to_xyzw, xyzw_to_wxyz
+from helpers import (
+    E_Z,
+    FD_TOL,
+    FRAME_C,
+    TIGHT,
+    PolyAngles,
+    assert_quat_equal,
+    frame_omega1,
+    frame_rot,
+    general_inertia,
+    host_callbacks,
+    random_quat,
+    relative_setup,
+    scipy_rot,
+    xyzw_to_wxyz,
+    zxz,
+)
 from scipy.spatial.transform import Rotation
 from scipy.special import ellipk
 
@@ -37,94 +50,16 @@ import rbdyn_jax as rb
 RTOL = ATOL = 1e-10
 # Two independent solves of the same motion at rtol = atol = 1e-10 (~100 × rtol).
 SOLVE_TOL = 1e-8
-# Unit-level identities: a handful of float64 operations on O(1) numbers.
-TIGHT = 1e-12
-# Central differences with h = 1e-5: truncation ~1e-10·|f'''|, rounding ~1e-11.
-FD_H = 1e-5
-FD_TOL = 1e-8
 
 N_OUT = 101  # one output-grid length for every solve of a structure (one compile each)
-E_Z = np.array([0.0, 0.0, 1.0])
 
-
-# ------------------------------------------------------------------------------------------
-# independent helpers (NumPy / scipy)
-# ------------------------------------------------------------------------------------------
-
-
-def scipy_rot(q):
-    """scipy Rotation of a scalar-first quaternion (or a batch of them)."""
-    return Rotation.from_quat(wxyz_to_xyzw(np.asarray(q)))
-
-
-def general_inertia(rng, moments):
-    """J = C diag(moments) Cᵀ with a scipy random rotation C (products of inertia ≠ 0)."""
-    C = Rotation.random(random_state=rng).as_matrix()
-    return C @ np.diag(moments) @ C.T
-
-
-def random_quat(rng):
-    return xyzw_to_wxyz(Rotation.random(random_state=rng).as_quat())
-
-
-def vee(W):
-    return 0.5 * np.array([W[2, 1] - W[1, 2], W[0, 2] - W[2, 0], W[1, 0] - W[0, 1]])
-
-
-def zxz(q):
-    """(ψ, θ, φ) of a quaternion from scipy (PHYSICS.md §1: intrinsic "ZXZ")."""
-    return scipy_rot(q).as_euler("ZXZ")
-
-
-class PolyAngles(eqx.Module):
-    """Frame angles `angle_i(t) = c[i,0] + c[i,1] t + c[i,2] t² + c[i,3] sin t`.
-
-    The coefficients are a leaf, so frames with different coefficients share one compile.
-    """
-
-    c: jax.Array
-
-    def __call__(self, t):
-        return self.c @ jnp.stack([jnp.ones_like(t), t, t * t, jnp.sin(t)])
-
-
-def np_angles(c, t):
-    c = np.asarray(c)
-    return c[:, 0] + c[:, 1] * t + c[:, 2] * t * t + c[:, 3] * np.sin(t)
-
-
-# The brief's frame: (ψ_e, θ_e, φ_e) = (0.3 t, 0.6 + 0.2 sin t, −0.5 t + 0.1 t²).
-FRAME_C = np.array([[0.0, 0.3, 0.0, 0.0], [0.6, 0.0, 0.0, 0.2], [0.0, -0.5, 0.1, 0.0]])
 # Bounded rates for long runs: (0.3 t + 0.5 sin t, 0.6 + 0.2 sin t, −0.5 t + 0.8 sin t).
 FRAME_C_LONG = np.array([[0.0, 0.3, 0.0, 0.5], [0.6, 0.0, 0.0, 0.2], [0.0, -0.5, 0.0, 0.8]])
 
 
-def frame_rot(c, seq, t):
-    """The frame attitude O1 → O0 by scipy."""
-    return Rotation.from_euler(seq, np_angles(c, t))
-
-
-def frame_omega1(c, seq, t, h=FD_H):
-    """ω_e¹ from central differences of scipy attitudes: R_eᵀ R_e' = [ω_e¹]× (PHYSICS.md §2)."""
-    R = frame_rot(c, seq, t).as_matrix()
-    dR = (frame_rot(c, seq, t + h).as_matrix() - frame_rot(c, seq, t - h).as_matrix()) / (2 * h)
-    return vee(R.T @ dR)
-
-
-def zxz_omega(angles, rates):
-    """PHYSICS.md §2, literally: p = ψ' sinθ sinφ + θ' cosφ, …"""
-    psi, th, ph = angles
-    dpsi, dth, dph = rates
-    return np.array([
-        dpsi * np.sin(th) * np.sin(ph) + dth * np.cos(ph),
-        dpsi * np.sin(th) * np.cos(ph) - dth * np.sin(ph),
-        dpsi * np.cos(th) + dph,
-    ])
-
-
-def np_rates(c, t):
-    c = np.asarray(c)
-    return c[:, 1] + 2 * c[:, 2] * t + c[:, 3] * np.cos(t)
+# ------------------------------------------------------------------------------------------
+# solves and first integrals
+# ------------------------------------------------------------------------------------------
 
 
 def ts_grid(T, n=N_OUT):
@@ -143,19 +78,6 @@ def rel_drift(x):
     return float(np.max(np.abs(x - x[0])) / max(1.0, abs(x[0])))
 
 
-# Jitted evaluation (one compile per structure, shared across tests) is much faster than
-# eager op-by-op dispatch of the nested `jvp`s in frames and the `vmap`s in invariants.
-# (Python floats would be static under `filter_jit`: times are converted to arrays first.)
-_eval_frame = eqx.filter_jit(lambda frame, t: frame(t))
-_eval_kinematics = eqx.filter_jit(lambda model, t, y: model.kinematics(t, y))
-
-
-def eval_frame(frame, t):
-    return _eval_frame(frame, jnp.asarray(t, dtype=jnp.float64))
-
-
-def eval_kinematics(model, t, y):
-    return _eval_kinematics(model, jnp.asarray(t, dtype=jnp.float64), y)
 _INVARIANTS = {}
 
 
@@ -174,32 +96,15 @@ def gravity(eps=0.0, weight=0.0, com=(0.0, 0.0, 0.0)):
 
 
 # ------------------------------------------------------------------------------------------
-# 1. Kinematics and torques at the unit level (vs NumPy hand formulas with scipy attitudes)
+# 1. The kinematics record of a relative model (what its torques see)
 # ------------------------------------------------------------------------------------------
 
 
 @pytest.fixture
 def rel_setup(rng):
     """A relative model under a time-varying ZXZ frame, a random state and time, with every
-    quantity a torque sees recomputed independently."""
-    J = general_inertia(rng, [1.2, 1.9, 2.6])
-    model = rb.RelativeRigidBody(J, rb.EulerAngleFrame(PolyAngles(jnp.asarray(FRAME_C))))
-    t = 1.3
-    w_r = rng.normal(size=3)
-    q_r = random_quat(rng)
-    kin = eval_kinematics(model, t, rb.State(jnp.asarray(w_r), jnp.asarray(q_r)))
-    Rr = scipy_rot(q_r)
-    Re = frame_rot(FRAME_C, "ZXZ", t)
-    Ra = Re * Rr
-    # ω_e¹ by the literal ZXZ formula with hand derivatives of the angles; ε_e¹ by FD of it.
-    w_e1 = zxz_omega(np_angles(FRAME_C, t), np_rates(FRAME_C, t))
-    e_e1 = (zxz_omega(np_angles(FRAME_C, t + FD_H), np_rates(FRAME_C, t + FD_H))
-            - zxz_omega(np_angles(FRAME_C, t - FD_H), np_rates(FRAME_C, t - FD_H))) / (2 * FD_H)
-    ref = dict(J=J, t=t, w_r=w_r, q_r=q_r, Rr=Rr, Ra=Ra,
-               w_e=Rr.inv().apply(w_e1), e_e=Rr.inv().apply(e_e1),
-               gamma=Rr.inv().apply(E_Z), gamma0=Ra.inv().apply(E_Z),
-               q_abs=xyzw_to_wxyz(Ra.as_quat()))
-    return model, kin, ref
+    quantity a torque sees recomputed independently (`helpers.relative_setup`)."""
+    return relative_setup(rng)
 
 
 def test_relative_kinematics_record(rel_setup):
@@ -214,277 +119,8 @@ def test_relative_kinematics_record(rel_setup):
     assert_quat_equal(kin.quat_inertial, ref["q_abs"], atol=TIGHT)
 
 
-def test_body_and_inertial_torques(rel_setup, rng):
-    model, kin, ref = rel_setup
-    J = jnp.asarray(ref["J"])
-    M = rng.normal(size=3)
-    np.testing.assert_allclose(rb.BodyTorque(M)(kin, J), M, atol=TIGHT)
-    # A moment fixed in O0: body components R(q_abs)ᵀ M0, q_abs = q_e ⊗ q_r (scipy).
-    np.testing.assert_allclose(rb.InertialTorque(M)(kin, J), ref["Ra"].inv().apply(M),
-                               atol=TIGHT)
-    np.testing.assert_allclose(rb.NoTorque()(kin, J), 0.0, atol=0)
-
-
-def test_uniform_gravity(rel_setup, rng):
-    model, kin, ref = rel_setup
-    J = jnp.asarray(ref["J"])
-    mg, r_c = 2.3, rng.normal(size=3)
-    # M = r_c × (−mg γ₀) with γ₀ the inertial z0-axis in body components (scipy).
-    np.testing.assert_allclose(rb.UniformGravity(mg, r_c)(kin, J),
-                               np.cross(r_c, -mg * ref["gamma0"]), atol=TIGHT)
-
-
-def test_uniform_gravity_is_the_lagrange_top_moment(rng):
-    """PHYSICS.md §6: com = (0, 0, l) ⇒ M = k sinθ (cos φ, −sin φ, 0), k = m g l, with
-    (ψ, θ, φ) the ZXZ angles of the body from scipy."""
-    mg, l = 1.7, 0.4
-    model = rb.RigidBody(jnp.diag(jnp.array([1.0, 1.0, 1.5])),
-                         rb.UniformGravity(mg, jnp.array([0.0, 0.0, l])))
-    for _ in range(5):
-        q = random_quat(rng)
-        kin = model.kinematics(jnp.asarray(0.0), rb.State(jnp.asarray(rng.normal(size=3)),
-                                                          jnp.asarray(q)))
-        _, th, ph = zxz(q)
-        ref = mg * l * np.sin(th) * np.array([np.cos(ph), -np.sin(ph), 0.0])
-        np.testing.assert_allclose(model.torque(kin, model.inertia), ref, atol=TIGHT)
-
-
-def test_restoring_moment_constant_and_polynomial_sin_psi(rel_setup):
-    """PHYSICS.md §6: M = k(τ, ψ) sinθ (cos φ, −sin φ, 0) with (ψ, θ, φ) the ZXZ angles of
-    the body relative to its parent frame, and k = ε K(τ) sin ψ, τ = ε t."""
-    model, kin, ref = rel_setup
-    J = jnp.asarray(ref["J"])
-    psi, th, ph = zxz(ref["q_r"])
-    lever = np.sin(th) * np.array([np.cos(ph), -np.sin(ph), 0.0])
-    np.testing.assert_allclose(rb.RestoringMoment(0.8)(kin, J), 0.8 * lever, atol=TIGHT)
-
-    coeffs, eps = np.array([0.7, -0.4, 0.25]), 0.3
-    tau = eps * ref["t"]
-    k = eps * (coeffs[0] + coeffs[1] * tau + coeffs[2] * tau**2) * np.sin(psi)
-    torque = rb.RestoringMoment(rb.PolynomialSinPsi(coeffs, eps), eps=eps)
-    np.testing.assert_allclose(torque(kin, J), k * lever, atol=TIGHT)
-
-
-def test_gravity_gradient(rel_setup):
-    """PHYSICS.md §7: M = ε γ × J γ, γ = parent z-axis in body components; ε = 3 n²."""
-    model, kin, ref = rel_setup
-    J = ref["J"]
-    g = ref["gamma"]
-    np.testing.assert_allclose(rb.GravityGradient(1.7)(kin, jnp.asarray(J)),
-                               1.7 * np.cross(g, J @ g), atol=TIGHT)
-    n = 0.37
-    np.testing.assert_allclose(rb.GravityGradient.from_orbit_rate(n).eps, 3 * n * n,
-                               rtol=TIGHT)
-
-
-def test_balancing_transport(rel_setup):
-    """PHYSICS.md §5: M = J ε_e − J ω_e × ω_e, with ω_e, ε_e of the frame (hand formula)."""
-    model, kin, ref = rel_setup
-    J, w_e, e_e = ref["J"], ref["w_e"], ref["e_e"]
-    np.testing.assert_allclose(rb.BalancingTransport()(kin, jnp.asarray(J)),
-                               J @ e_e - np.cross(J @ w_e, w_e), atol=10 * FD_TOL)
-
-
-def test_sum_torque_adds_and_flattens(rel_setup, rng):
-    model, kin, ref = rel_setup
-    J = jnp.asarray(ref["J"])
-    a = rb.BodyTorque(rng.normal(size=3))
-    b = rb.UniformGravity(1.1, rng.normal(size=3))
-    c = rb.GravityGradient(0.9)
-    total = a + b + c
-    assert isinstance(total, rb.SumTorque) and len(total.torques) == 3
-    expected = np.asarray(a(kin, J)) + np.asarray(b(kin, J)) + np.asarray(c(kin, J))
-    np.testing.assert_allclose(total(kin, J), expected, atol=TIGHT)
-    np.testing.assert_allclose(rb.SumTorque(a, b + c)(kin, J), expected, atol=TIGHT)
-
-
-def _fd_gradient_check(torque, kin, J, c, h=1e-6):
-    """jax.grad of c·M(params, J) w.r.t. every parameter leaf and J vs central FD.
-
-    h = 1e-6: truncation ~1e-12·|f'''|, rounding ~1e-16/1e-6 = 1e-10 ⇒ agreement to 1e-7.
-    """
-
-    def f(params, J):
-        return jnp.dot(c, eqx.combine(params, static)(kin, J))
-
-    params, static = eqx.partition(torque, eqx.is_inexact_array)
-    g_params, g_J = jax.grad(f, argnums=(0, 1))(params, J)
-    leaves, treedef = jax.tree_util.tree_flatten(params)
-    g_leaves = jax.tree_util.tree_leaves(g_params)
-    assert len(leaves) == len(g_leaves) and len(leaves) > 0
-    for i, leaf in enumerate(leaves):
-        for idx in np.ndindex(leaf.shape):
-            def at(d, i=i, idx=idx):
-                new = list(leaves)
-                new[i] = leaves[i].at[idx].add(d)
-                return float(f(jax.tree_util.tree_unflatten(treedef, new), J))
-
-            np.testing.assert_allclose(g_leaves[i][idx], (at(h) - at(-h)) / (2 * h),
-                                       atol=1e-7)
-    for idx in np.ndindex(3, 3):
-        fd = (float(f(params, J.at[idx].add(h))) - float(f(params, J.at[idx].add(-h)))) / (2 * h)
-        np.testing.assert_allclose(g_J[idx], fd, atol=1e-7)
-
-
-def test_torque_parameter_gradients_match_finite_differences(rel_setup, rng):
-    model, kin, ref = rel_setup
-    J = jnp.asarray(ref["J"])
-    c = jnp.asarray(rng.normal(size=3))
-    torques = [
-        rb.BodyTorque(rng.normal(size=3)),
-        rb.InertialTorque(rng.normal(size=3)),
-        rb.UniformGravity(1.3, rng.normal(size=3)),
-        rb.RestoringMoment(0.8),
-        rb.RestoringMoment(rb.PolynomialSinPsi(jnp.array([0.7, -0.4, 0.25]), 0.3), eps=0.3),
-        rb.GravityGradient(1.7),
-        rb.GravityGradient(0.5) + rb.UniformGravity(0.7, rng.normal(size=3)),
-    ]
-    for torque in torques:
-        _fd_gradient_check(torque, kin, J, c)
-    # BalancingTransport has no parameters; its derivative in J (J ε_e − J ω_e × ω_e):
-    g = jax.grad(lambda J: jnp.dot(c, rb.BalancingTransport()(kin, J)))(J)
-    w_e, e_e = np.asarray(kin.omega_e), np.asarray(kin.eps_e)
-    # ∂/∂J_ij of cᵀ(J e − (J w) × w) = c_i e_j − (w × c)_i w_j
-    np.testing.assert_allclose(g, np.outer(c, e_e) - np.outer(np.cross(w_e, c), w_e),
-                               atol=TIGHT)
-
-
-@pytest.mark.parametrize("name", ["uniform_gravity", "restoring_moment", "gravity_gradient"])
-def test_potential_rate_is_minus_power(name, rng):
-    """−dV/dt = ω·M for a conservative torque along any motion (PHYSICS.md §4, §6, §7).
-
-    (a) V along an explicit rotation path q(s) = q0 ⊗ exp(ω s) built with scipy, central FD;
-    (b) `jax.jvp` of V along the hand kinematics q' = ½ q ⊗ (0, ω), exact to rounding.
-    """
-    J = general_inertia(rng, [1.0, 1.5, 2.2])
-    torque = {"uniform_gravity": rb.UniformGravity(1.4, rng.normal(size=3)),
-              "restoring_moment": rb.RestoringMoment(0.9),
-              "gravity_gradient": rb.GravityGradient(2.1)}[name]
-    model = rb.RigidBody(J, torque)
-    Jj = model.inertia
-    t = jnp.asarray(0.0)
-    for _ in range(5):
-        w, q0 = rng.normal(size=3), random_quat(rng)
-
-        def V(q, w=w):
-            return model.torque.potential(model.kinematics(t, rb.State(jnp.asarray(w), q)), Jj)
-
-        def q_path(s, w=w, q0=q0):
-            return jnp.asarray(xyzw_to_wxyz((scipy_rot(q0) * Rotation.from_rotvec(w * s))
-                                            .as_quat()))
-
-        power = float(np.dot(w, model.torque(model.kinematics(
-            t, rb.State(jnp.asarray(w), jnp.asarray(q0))), Jj)))
-        dV_fd = (float(V(q_path(FD_H))) - float(V(q_path(-FD_H)))) / (2 * FD_H)
-        np.testing.assert_allclose(dV_fd, -power, atol=FD_TOL)
-        # q' = ½ q ⊗ (0, ω) by hand (Hamilton product with a pure quaternion)
-        qw, qv = q0[0], q0[1:]
-        q_dot = 0.5 * np.concatenate([[-np.dot(qv, w)], qw * w + np.cross(qv, w)])
-        _, dV = jax.jvp(V, (jnp.asarray(q0),), (jnp.asarray(q_dot),))
-        np.testing.assert_allclose(dV, -power, atol=TIGHT)
-    assert abs(power) > 1e-3  # a non-trivial check
-
-
 # ------------------------------------------------------------------------------------------
-# 2. Transport frames
-# ------------------------------------------------------------------------------------------
-
-
-def _check_frame_derivatives(frame, times):
-    """R_eᵀ dR_e/dt = [ω_e¹]× and ε_e¹ = dω_e¹/dt, both by central FD of the frame itself."""
-    for t in times:
-        t = float(t)
-        q, w1, e1 = eval_frame(frame, t)
-        R = np.asarray(rb.rotation.quat_to_dcm(q))
-        dR = (np.asarray(rb.rotation.quat_to_dcm(eval_frame(frame, t + FD_H)[0]))
-              - np.asarray(rb.rotation.quat_to_dcm(eval_frame(frame, t - FD_H)[0]))) / (2 * FD_H)
-        np.testing.assert_allclose(R.T @ dR, skew(np.asarray(w1)), atol=FD_TOL)
-        dw = (np.asarray(eval_frame(frame, t + FD_H)[1])
-              - np.asarray(eval_frame(frame, t - FD_H)[1])) / (2 * FD_H)
-        np.testing.assert_allclose(e1, dw, atol=FD_TOL)
-
-
-@pytest.mark.parametrize("seq", ["ZXZ", "XYZ", "zyx"])
-def test_euler_angle_frame(seq, rng):
-    angles = PolyAngles(jnp.asarray(FRAME_C))
-    frame = rb.EulerAngleFrame(angles, seq=seq)
-    ts = [0.0, 0.7, 2.9]
-    _check_frame_derivatives(frame, ts)
-    for t in ts:
-        q, w1, _ = eval_frame(frame, t)
-        assert_quat_equal(q, xyzw_to_wxyz(frame_rot(FRAME_C, seq, t).as_quat()), atol=TIGHT)
-        # ω_e¹ against an independent FD of scipy's attitude
-        np.testing.assert_allclose(w1, frame_omega1(FRAME_C, seq, t), atol=FD_TOL)
-    # A ZXZ frame also matches the literal §2 formula (000 eq. 14)
-    if seq == "ZXZ":
-        t = 1.1
-        np.testing.assert_allclose(eval_frame(frame, t)[1],
-                                   zxz_omega(np_angles(FRAME_C, t), np_rates(FRAME_C, t)),
-                                   atol=TIGHT)
-    # Zero angles at t = 0 ⇒ identity; quat0 pre-multiplies and leaves ω_e¹, ε_e¹ unchanged.
-    c0 = FRAME_C.copy()
-    c0[1, 0] = 0.0
-    q, _, _ = rb.EulerAngleFrame(PolyAngles(jnp.asarray(c0)), seq=seq)(jnp.asarray(0.0))
-    assert_quat_equal(q, [1.0, 0.0, 0.0, 0.0], atol=TIGHT)
-    q0 = random_quat(rng)
-    framed = rb.EulerAngleFrame(angles, seq=seq, quat0=jnp.asarray(q0))
-    for t in ts:
-        qa, wa, ea = eval_frame(framed, t)
-        qb, wb, eb = eval_frame(frame, t)
-        assert_quat_equal(qa, xyzw_to_wxyz((scipy_rot(q0) * frame_rot(FRAME_C, seq, t))
-                                           .as_quat()), atol=TIGHT)
-        np.testing.assert_allclose(wa, wb, atol=TIGHT)
-        np.testing.assert_allclose(ea, eb, atol=TIGHT)
-
-
-def test_constant_rate_frame(rng):
-    w_e = rng.normal(size=3)
-    frame = rb.ConstantRate(w_e)
-    q, w1, e1 = eval_frame(frame, 0.0)
-    assert_quat_equal(q, [1.0, 0.0, 0.0, 0.0], atol=TIGHT)
-    ts = [0.0, 0.4, 3.3]
-    _check_frame_derivatives(frame, ts)
-    q0 = random_quat(rng)
-    framed = rb.ConstantRate(w_e, quat0=q0)
-    assert_quat_equal(eval_frame(framed, 0.0)[0], q0, atol=TIGHT)
-    for t in ts:
-        q, w1, e1 = eval_frame(frame, t)
-        assert_quat_equal(q, xyzw_to_wxyz(Rotation.from_rotvec(w_e * t).as_quat()), atol=TIGHT)
-        np.testing.assert_allclose(w1, w_e, atol=TIGHT)
-        np.testing.assert_allclose(e1, 0.0, atol=0)
-        assert_quat_equal(eval_frame(framed, t)[0],
-                          xyzw_to_wxyz((scipy_rot(q0) * Rotation.from_rotvec(w_e * t))
-                                       .as_quat()), atol=TIGHT)
-
-
-def test_circular_orbit_frame():
-    """PHYSICS.md §7 (LVLH): ω_e¹ = (0, −n, 0); the nadir z1 turns about the orbit normal
-    −y1 at rate n; the satellite r = −z1 moves along x1, and r × v = n (−y1)."""
-    n = 0.63
-    frame = rb.CircularOrbit(n)
-    assert_quat_equal(eval_frame(frame, 0.0)[0], [1.0, 0.0, 0.0, 0.0], atol=TIGHT)
-    ts = np.linspace(0.0, 2 * np.pi / n, 7)
-    _check_frame_derivatives(frame, ts)
-
-    def axes(t):
-        return np.asarray(rb.rotation.quat_to_dcm(eval_frame(frame, t)[0]))  # columns x1 y1 z1
-
-    normal = -axes(0.0)[:, 1]
-    for t in ts:
-        _, w1, e1 = eval_frame(frame, t)
-        np.testing.assert_allclose(w1, [0.0, -n, 0.0], atol=TIGHT)
-        np.testing.assert_allclose(e1, 0.0, atol=0)
-        R = axes(t)
-        np.testing.assert_allclose(-R[:, 1], normal, atol=TIGHT)  # the normal is fixed
-        np.testing.assert_allclose(R[:, 2], [-np.sin(n * t), 0.0, np.cos(n * t)], atol=TIGHT)
-        r = -R[:, 2]
-        v = -(axes(t + FD_H)[:, 2] - axes(t - FD_H)[:, 2]) / (2 * FD_H)
-        np.testing.assert_allclose(v, n * R[:, 0], atol=FD_TOL)  # along-track
-        np.testing.assert_allclose(np.cross(r, v), n * normal, atol=FD_TOL)
-
-
-# ------------------------------------------------------------------------------------------
-# 3. Relative motion reproduces the absolute motion (PHYSICS.md §5)
+# 2. Relative motion reproduces the absolute motion (PHYSICS.md §5)
 # ------------------------------------------------------------------------------------------
 
 REL_T = 8.0
@@ -565,7 +201,7 @@ def test_relative_under_constant_rate_frame_reproduces_absolute_motion(rng):
 
 
 # ------------------------------------------------------------------------------------------
-# 4. §5 special case: balanced transport conserves the relative kinetic energy
+# 3. §5 special case: balanced transport conserves the relative kinetic energy
 # ------------------------------------------------------------------------------------------
 
 
@@ -604,7 +240,7 @@ def test_balanced_transport_conserves_relative_kinetic_energy(rng):
 
 
 # ------------------------------------------------------------------------------------------
-# 5. Heavy (Lagrange) top
+# 4. Heavy (Lagrange) top
 # ------------------------------------------------------------------------------------------
 
 
@@ -640,7 +276,7 @@ def test_heavy_top_first_integrals_and_precession(rng):
 
 
 # ------------------------------------------------------------------------------------------
-# 6. §7: Newtonian field, and the three state forms agree
+# 5. §7: Newtonian field, and the three state forms agree
 # ------------------------------------------------------------------------------------------
 
 GG_T = 20.0
@@ -718,7 +354,7 @@ def test_euler_and_poisson_forms_match_quaternion_form(case, rng):
 
 
 # ------------------------------------------------------------------------------------------
-# 7. Pitch libration on a circular orbit (§5 with §7)
+# 6. Pitch libration on a circular orbit (§5 with §7)
 # ------------------------------------------------------------------------------------------
 
 ORBIT_N = 0.7
@@ -829,7 +465,7 @@ def test_circular_orbit_jacobi_integral(rng):
 
 
 # ------------------------------------------------------------------------------------------
-# 8. Construction errors
+# 7. Construction errors
 # ------------------------------------------------------------------------------------------
 
 MODEL_CLASSES = [rb.RigidBody, rb.RelativeRigidBody, rb.EulerAngleRigidBody, rb.PoissonRigidBody]
@@ -843,6 +479,38 @@ def test_non_physical_or_asymmetric_inertia_is_an_error(cls):
         cls(jnp.array([[2.0, 0.3, 0.0], [0.0, 2.0, 0.0], [0.0, 0.0, 2.0]]))
     with pytest.raises(ValueError, match="`inertia`"):
         cls(jnp.eye(2))
+
+
+def test_constructors_convert_their_fields_when_built_only():
+    """The fields go through their converters when a model is built, positionally or by
+    keyword: the inertia is checked, a `None` torque or frame (the defaults) is `NoTorque()`
+    / `Inertial()`. Built under `eqx.filter_vmap`, each lane's 3×3 is checked and the model
+    holds the batch; `eqx.tree_at` and unflattening keep a leaf as it is (a batched inertia,
+    which the constructor itself refuses)."""
+    J = jnp.diag(jnp.array([1.0, 2.0, 2.5]))
+    torque = rb.GravityGradient(1.5)
+    for cls in [rb.RigidBody, rb.EulerAngleRigidBody, rb.PoissonRigidBody]:
+        assert isinstance(cls(J).torque, rb.NoTorque)
+        assert cls(J, torque).torque is torque and cls(inertia=J, torque=torque).torque is torque
+    frame = rb.CircularOrbit(0.3)
+    rel = rb.RelativeRigidBody(J, frame, torque)
+    assert rel.frame is frame and rel.torque is torque
+    assert isinstance(rb.RelativeRigidBody(J).frame, rb.Inertial)
+    assert isinstance(rb.RelativeRigidBody(J, torque=torque).frame, rb.Inertial)
+    assert isinstance(rb.RelativeRigidBody(J, frame).torque, rb.NoTorque)
+    Js = jnp.stack([J, 2.0 * J, 3.0 * J])
+    with pytest.raises(ValueError, match="one 3×3 tensor"):
+        rb.RigidBody(Js, torque)
+    batch = eqx.filter_vmap(lambda J: rb.RigidBody(J, torque))(Js)
+    np.testing.assert_array_equal(batch.inertia, Js)
+    with pytest.raises(eqx.EquinoxRuntimeError, match="`inertia` is not physical"):
+        eqx.filter_vmap(rb.RigidBody)(Js.at[1].set(jnp.diag(jnp.array([1.0, 1.0, 3.0]))))
+    swapped = eqx.tree_at(lambda m: m.inertia, rel, Js)
+    assert swapped.inertia is Js
+    assert eqx.tree_equal(swapped.frame, frame) and eqx.tree_equal(swapped.torque, torque)
+    leaves, treedef = jax.tree_util.tree_flatten(swapped)
+    rebuilt = jax.tree_util.tree_unflatten(treedef, leaves)
+    assert rebuilt.inertia is Js and jax.tree_util.tree_structure(rebuilt) == treedef
 
 
 def _builds(build, J):
@@ -893,7 +561,7 @@ def test_eager_inertia_check_decides_as_the_traced_check():
 
 
 # ------------------------------------------------------------------------------------------
-# 9. Fitting an inertia: `with_log_cholesky`
+# 8. Fitting an inertia: `with_log_cholesky`
 # ------------------------------------------------------------------------------------------
 
 
@@ -980,12 +648,6 @@ def test_poisson_form_rejects_attitude_torques_at_trace_time():
     ]:
         with pytest.raises(ValueError, match=name):
             rb.simulate(rb.PoissonRigidBody(jnp.eye(3), torque), y0, ts)
-
-
-@pytest.mark.parametrize("seq", ["ZZX", "XYz", "XY", "XYZW", "ABC"])
-def test_euler_angle_frame_bad_seq(seq):
-    with pytest.raises(ValueError, match="`seq`"):
-        rb.EulerAngleFrame(PolyAngles(jnp.asarray(FRAME_C)), seq=seq)
 
 
 def test_invariants_of_a_batched_trajectory_equal_per_trajectory():
