@@ -114,9 +114,9 @@ def _configure_xla(devices: int | None = None) -> None:
     """XLA's flags for the solves (`rbdyn_jax.configure_xla`: loops compiled whole), and for
     `devices` CPU devices if given, when this process has not started JAX yet (when it has,
     e.g. a test calling a command in-process, it runs as it is). No effect on GPU/TPU."""
-    from ._xla import _backend_started, configure_xla
+    from ._xla import backend_started, configure_xla
 
-    if not _backend_started():
+    if not backend_started():
         configure_xla(devices)
 
 
@@ -161,10 +161,11 @@ def sweep_command(args) -> int:
     from tqdm import tqdm
 
     from . import sweep
+    from .scenario import Scenario, ScenarioError
 
     try:
-        scenario = sweep.Scenario.load(args.scenario)
-    except sweep.ScenarioError as e:
+        scenario = Scenario.load(args.scenario)
+    except ScenarioError as e:
         print(f"rbdyn sweep: invalid scenario: {e}", file=sys.stderr)
         return 2
     devices = jax.devices()
@@ -341,13 +342,14 @@ def fit_command(args) -> int:
     import jax.numpy as jnp
     import numpy as np
 
-    from . import identify, sweep
+    from . import identify
     from .integrate import simulate
     from .models import RigidBody
+    from .scenario import Scenario, ScenarioError
 
     try:
-        scenario = sweep.Scenario.load(args.model)
-    except sweep.ScenarioError as e:
+        scenario = Scenario.load(args.model)
+    except ScenarioError as e:
         print(f"rbdyn fit: invalid scenario: {e}", file=sys.stderr)
         return 2
     model, _ = scenario.build(scenario.nominal())
@@ -367,13 +369,16 @@ def fit_command(args) -> int:
     scale = None
     if args.scale:
         kind, _, value = args.scale.partition("=")
-        if kind == "trace":
-            scale = ("trace", float(value))
-        elif kind.startswith("moment"):
-            axis, _, v = value.partition(":")
-            scale = ("moment", int(axis), float(v))
-        else:
-            print("rbdyn fit: --scale is trace=V or moment=AXIS:V", file=sys.stderr)
+        axis, _, v = value.partition(":")
+        try:
+            if kind == "trace":
+                scale = identify.TraceScale(float(value))
+            elif kind.startswith("moment"):
+                scale = identify.MomentScale(int(axis), float(v))
+            else:
+                raise ValueError(f"unknown {kind!r}")
+        except ValueError as e:  # a bad number, or a scale identify refuses
+            print(f"rbdyn fit: --scale is trace=V or moment=AXIS:V ({e})", file=sys.stderr)
             return 2
     K, n = data.ts.shape
     print(f"rbdyn fit: {K} trajectories × {n} samples from {args.data}; model "
@@ -520,10 +525,10 @@ def main(argv: list[str] | None = None) -> int:
             parser.error("--steps must be ≥ 1")
         return fit_command(args)
     if args.command == "scenarios":
-        from . import sweep
+        from .scenario import Scenario, list_scenarios
 
-        for name in sweep.list_scenarios():
-            sc = sweep.Scenario.load(name)
+        for name in list_scenarios():
+            sc = Scenario.load(name)
             print(f"{name:28s} {sc.description}")
         return 0
     if args.command == "demo":

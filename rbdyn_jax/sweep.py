@@ -1,19 +1,15 @@
-"""Monte Carlo sweeps: scenarios, chunked runs sharded over devices, streaming to disk, resume.
+"""Monte Carlo sweeps of a scenario: chunked runs sharded over devices, streaming to disk,
+resume.
 
-A **scenario** is a model, distributions of its parameters and of the initial conditions,
-the output times, solver settings and the per-trajectory summaries to keep. It is written
-in TOML (`Scenario.from_toml`, shipped ones in `rbdyn_jax/scenarios/`) or given as the same
-nested dict (`Scenario.from_dict`), and validated: an unknown key or a bad value raises a
-`ScenarioError` naming the key (`model.inertia.principal`) and what was expected.
-
-`run(scenario, n, out)` draws trajectory `i` from `fold_in(key(seed), i)` (and every random
-quantity from a further `fold_in` with a hash of its key path), so a trajectory's sample
-does not depend on the chunking, the devices or the other random quantities. The solves run
-through one compiled program: each device takes its part of a chunk with
-`jax.shard_map` (no collectives inside the solver loop) and runs it through the lane solver
-of `simulate_batch(..., lanes=lanes)`, in fixed blocks of 8 × `lanes` trajectories: `lanes`
-trajectories step together, and a lane whose trajectory has finished takes the next one of
-its block at once. Because the block shape is fixed and
+The scenario (model, distributions, output times, solver settings, summaries; TOML) is
+`rbdyn_jax.scenario.Scenario`. `run(scenario, n, out)` draws trajectory `i` from
+`fold_in(key(seed), i)` (and every random quantity from a further `fold_in` with a hash of
+its key path), so a trajectory's sample does not depend on the chunking, the devices or the
+other random quantities. The solves run through one compiled program: each device takes its
+part of a chunk with `jax.shard_map` (no collectives inside the solver loop) and runs it
+through the lane solver of `simulate_batch(..., lanes=lanes)`, in fixed blocks of
+8 × `lanes` trajectories: `lanes` trajectories step together, and a lane whose trajectory
+has finished takes the next one of its block at once. Because the block shape is fixed and
 every parameter enters as a runtime argument (nothing constant-folded), the results are
 **bitwise identical for any chunk size and any number of devices** at a given `lanes`.
 Each finished chunk is written to a zarr store (format 2 with consolidated metadata:
@@ -30,644 +26,37 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import math
 import os
 import pathlib
 import shutil
 import time
-import tomllib
-import zlib
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Iterator
 from typing import Any
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.sharding import NamedSharding
 from jax.sharding import PartitionSpec as P
 
-from . import inertia as _inertia
-from . import invariants, rotation
 from ._checks import checks_as_nan
 from ._xla import jit
-from .frames import CircularOrbit, ConstantRate, EulerAngleFrame, HarmonicAngles, Inertial
-from .integrate import MODE_DEPENDENT_JITS, RESULTS, Trajectory, _lane_batch
-from .models import RelativeRigidBody, RigidBody
-from .state import State
-from .torques import (
-    BalancingTransport,
-    BodyTorque,
-    GravityGradient,
-    InertialTorque,
-    PolynomialSinPsi,
-    RestoringMoment,
-    UniformGravity,
+from .integrate import (
+    MODE_DEPENDENT_JITS,
+    RESULTS,
+    Lanes,
+    result_code,
+    result_names,
+    simulate_batch,
 )
+from .scenario import SUMMARIES, Scenario
 
-SCENARIO_DIR = pathlib.Path(__file__).parent / "scenarios"
 CONVENTIONS = (
     "PHYSICS.md conventions: quat = [w, x, y, z] (scalar first), unit, rotating body "
     "components into the parent frame (O0 for rigid_body, the transport frame O1 for "
     "relative_rigid_body); omega in body components, rad/s (the rate relative to O1 for "
     "relative_rigid_body); inertia in body axes; times in s; angles in rad."
 )
-
-
-class ScenarioError(ValueError):
-    """A scenario file or dict that does not validate; the message names the key."""
-
-
-# ----------------------------------------------------------------------------------------
-# Distributions: eqx.Modules whose leaves are arrays, so they enter the compiled sweep as
-# runtime arguments. `sample(key)` gives one draw.
-# ----------------------------------------------------------------------------------------
-
-
-class Fixed(eqx.Module):
-    """Always `value`."""
-
-    value: jax.Array
-
-    def sample(self, key):
-        return self.value
-
-
-class Normal(eqx.Module):
-    """Independent normal components, `mean + std · N(0, 1)`."""
-
-    mean: jax.Array
-    std: jax.Array
-
-    def sample(self, key):
-        return self.mean + self.std * jax.random.normal(key, self.mean.shape, self.mean.dtype)
-
-
-class Uniform(eqx.Module):
-    """Independent uniform components on `[low, high)`."""
-
-    low: jax.Array
-    high: jax.Array
-
-    def sample(self, key):
-        u = jax.random.uniform(key, self.low.shape, self.low.dtype)
-        return self.low + (self.high - self.low) * u
-
-
-class LogNormal(eqx.Module):
-    """`median · exp(sigma · N(0, 1))`, componentwise (positive quantities)."""
-
-    median: jax.Array
-    sigma: jax.Array
-
-    def sample(self, key):
-        z = jax.random.normal(key, self.median.shape, self.median.dtype)
-        return self.median * jnp.exp(self.sigma * z)
-
-
-class UniformSO3(eqx.Module):
-    """A uniformly distributed attitude: a normalised 4-D Gaussian (Haar measure on SO(3)),
-    sign fixed to w ≥ 0."""
-
-    dtype: Any = eqx.field(static=True, default=jnp.float64)
-
-    def sample(self, key):
-        q = jax.random.normal(key, (4,), self.dtype)
-        q = q / jnp.linalg.norm(q)
-        return jnp.where(q[0] < 0, -q, q)
-
-
-class EulerAttitude(eqx.Module):
-    """Attitude from Euler angles drawn from `angles` (a distribution) in sequence `seq`."""
-
-    angles: eqx.Module
-    seq: str = eqx.field(static=True)
-
-    def sample(self, key):
-        return rotation.euler_to_quat(self.angles.sample(key), self.seq)
-
-
-class DispersedInertia(eqx.Module):
-    """A physical inertia around `nominal`: the log-Cholesky coordinates θ of its planar
-    tensor J' = L Lᵀ (`inertia.to_log_cholesky`) are perturbed, the log-diagonal by
-    `sigma · N(0, 1)` and each off-diagonal `L_ij` by `sigma · sqrt(L_ii L_jj) · N(0, 1)`,
-    a relative spread of about `sigma` in every moment and product of inertia. Every sample
-    is physical (triangle inequalities hold) by construction (PHYSICS.md §3)."""
-
-    nominal: jax.Array
-    sigma: jax.Array
-
-    def sample(self, key):
-        theta = _inertia.to_log_cholesky(self.nominal)
-        d = jnp.exp(theta[:3])
-        scale = jnp.stack([1.0, 1.0, 1.0, jnp.sqrt(d[1] * d[0]), jnp.sqrt(d[2] * d[0]),
-                           jnp.sqrt(d[2] * d[1])]).astype(theta.dtype)
-        z = jax.random.normal(key, (6,), theta.dtype)
-        return _inertia.from_log_cholesky(theta + self.sigma * scale * z)
-
-
-def _path_key(key, path: str):
-    return jax.random.fold_in(key, zlib.crc32(path.encode()) & 0x7FFFFFFF)
-
-
-# ----------------------------------------------------------------------------------------
-# Validation helpers: every error names the dotted key path and what was expected.
-# ----------------------------------------------------------------------------------------
-
-
-def _fail(path: str, expected: str, got: Any = dataclasses.MISSING) -> ScenarioError:
-    tail = "" if got is dataclasses.MISSING else f", got {got!r}"
-    return ScenarioError(f"`{path}`: expected {expected}{tail}")
-
-
-def _table(d: Any, path: str, allowed: set[str], required: set[str] = frozenset()) -> dict:
-    if not isinstance(d, Mapping):
-        raise _fail(path, "a table", d)
-    unknown = sorted(set(d) - allowed)
-    if unknown:
-        where = f"{path}.{unknown[0]}" if path else unknown[0]
-        raise ScenarioError(f"`{where}`: unknown key; expected one of {sorted(allowed)}")
-    for key in sorted(required):
-        if key not in d:
-            raise _fail(f"{path}.{key}" if path else key, "this key to be present (missing)")
-    return dict(d)
-
-
-def _number(x, path, *, positive=False, nonneg=False, integer=False) -> float | int:
-    ok_type = isinstance(x, int) if integer else isinstance(x, int | float)
-    if isinstance(x, bool) or not ok_type:
-        raise _fail(path, "an integer" if integer else "a number", x)
-    if not math.isfinite(x):
-        raise _fail(path, "a finite number", x)
-    if positive and not x > 0:
-        raise _fail(path, "a positive number", x)
-    if nonneg and not x >= 0:
-        raise _fail(path, "a number ≥ 0", x)
-    return x
-
-
-def _array(x, path, shape: tuple[int, ...], *, positive=False, nonneg=False) -> np.ndarray:
-    """A number or nested list of numbers of `shape` (a scalar broadcasts to it)."""
-    desc = "a number" if shape == () else f"a number or a list of shape {list(shape)}"
-    try:
-        a = np.asarray(x, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise _fail(path, desc, x) from None
-    if isinstance(x, bool) or a.dtype == object or isinstance(x, str):
-        raise _fail(path, desc, x)
-    if a.shape != shape:
-        if a.ndim != 0:
-            raise _fail(path, f"{desc} (shape {list(a.shape)} given)", x)
-        a = np.broadcast_to(a, shape)
-    if not np.all(np.isfinite(a)):
-        raise _fail(path, "finite numbers", x)
-    if positive and not np.all(a > 0):
-        raise _fail(path, "positive numbers", x)
-    if nonneg and not np.all(a >= 0):
-        raise _fail(path, "numbers ≥ 0", x)
-    return np.array(a)
-
-
-DISTRIBUTIONS = {
-    "fixed": ({"value"}, lambda p, v: Fixed(v["value"])),
-    "normal": ({"mean", "std"}, lambda p, v: Normal(v["mean"], v["std"])),
-    "uniform": ({"low", "high"}, lambda p, v: Uniform(v["low"], v["high"])),
-    "lognormal": ({"median", "sigma"}, lambda p, v: LogNormal(v["median"], v["sigma"])),
-}
-
-
-def _quantity(x, path, shape=(), *, positive=False) -> eqx.Module:
-    """A literal (→ `Fixed`) or a distribution table `{dist = "normal", mean, std}` …"""
-    if not isinstance(x, Mapping):
-        return Fixed(jnp.asarray(_array(x, path, shape, positive=positive)))
-    if "dist" not in x:
-        raise _fail(f"{path}.dist", f"one of {sorted(DISTRIBUTIONS)} (missing)")
-    kind = x["dist"]
-    if kind not in DISTRIBUTIONS:
-        raise _fail(f"{path}.dist", f"one of {sorted(DISTRIBUTIONS)}", kind)
-    fields, make = DISTRIBUTIONS[kind]
-    _table(x, path, fields | {"dist"}, fields)
-    vals = {}
-    for f in sorted(fields):
-        nonneg = f in ("std", "sigma")
-        pos = f == "median" or (positive and f in ("value", "low", "mean"))
-        vals[f] = jnp.asarray(_array(x[f], f"{path}.{f}", shape, positive=pos, nonneg=nonneg))
-    if kind == "uniform" and not np.all(np.asarray(vals["high"]) > np.asarray(vals["low"])):
-        raise _fail(f"{path}.high", "values greater than `low`", x["high"])
-    if positive and kind == "normal":
-        raise _fail(f"{path}.dist", "a positive distribution (fixed, uniform or lognormal)",
-                    kind)
-    return make(path, vals)
-
-
-def _quat_array(x, path) -> np.ndarray:
-    q = _array(x, path, (4,))
-    n = np.linalg.norm(q)
-    if not abs(n - 1.0) < 1e-6:
-        raise _fail(path, "a unit quaternion [w, x, y, z]", x)
-    return q / n
-
-
-def _attitude(x, path) -> eqx.Module:
-    if isinstance(x, list):
-        return Fixed(jnp.asarray(_quat_array(x, path)))
-    t = _table(x, path, {"dist", "quat", "euler", "seq", "degrees"})
-    given = [k for k in ("dist", "quat", "euler") if k in t]
-    if len(given) != 1:
-        raise _fail(path, "exactly one of `dist = \"uniform_so3\"`, `quat` or `euler`",
-                    sorted(t))
-    if "dist" in t:
-        if t["dist"] != "uniform_so3" or set(t) != {"dist"}:
-            raise _fail(f"{path}.dist", '"uniform_so3" (alone; use `euler` for others)',
-                        t["dist"])
-        return UniformSO3()
-    if "quat" in t:
-        if set(t) != {"quat"}:
-            raise _fail(path, "`quat` alone", sorted(t))
-        return Fixed(jnp.asarray(_quat_array(t["quat"], f"{path}.quat")))
-    seq = t.get("seq", "ZXZ")
-    try:
-        rotation._parse_seq(seq)
-    except (ValueError, TypeError):
-        raise _fail(f"{path}.seq", "an Euler sequence such as \"ZXZ\" or \"xyz\"", seq) from None
-    degrees = t.get("degrees", False)
-    if not isinstance(degrees, bool):
-        raise _fail(f"{path}.degrees", "true or false", degrees)
-    angles = _quantity(t["euler"], f"{path}.euler", (3,))
-    if degrees:  # every leaf (value, mean, std, low, high) is an angle
-        angles = jax.tree_util.tree_map(lambda a: a * (np.pi / 180.0), angles)
-    return EulerAttitude(angles, seq)
-
-
-def _inertia_spec(x, path) -> eqx.Module:
-    t = _table(x, path, {"principal", "matrix", "log_cholesky_sigma"})
-    if ("principal" in t) == ("matrix" in t):
-        raise _fail(path, "exactly one of `principal` or `matrix`", sorted(t))
-    if "principal" in t:
-        J = np.diag(_array(t["principal"], f"{path}.principal", (3,), positive=True))
-        key = f"{path}.principal"
-    else:
-        J = _array(t["matrix"], f"{path}.matrix", (3, 3))
-        key = f"{path}.matrix"
-        if not np.allclose(J, J.T, rtol=0, atol=1e-12 * np.abs(J).max()):
-            raise _fail(key, "a symmetric 3×3 matrix", t["matrix"])
-    if not bool(_inertia.is_physical(jnp.asarray(J))) or not np.all(np.linalg.eigvalsh(J) > 0):
-        raise _fail(key, "a physical inertia (positive moments obeying the triangle "
-                    "inequalities A + B ≥ C, PHYSICS.md §3) with no zero moment", x.get(
-                        "principal", x.get("matrix")))
-    sigma = _number(t.get("log_cholesky_sigma", 0.0), f"{path}.log_cholesky_sigma", nonneg=True)
-    if sigma > 0 and not np.all(np.linalg.eigvalsh(np.asarray(_inertia.planar(J))) > 0):
-        raise _fail(f"{path}.log_cholesky_sigma", "0 for a flat body (a zero planar moment, "
-                    "A + B = C, has no log-Cholesky coordinates to disperse)", sigma)
-    return DispersedInertia(jnp.asarray(J), jnp.asarray(float(sigma)))
-
-
-# Torques: kind → (required, optional keys with shapes).
-TORQUES: dict[str, tuple[dict[str, tuple], dict[str, tuple]]] = {
-    "body": ({"moment": (3,)}, {}),
-    "inertial": ({"moment": (3,)}, {}),
-    "uniform_gravity": ({"weight": (), "com": (3,)}, {}),
-    "restoring_moment": ({}, {"k": (), "coeffs": None, "eps": ()}),
-    "gravity_gradient": ({}, {"eps": (), "orbit_rate": ()}),
-    "balancing_transport": ({}, {}),
-}
-FRAMES = {
-    "inertial": ({}, {}),
-    "constant_rate": ({"omega_e": (3,)}, {"quat0": (4,)}),
-    "circular_orbit": ({"n": ()}, {"quat0": (4,)}),
-    "euler_angles": ({}, {"seq": None, "offset": (3,), "rate": (3,), "amplitude": (3,),
-                          "frequency": (3,), "phase": (3,)}),
-}
-
-
-def _kinded(x, path, registry) -> tuple[str, dict, dict, dict]:
-    """A table with a `kind` from `registry` (kind → (required, optional) keys): the kind,
-    the validated table and its required and optional keys."""
-    if not isinstance(x, Mapping) or "kind" not in x:
-        raise _fail(f"{path}.kind", f"one of {sorted(registry)} (missing)")
-    kind = x["kind"]
-    if kind not in registry:
-        raise _fail(f"{path}.kind", f"one of {sorted(registry)}", kind)
-    req, opt = registry[kind]
-    return kind, _table(x, path, set(req) | set(opt) | {"kind"}, set(req)), req, opt
-
-
-def _torque_spec(x, path) -> tuple[str, dict]:
-    kind, t, req, opt = _kinded(x, path, TORQUES)
-    params = {}
-    for name, shape in {**req, **opt}.items():
-        if name not in t:
-            continue
-        if name == "coeffs":
-            n = len(t[name]) if isinstance(t[name], list) else 0
-            if n < 1:
-                raise _fail(f"{path}.coeffs", "a non-empty list of numbers (K(τ) = Σ c_i τ^i)",
-                            t[name])
-            shape = (n,)
-        params[name] = _quantity(t[name], f"{path}.{name}", shape,
-                                 positive=name in ("orbit_rate",))
-    if kind == "restoring_moment" and ("k" in t) == ("coeffs" in t):
-        raise _fail(path, "exactly one of `k` (constant) or `coeffs` (K(τ) polynomial)",
-                    sorted(t))
-    if kind == "gravity_gradient" and ("eps" in t) == ("orbit_rate" in t):
-        raise _fail(path, "exactly one of `eps` (3μ/R³) or `orbit_rate` (n, ε = 3n²)",
-                    sorted(t))
-    return kind, params
-
-
-def _frame_spec(x, path) -> tuple[str, dict, str]:
-    kind, t, req, opt = _kinded(x, path, FRAMES)
-    params, seq = {}, "ZXZ"
-    for name, shape in {**req, **opt}.items():
-        if name not in t:
-            continue
-        if name == "seq":
-            seq = t["seq"]
-            try:
-                rotation._parse_seq(seq)
-            except (ValueError, TypeError):
-                raise _fail(f"{path}.seq", "an Euler sequence such as \"ZXZ\"", seq) from None
-        elif name == "quat0":
-            params[name] = Fixed(jnp.asarray(_quat_array(t[name], f"{path}.quat0")))
-        else:
-            params[name] = _quantity(t[name], f"{path}.{name}", shape)
-    return kind, params, seq
-
-
-# ----------------------------------------------------------------------------------------
-# Summaries: per-trajectory scalars computed in the compiled sweep from the saved states.
-# ----------------------------------------------------------------------------------------
-
-
-def _nutation(quat):
-    """Angle between the body z-axis and the parent z-axis: arccos R33, R33 = 1 − 2(x²+y²)."""
-    c = 1.0 - 2.0 * (quat[..., 1] ** 2 + quat[..., 2] ** 2)
-    return jnp.arccos(jnp.clip(c, -1.0, 1.0))
-
-
-def _first_flip(ts, omega, J):
-    """First time the body rate along the intermediate principal axis of J changes sign
-    (linear interpolation between output times), NaN if it never does within `ts`. For a
-    spin started near the intermediate axis this is the first intermediate-axis flip."""
-    _, axes = jnp.linalg.eigh(J)
-    s = omega @ axes[:, 1]
-    crossed = jnp.sign(s[1:]) * jnp.sign(s[0]) < 0
-    k = jnp.argmax(crossed)
-    frac = s[k] / (s[k] - s[k + 1])
-    return jnp.where(jnp.any(crossed) & (s[0] != 0), ts[k] + frac * (ts[k + 1] - ts[k]), jnp.nan)
-
-
-def _relative_drift(x):
-    return jnp.max(jnp.abs(x - x[0])) / jnp.abs(x[0])
-
-
-SUMMARIES: dict[str, tuple[str, Callable]] = {
-    "max_nutation": ("largest angle between body z and parent z over the output times, rad",
-                     lambda m, tr: jnp.max(_nutation(tr.ys.quat))),
-    "final_nutation": ("angle between body z and parent z at the last output time, rad",
-                       lambda m, tr: _nutation(tr.ys.quat[-1])),
-    "energy_drift": ("max |E − E0| / |E0| over the output times (conservative models)",
-                     lambda m, tr: _relative_drift(invariants.energy(m, tr))),
-    "relative_energy_drift": ("max |T_r − T_r0| / T_r0, relative kinetic energy (PHYSICS §5)",
-                              lambda m, tr: _relative_drift(
-                                  invariants.relative_kinetic_energy(m, tr))),
-    "first_flip_time": ("first sign change of ω along the intermediate principal axis, s",
-                        lambda m, tr: _first_flip(tr.ts, tr.ys.omega, m.inertia)),
-    "min_abs_omega": ("smallest |ω| (|ω_r| in relative models) over the output times, rad/s",
-                      lambda m, tr: jnp.min(jnp.linalg.norm(tr.ys.omega, axis=-1))),
-    "max_abs_omega": ("largest |ω| (|ω_r| in relative models) over the output times, rad/s",
-                      lambda m, tr: jnp.max(jnp.linalg.norm(tr.ys.omega, axis=-1))),
-}
-SOLVERS = ("Tsit5", "Dopri5", "Dopri8")
-
-
-# ----------------------------------------------------------------------------------------
-# Scenario
-# ----------------------------------------------------------------------------------------
-
-
-@dataclasses.dataclass(frozen=True)
-class Scenario:
-    """A validated sweep scenario (build with `from_toml`, `from_dict` or `load`).
-
-    `dists` is the pytree of distributions (key path → distribution module); the structure
-    (model kind, torques, frame, summaries) is static. See `rbdyn_jax/scenarios/*.toml` and
-    the README for the format; `TORQUES`, `FRAMES`, `DISTRIBUTIONS` and `SUMMARIES` list
-    the accepted kinds.
-    """
-
-    name: str
-    description: str
-    kind: str
-    torques: tuple[str, ...]
-    frame: str
-    frame_seq: str
-    dists: dict[str, eqx.Module]
-    t0: float
-    t1: float
-    n_times: int
-    solver: str
-    rtol: float
-    atol: float
-    max_steps: int
-    summaries: tuple[str, ...]
-    source: dict
-
-    TOP = {"name", "description", "model", "initial", "time", "solver", "outputs"}
-
-    @classmethod
-    def from_toml(cls, path: str | pathlib.Path) -> Scenario:
-        path = pathlib.Path(path)
-        try:
-            d = tomllib.loads(path.read_text())
-        except tomllib.TOMLDecodeError as e:
-            raise ScenarioError(f"{path}: not valid TOML: {e}") from None
-        return cls.from_dict(d, default_name=path.stem)
-
-    @classmethod
-    def load(cls, name_or_path: str | pathlib.Path) -> Scenario:
-        """A shipped scenario by name (`list_scenarios()`), or a TOML file."""
-        p = pathlib.Path(name_or_path)
-        if not p.exists() and (SCENARIO_DIR / f"{name_or_path}.toml").exists():
-            p = SCENARIO_DIR / f"{name_or_path}.toml"
-        if not p.exists():
-            raise ScenarioError(f"no scenario file {str(name_or_path)!r} and no shipped "
-                                f"scenario of that name (shipped: {list_scenarios()})")
-        return cls.from_toml(p)
-
-    @classmethod
-    def from_dict(cls, d: Mapping, *, default_name: str = "scenario") -> Scenario:
-        d = _table(d, "", cls.TOP, {"model", "initial", "time"})
-        name = d.get("name", default_name)
-        if not isinstance(name, str) or not name:
-            raise _fail("name", "a non-empty string", name)
-        description = d.get("description", "")
-        if not isinstance(description, str):
-            raise _fail("description", "a string", description)
-
-        m = _table(d["model"], "model", {"kind", "inertia", "torques", "frame"},
-                   {"kind", "inertia"})
-        kind = m["kind"]
-        if kind not in ("rigid_body", "relative_rigid_body"):
-            raise _fail("model.kind", '"rigid_body" or "relative_rigid_body"', kind)
-        dists: dict[str, eqx.Module] = {"model.inertia": _inertia_spec(m["inertia"],
-                                                                        "model.inertia")}
-        torques = m.get("torques", [])
-        if not isinstance(torques, list):
-            raise _fail("model.torques", "an array of tables ([[model.torques]])", torques)
-        kinds = []
-        for i, tq in enumerate(torques):
-            tkind, params = _torque_spec(tq, f"model.torques[{i}]")
-            kinds.append(tkind)
-            dists.update({f"model.torques[{i}].{k}": v for k, v in params.items()})
-        frame, seq = "inertial", "ZXZ"
-        if "frame" in m:
-            if kind != "relative_rigid_body":
-                raise _fail("model.frame", 'no frame for kind = "rigid_body" (use '
-                            '"relative_rigid_body")', m["frame"])
-            frame, params, seq = _frame_spec(m["frame"], "model.frame")
-            dists.update({f"model.frame.{k}": v for k, v in params.items()})
-        if "balancing_transport" in kinds and kind != "relative_rigid_body":
-            raise _fail("model.torques", 'balancing_transport only with kind = '
-                        '"relative_rigid_body"', "balancing_transport")
-
-        ini = _table(d["initial"], "initial", {"omega", "attitude"}, {"omega"})
-        dists["initial.omega"] = _quantity(ini["omega"], "initial.omega", (3,))
-        dists["initial.attitude"] = _attitude(ini.get("attitude", [1.0, 0.0, 0.0, 0.0]),
-                                              "initial.attitude")
-
-        tt = _table(d["time"], "time", {"t0", "t1", "n"}, {"t1", "n"})
-        t0 = float(_number(tt.get("t0", 0.0), "time.t0"))
-        t1 = float(_number(tt["t1"], "time.t1"))
-        if not t1 > t0:
-            raise _fail("time.t1", f"a time after t0 = {t0}", tt["t1"])
-        n_times = int(_number(tt["n"], "time.n", integer=True))
-        if n_times < 2:
-            raise _fail("time.n", "an integer ≥ 2 (output times, linspace(t0, t1, n))",
-                        tt["n"])
-
-        s = _table(d.get("solver", {}), "solver", {"method", "rtol", "atol", "max_steps"})
-        method = s.get("method", "Tsit5")
-        if method not in SOLVERS:
-            raise _fail("solver.method", f"one of {list(SOLVERS)}", method)
-        rtol = float(_number(s.get("rtol", 1e-8), "solver.rtol", positive=True))
-        atol = float(_number(s.get("atol", 1e-8), "solver.atol", positive=True))
-        max_steps = int(_number(s.get("max_steps", 16384), "solver.max_steps", integer=True,
-                                positive=True))
-
-        o = _table(d.get("outputs", {}), "outputs", {"summaries"})
-        summaries = o.get("summaries", ["max_nutation", "min_abs_omega", "max_abs_omega"])
-        if not isinstance(summaries, list) or not all(isinstance(x, str) for x in summaries):
-            raise _fail("outputs.summaries", f"a list of names from {sorted(SUMMARIES)}",
-                        summaries)
-        for x in summaries:
-            if x not in SUMMARIES:
-                raise _fail("outputs.summaries", f"names from {sorted(SUMMARIES)}", x)
-        if len(set(summaries)) != len(summaries):
-            raise _fail("outputs.summaries", "no repeated names", summaries)
-
-        sc = cls(name=name, description=description, kind=kind, torques=tuple(kinds),
-                 frame=frame, frame_seq=seq, dists=dists, t0=t0, t1=t1, n_times=n_times,
-                 solver=method, rtol=rtol, atol=atol, max_steps=max_steps,
-                 summaries=tuple(summaries), source=json.loads(json.dumps(dict(d))))
-        sc._check_summaries()
-        return sc
-
-    # -- building one trajectory ----------------------------------------------------------
-
-    @property
-    def ts(self) -> np.ndarray:
-        return np.linspace(self.t0, self.t1, self.n_times)
-
-    def nominal(self) -> dict[str, jax.Array]:
-        """The centre of every distribution (its mean, median or fixed value)."""
-        return _centres(self.dists)
-
-    def build(self, values: Mapping[str, jax.Array]) -> tuple[eqx.Module, State]:
-        """The model and initial state for one set of drawn `values` (key path → value)."""
-        torques = []
-        for i, kind in enumerate(self.torques):
-            get = lambda k, i=i: values.get(f"model.torques[{i}].{k}")  # noqa: E731
-            if kind == "body":
-                torques.append(BodyTorque(get("moment")))
-            elif kind == "inertial":
-                torques.append(InertialTorque(get("moment")))
-            elif kind == "uniform_gravity":
-                torques.append(UniformGravity(get("weight"), get("com")))
-            elif kind == "restoring_moment":
-                if get("coeffs") is not None:
-                    eps = get("eps") if get("eps") is not None else jnp.asarray(1.0)
-                    torques.append(RestoringMoment(PolynomialSinPsi(get("coeffs"), eps)))
-                else:
-                    torques.append(RestoringMoment(get("k"), get("eps")))
-            elif kind == "gravity_gradient":
-                torques.append(GravityGradient(get("eps")) if get("eps") is not None
-                               else GravityGradient.from_orbit_rate(get("orbit_rate")))
-            else:
-                torques.append(BalancingTransport())
-        torque = None
-        for tq in torques:
-            torque = tq if torque is None else torque + tq
-        J = values["model.inertia"]
-        y0 = State(omega=values["initial.omega"], quat=values["initial.attitude"])
-        if self.kind == "rigid_body":
-            return RigidBody(J, torque), y0
-        fv = lambda k: values.get(f"model.frame.{k}")  # noqa: E731
-        if self.frame == "inertial":
-            frame = Inertial()
-        elif self.frame == "constant_rate":
-            frame = ConstantRate(fv("omega_e"), fv("quat0"))
-        elif self.frame == "circular_orbit":
-            frame = CircularOrbit(fv("n"), fv("quat0"))
-        else:
-            zero = jnp.zeros(3)
-            parts = {k: fv(k) if fv(k) is not None else zero
-                     for k in ("offset", "rate", "amplitude", "frequency", "phase")}
-            frame = EulerAngleFrame(HarmonicAngles(**parts), seq=self.frame_seq)
-        return RelativeRigidBody(J, frame, torque), y0
-
-    def sample(self, dists: Mapping[str, eqx.Module], key, index) -> dict[str, jax.Array]:
-        """The drawn values of trajectory `index` (traceable)."""
-        k = jax.random.fold_in(key, index)
-        return {path: dist.sample(_path_key(k, path)) for path, dist in dists.items()}
-
-    def _check_summaries(self):
-        model, y0 = self.build(self.nominal())
-        ts = jnp.asarray(self.ts[:2])
-        ys = jax.tree_util.tree_map(lambda x: jnp.stack([x, x]), y0)
-        traj = Trajectory(ts=ts, ys=ys, stats={}, result=RESULTS.successful)
-        for name in self.summaries:
-            try:
-                jax.eval_shape(lambda m, tr, f=SUMMARIES[name][1]: f(m, tr), model, traj)
-            except (ValueError, NotImplementedError, AttributeError) as e:
-                raise ScenarioError(f"`outputs.summaries`: {name!r} is not defined for this "
-                                    f"model: {e}") from None
-
-
-def _centre(dist):
-    """The centre of a distribution: its fixed value, mean, mid-point or median."""
-    if isinstance(dist, Fixed):
-        return dist.value
-    if isinstance(dist, Normal):
-        return dist.mean
-    if isinstance(dist, Uniform):
-        return 0.5 * (dist.low + dist.high)
-    if isinstance(dist, LogNormal):
-        return dist.median
-    if isinstance(dist, DispersedInertia):
-        return dist.nominal
-    if isinstance(dist, EulerAttitude):
-        return rotation.euler_to_quat(_centre(dist.angles), dist.seq)
-    return jnp.array([1.0, 0.0, 0.0, 0.0])  # UniformSO3
-
-
-def _centres(dists: Mapping[str, eqx.Module]) -> dict[str, jax.Array]:
-    return {path: _centre(d) for path, d in dists.items()}
-
-
-def list_scenarios() -> list[str]:
-    """Names of the scenarios shipped in `rbdyn_jax/scenarios/`."""
-    return sorted(p.stem for p in SCENARIO_DIR.glob("*.toml"))
 
 
 # ----------------------------------------------------------------------------------------
@@ -677,25 +66,26 @@ def list_scenarios() -> list[str]:
 def _solve_block(scenario: Scenario, dists, key, idx, tols, lanes):
     """Sample and solve the trajectories `idx` (through `lanes` lanes of the lane solver);
     per-trajectory outputs."""
-    import diffrax
-
     values = jax.vmap(lambda i: scenario.sample(dists, key, i))(idx)
     # A non-finite draw (an overflowing lognormal, …) would fail the model's checks for the
     # whole block: solve the nominal values in its lane instead and mark it non-finite.
     ok = jnp.ones(idx.shape, bool)
     for v in values.values():
         ok = ok & jnp.all(jnp.isfinite(v.reshape(v.shape[0], -1)), axis=-1)
-    nominal = _centres(dists)
+    nominal = {p: d.centre() for p, d in dists.items()}
 
     def lane(x):
         return ok.reshape((-1,) + (1,) * (x.ndim - 1))
 
     values = {p: jnp.where(lane(v), v, nominal[p]) for p, v in values.items()}
     models, y0s = jax.vmap(scenario.build)(values)
-    ts = jnp.linspace(scenario.t0, scenario.t1, scenario.n_times)
-    solver = getattr(diffrax, scenario.solver)()
-    traj = _lane_batch(models, y0s, ts, solver, tols[0], tols[1], scenario.max_steps, lanes)
-    status = jnp.where(ok, traj.result._value, RESULTS.nonfinite_state._value)
+    # The scenario's times and tolerances are constants of the trace: the solve is then
+    # traced with its checks as NaN (its inputs validated), and its loops can be stored.
+    traj = simulate_batch(models, y0s, scenario.ts, model_axes=0,
+                          solver=scenario.diffrax_solver,
+                          stepsize_controller=scenario.stepsize_controller,
+                          max_steps=scenario.max_steps, batching=Lanes(lanes, devices=1))
+    status = jnp.where(ok, result_code(traj.result), result_code(RESULTS.nonfinite_state))
 
     def summaries(m, tr):
         return {name: SUMMARIES[name][1](m, tr) for name in scenario.summaries}
@@ -798,14 +188,14 @@ _DIMS = {
 
 def _status_codes() -> dict[str, str]:
     codes = {"-1": "not_run"}
-    codes.update({str(item._value): name for name, item in RESULTS._name_to_item.items()})
+    codes.update({str(c): name for c, name in result_names().items()})
     return codes
 
 
 def _create_store(path: pathlib.Path, sc: Scenario, n: int, chunk: int, seed: int, lanes: int):
     import zarr
 
-    from . import __version__
+    from ._version import __version__
 
     g = zarr.open_group(str(path), mode="w", zarr_format=2)
     T = sc.n_times
@@ -1035,17 +425,7 @@ def summarize(path: str | pathlib.Path, quantiles=(0.05, 0.5, 0.95)) -> dict:
 
 
 __all__ = [
-    "DispersedInertia",
-    "Fixed",
-    "LogNormal",
-    "Normal",
     "Progress",
-    "Scenario",
-    "ScenarioError",
-    "SUMMARIES",
-    "Uniform",
-    "UniformSO3",
-    "list_scenarios",
     "open_dataset",
     "run",
     "summarize",

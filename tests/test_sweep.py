@@ -1,31 +1,25 @@
-"""Monte Carlo sweeps (rbdyn_jax.sweep): scenarios, determinism, streaming, resume, isolation.
+"""Monte Carlo sweeps (rbdyn_jax.sweep): determinism, streaming, resume, isolation.
 
-The solves are checked against `simulate` run directly on the stored samples, the samplers
-against their distributions (scipy's uniform rotations for SO(3)), and the shipped
-scenarios against their first integrals.
+The solves are checked against `simulate` run directly on the stored samples, and the
+shipped scenarios against their first integrals. The scenarios themselves (schema,
+samplers, summaries) are tested in test_scenario.py.
 """
 
 import os
-import pathlib
 import signal
 import subprocess
 import sys
 import time
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-import scipy.stats
 import xarray as xr
 import zarr
-from scipy.spatial.transform import Rotation
 
 import rbdyn_jax as rb
 from rbdyn_jax import sweep
-from rbdyn_jax.sweep import Scenario, ScenarioError
-
-ROOT = pathlib.Path(__file__).parents[1]
+from rbdyn_jax.scenario import Scenario, ScenarioError
 
 
 def small(**over) -> dict:
@@ -58,133 +52,6 @@ def assert_same(a: dict, b: dict):
 
 
 # --------------------------------------------------------------------------------------
-# Scenario validation
-# --------------------------------------------------------------------------------------
-
-
-@pytest.mark.parametrize(
-    "edit, key, words",
-    [
-        (lambda d: d["model"].update(colour="red"), "model.colour", "unknown key"),
-        (lambda d: d.update(extra=1), "extra", "unknown key"),
-        (lambda d: d["model"]["inertia"].update(principal="heavy"), "model.inertia.principal",
-         "list of shape [3]"),
-        (lambda d: d["model"]["inertia"].update(principal=[1.0, 1.0, 3.0]),
-         "model.inertia.principal", "physical inertia"),
-        (lambda d: d["model"]["inertia"].update(principal=[1.0, 2.0]),
-         "model.inertia.principal", "shape [3]"),
-        (lambda d: d["solver"].update(rtol=-1e-8), "solver.rtol", "positive"),
-        (lambda d: d["solver"].update(max_steps=10.5), "solver.max_steps", "integer"),
-        (lambda d: d["time"].update(n=1), "time.n", "≥ 2"),
-        (lambda d: d["time"].update(t1=-1.0), "time.t1", "after t0"),
-        (lambda d: d["initial"].update(omega={"dist": "gaussian"}), "initial.omega.dist",
-         "one of"),
-        (lambda d: d["initial"].update(omega={"dist": "normal", "mean": [0, 1, 0]}),
-         "initial.omega.std", "missing"),
-        (lambda d: d["initial"].update(omega={"dist": "normal", "mean": 0, "std": -1}),
-         "initial.omega.std", "≥ 0"),
-        (lambda d: d["initial"].update(attitude={"quat": [1.0, 1.0, 0.0, 0.0]}),
-         "initial.attitude.quat", "unit quaternion"),
-        (lambda d: d["outputs"].update(summaries=["max_fun"]), "outputs.summaries",
-         "names from"),
-        (lambda d: d["model"].update(torques=[{"kind": "magnet"}]), "model.torques[0].kind",
-         "one of"),
-        (lambda d: d["model"].update(torques=[{"kind": "body"}]), "model.torques[0].moment",
-         "missing"),
-        (lambda d: d["model"].update(frame={"kind": "inertial"}), "model.frame", "no frame"),
-    ],
-)
-def test_bad_scenarios_name_the_key(edit, key, words):
-    d = small()
-    edit(d)
-    with pytest.raises(ScenarioError) as e:
-        Scenario.from_dict(d)
-    msg = str(e.value)
-    assert f"`{key}`" in msg and words in msg, msg
-
-
-def test_bad_toml_file_names_the_key(tmp_path):
-    f = tmp_path / "bad.toml"
-    f.write_text('[model]\nkind = "rigid_body"\n[model.inertia]\nprincipal = [1, 2, 2.5]\n'
-                 'wobble = 3\n[initial]\nomega = [0, 1, 0]\n[time]\nt1 = 1\nn = 3\n')
-    with pytest.raises(ScenarioError, match=r"`model\.inertia\.wobble`: unknown key"):
-        Scenario.from_toml(f)
-    f.write_text("[model\n")
-    with pytest.raises(ScenarioError, match="not valid TOML"):
-        Scenario.from_toml(f)
-
-
-def test_summary_that_does_not_apply_is_rejected():
-    d = small()
-    d["model"]["torques"] = [{"kind": "restoring_moment", "coeffs": [1.0, 0.5], "eps": 0.1}]
-    with pytest.raises(ScenarioError, match="energy_drift"):
-        Scenario.from_dict(d)  # k(τ, ψ) has no potential: no energy integral
-
-
-@pytest.mark.parametrize("name", sweep.list_scenarios())
-def test_shipped_scenarios_validate(name):
-    sc = Scenario.load(name)
-    model, y0 = sc.build(sc.nominal())
-    assert isinstance(model, rb.AbstractRigidBody)
-    assert sc.ts[0] == sc.t0 and sc.ts[-1] == sc.t1
-    assert len(sweep.list_scenarios()) >= 5
-
-
-# --------------------------------------------------------------------------------------
-# Samplers
-# --------------------------------------------------------------------------------------
-
-
-def draws(sc: Scenario, n: int, seed: int = 0) -> dict:
-    idx = jnp.arange(n)
-    return jax.jit(jax.vmap(lambda i: sc.sample(sc.dists, jax.random.key(seed), i)))(idx)
-
-
-def test_uniform_so3_matches_scipy_random_rotations():
-    """The rotation angle of a Haar-uniform rotation has density (1 − cos a)/π; compare
-    with scipy's `Rotation.random` by a two-sample KS test, and E[R] = 0."""
-    q = np.asarray(draws(Scenario.from_dict(small()), 4000)["initial.attitude"])
-    assert np.allclose(np.linalg.norm(q, axis=-1), 1.0, atol=1e-14) and np.all(q[:, 0] >= 0)
-    angle = 2 * np.arccos(np.clip(q[:, 0], -1, 1))
-    ref = Rotation.random(4000, random_state=1).magnitude()
-    assert scipy.stats.ks_2samp(angle, ref).pvalue > 1e-3
-    R = Rotation.from_quat(q[:, [1, 2, 3, 0]]).as_matrix()
-    assert np.abs(R.mean(0)).max() < 5 / np.sqrt(4000)  # E[R] = 0, |R_ij| ≤ 1
-
-
-def test_dispersed_inertia_is_physical_with_the_asked_spread():
-    d = small()
-    d["model"]["inertia"] = {"matrix": [[2.0, 0.1, 0.0], [0.1, 3.0, -0.2], [0.0, -0.2, 4.0]],
-                             "log_cholesky_sigma": 0.05}
-    J = np.asarray(draws(Scenario.from_dict(d), 2000)["model.inertia"])
-    assert bool(np.all(rb.inertia.is_physical(jnp.asarray(J))))
-    assert np.all(np.linalg.eigvalsh(J) > 0) and np.allclose(J, np.swapaxes(J, -1, -2))
-    # planar moments of J' = L Lᵀ: log L_ii ~ N(log L_ii⁰, σ²) exactly
-    theta = np.asarray(jax.vmap(rb.inertia.to_log_cholesky)(jnp.asarray(J)))
-    assert np.allclose(theta[:, :3].std(0), 0.05, rtol=0.1)  # 2000 draws: ±3 % (1σ)
-    assert np.allclose(np.median(J, axis=0), d["model"]["inertia"]["matrix"], atol=0.05)
-
-
-def test_normal_uniform_lognormal_moments_and_independent_keys():
-    d = small()
-    d["initial"]["omega"] = {"dist": "lognormal", "median": [1.0, 2.0, 3.0], "sigma": 0.1}
-    d["model"]["torques"] = [{"kind": "body", "moment": {"dist": "uniform", "low": -1.0,
-                                                          "high": [1.0, 2.0, 3.0]}}]
-    d["outputs"]["summaries"] = ["max_abs_omega"]  # a body torque has no potential energy
-    x = draws(Scenario.from_dict(d), 4000)
-    w, m = np.asarray(x["initial.omega"]), np.asarray(x["model.torques[0].moment"])
-    assert np.allclose(np.median(w, 0), [1, 2, 3], rtol=0.01)  # ± ~0.4 % (1σ)
-    assert np.allclose(np.log(w).std(0), 0.1, rtol=0.05)
-    assert np.all(m >= -1) and np.all(m < [1, 2, 3])
-    assert np.allclose(m.mean(0), [0, 0.5, 1.0], atol=0.06)  # σ/√n ≈ 0.02–0.03
-    # adding a random quantity does not change the draws of the others (path-keyed)
-    before = draws(Scenario.from_dict(small()), 50)
-    after = draws(Scenario.from_dict(d), 50)
-    assert np.array_equal(before["model.inertia"], after["model.inertia"])
-    assert np.array_equal(before["initial.attitude"], after["initial.attitude"])
-
-
-# --------------------------------------------------------------------------------------
 # Running: determinism, dataset, isolation, resume
 # --------------------------------------------------------------------------------------
 
@@ -214,7 +81,8 @@ def test_two_devices_give_the_same_bits(reference_run, tmp_path):
         "import jax; jax.config.update('jax_enable_x64', True)\n"
         "assert len(jax.devices()) == 2, jax.devices()\n"
         "from rbdyn_jax import sweep\n"
-        f"sweep.run(sweep.Scenario.from_dict({small()!r}), {N}, {str(tmp_path / 'd2.zarr')!r},"
+        "from rbdyn_jax.scenario import Scenario\n"
+        f"sweep.run(Scenario.from_dict({small()!r}), {N}, {str(tmp_path / 'd2.zarr')!r},"
         " chunk=7, seed=3, lanes=8, devices=2)\n"
     )
     env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
@@ -255,24 +123,6 @@ def test_dataset_opens_with_xarray_and_equals_simulate(reference_run):
     e = ds.energy_drift.values
     assert stats["summaries"]["energy_drift"]["mean"] == pytest.approx(e.mean(), rel=1e-12)
     assert stats["summaries"]["energy_drift"]["q50"] == pytest.approx(np.median(e), rel=1e-12)
-
-
-def test_first_flip_time_against_the_elliptic_solution():
-    """Intermediate-axis spin: the first zero of ω₂ in the Jacobi elliptic solution."""
-    J = np.array([1.0, 2.0, 2.5])
-    w0 = jnp.array([0.05, 1.0, 0.02])
-    ts = jnp.linspace(0.0, 30.0, 3001)
-    w = np.asarray(rb.analytic.torque_free_elliptic(jnp.asarray(J), w0, ts))
-    k = np.argmax(np.sign(w[1:, 1]) != np.sign(w[0, 1]))
-    fine = np.linspace(float(ts[k]), float(ts[k + 1]), 1001)
-    wf = np.asarray(rb.analytic.torque_free_elliptic(jnp.asarray(J), w0, jnp.asarray(fine)))
-    t_true = fine[np.argmax(np.sign(wf[:, 1]) != np.sign(wf[0, 1]))]
-    coarse = ts[::10]
-    got = sweep._first_flip(coarse, jnp.asarray(w[::10]), jnp.diag(jnp.asarray(J)))
-    # linear interpolation over Δt = 0.1 where ω₂ is nearly linear: error ≪ Δt
-    assert abs(float(got) - t_true) < 2e-3
-    never = sweep._first_flip(coarse[:5], jnp.asarray(w[:50:10]), jnp.diag(jnp.asarray(J)))
-    assert np.isnan(float(never))
 
 
 def test_nan_and_max_steps_are_isolated(tmp_path):
