@@ -13,18 +13,21 @@ trajectories through the solver (DESIGN.md; PHYSICS.md §3–4, §6).
   physical), the torque's array leaves, and the initial state of every trajectory (ω0 and a
   rotation-vector correction of q0). Levenberg–Marquardt on the residual vector (default) or
   any optax transformation, inside **one** compiled program with the Gauss–Newton covariance
-  `(JᵀJ)⁻¹` at the optimum.
+  `(JᵀJ)⁻¹` at the optimum. Step-size control is a diffrax controller passed through to
+  `simulate` (`stepsize_controller=`; `rtol=`/`atol=` are shorthand for a `PIDController`).
 
 Identifiability: with no torque, Euler's equations `J ω' = J ω × ω` are unchanged by `J → cJ`,
 so data fix J only up to scale. `fit` detects the near-null direction of `JᵀJ` along the
 scaling of J and reports it (`FitResult.scale_identified = False`, inertia standard errors
-`inf`); pass `scale=("trace", value)` or `scale=("moment", axis, value)` to fix the scale,
-or a known torque in the model.
+`inf`); pass `scale=TraceScale(value)` (tr J = value) or `scale=MomentScale(axis, value)`
+(the moment of inertia about `axis`) to fix the scale, or a known torque in the model.
 """
 
 import dataclasses
+import math
 import numbers
 from collections.abc import Callable, Sequence
+from typing import NamedTuple
 
 import diffrax
 import equinox as eqx
@@ -221,10 +224,25 @@ class Observations(eqx.Module):
 # ---------------------------------------------------------------------------------------
 # Residuals and loss.
 
+_RTOL = _ATOL = 1e-10  # identify's default tolerances: solve errors far below the noise
 
-def _simulate_all(model, y0s: State, data: Observations, solver, rtol, atol, max_steps, adjoint):
+
+def _controller(stepsize_controller, rtol, atol):
+    """`stepsize_controller`, or `diffrax.PIDController(rtol, atol)` with identify's default
+    for a tolerance not given."""
+    if stepsize_controller is None:
+        return diffrax.PIDController(rtol=_RTOL if rtol is None else rtol,
+                                     atol=_ATOL if atol is None else atol)
+    if rtol is not None or atol is not None:
+        raise ValueError("Give the tolerances either as `rtol`/`atol` or inside "
+                         "`stepsize_controller`, not both.")
+    return stepsize_controller
+
+
+def _simulate_all(model, y0s: State, data: Observations, solver, stepsize_controller,
+                  max_steps, adjoint):
     def one(y0, ts):
-        return simulate(model, y0, ts, solver=solver, rtol=rtol, atol=atol,
+        return simulate(model, y0, ts, solver=solver, stepsize_controller=stepsize_controller,
                         max_steps=max_steps, adjoint=adjoint, throw=False)
 
     return jax.vmap(one)(y0s, data.ts)
@@ -236,8 +254,9 @@ def residuals(
     data: Observations,
     *,
     solver: diffrax.AbstractSolver = diffrax.Tsit5(),
-    rtol: float = 1e-10,
-    atol: float = 1e-10,
+    stepsize_controller: diffrax.AbstractStepSizeController | None = None,
+    rtol: float | None = None,
+    atol: float | None = None,
     max_steps: int = 4096,
     adjoint: diffrax.AbstractAdjoint = diffrax.RecursiveCheckpointAdjoint(),
 ) -> Float[Array, " m"]:
@@ -245,8 +264,13 @@ def residuals(
     against `data`: `[(ω_sim − ω_obs)/σ_ω ; rotvec(q_obs* ⊗ q_sim)/σ_q]` flattened, zero at
     masked samples (PHYSICS.md §2, §4). `|rotvec|` is the geodesic angle between observed
     and simulated attitude, invariant to the sign of either quaternion. A failed solve gives
-    NaN residuals for its trajectory."""
-    traj = _simulate_all(model, y0s, data, solver, rtol, atol, max_steps, adjoint)
+    NaN residuals for its trajectory.
+
+    `solver`, `stepsize_controller`, `max_steps`, `adjoint` are passed to `simulate`;
+    `rtol`, `atol` are shorthand for `stepsize_controller=diffrax.PIDController(rtol, atol)`,
+    each defaulting to 1e-10 (giving both a controller and a tolerance is a `ValueError`)."""
+    controller = _controller(stepsize_controller, rtol, atol)
+    traj = _simulate_all(model, y0s, data, solver, controller, max_steps, adjoint)
     ok = (traj.result == RESULTS.successful)[:, None]
     parts = []
     if data.omega is not None:
@@ -269,6 +293,108 @@ def loss(model: RigidBody, y0s: State, data: Observations, **kwargs) -> Float[Ar
 
 
 # ---------------------------------------------------------------------------------------
+# Fixing the scale of J.
+
+
+def _check_scale_value(cls: str, value: float):
+    if not (math.isfinite(value) and value > 0):
+        raise ValueError(f"{cls}: `value` must be finite and positive, got {value!r}.")
+
+
+class TraceScale(eqx.Module):
+    """Fix the scale of J by its trace: the fit holds tr J = `value` (finite, > 0).
+
+    Data that fix J only up to a factor c (no torque, or one that scales with J: see the
+    module docstring) leave the choice of c to the user; `fit(..., scale=TraceScale(v))`
+    makes it. `of(J)` is the quantity held at `value`.
+    """
+
+    value: float = eqx.field(converter=float)
+
+    def __check_init__(self):
+        _check_scale_value("TraceScale", self.value)
+
+    @property
+    def quantity(self) -> str:
+        """The name of the quantity held at `value` (for `FitResult.notes`)."""
+        return "tr J"
+
+    def of(self, J: Float[Array, "3 3"]) -> Float[Array, ""]:
+        """tr J."""
+        return jnp.trace(J)
+
+
+def _axis(axis):
+    """An index stays an int; a vector becomes a tuple of floats (checked by `MomentScale`)."""
+    if isinstance(axis, numbers.Integral) and not isinstance(axis, bool):
+        return int(axis)
+    try:
+        a = np.asarray(axis, dtype=float)
+    except (TypeError, ValueError):
+        a = None
+    if a is None or a.ndim != 1:
+        raise ValueError("MomentScale: `axis` must be an index 0, 1 or 2 or a non-zero "
+                         f"3-vector, got {axis!r}.")
+    return tuple(a.tolist())
+
+
+class MomentScale(eqx.Module):
+    """Fix the scale of J by a moment of inertia: the fit holds nᵀ J n = `value` (finite,
+    > 0) about the body axis n given by `axis`: an index 0, 1 or 2 (n the unit vector along
+    it, so J[axis, axis] = `value`) or a non-zero 3-vector (normalised).
+
+    For data that fix J only up to scale (see `TraceScale`); use it when one moment of
+    inertia is known, e.g. measured about a symmetry axis. `of(J)` is the quantity held at
+    `value`.
+    """
+
+    axis: int | tuple[float, float, float] = eqx.field(converter=_axis)
+    value: float = eqx.field(converter=float)
+
+    def __check_init__(self):
+        if isinstance(self.axis, int):
+            if not 0 <= self.axis < 3:
+                raise ValueError(f"MomentScale: `axis` index must be 0, 1 or 2, got {self.axis}.")
+        elif (len(self.axis) != 3 or not all(map(math.isfinite, self.axis))
+              or not any(self.axis)):
+            raise ValueError("MomentScale: `axis` must be an index 0, 1 or 2 or a non-zero "
+                             f"3-vector, got {self.axis}.")
+        _check_scale_value("MomentScale", self.value)
+
+    @property
+    def direction(self) -> np.ndarray:
+        """The unit vector n."""
+        n = np.eye(3)[self.axis] if isinstance(self.axis, int) else np.asarray(self.axis)
+        return n / np.linalg.norm(n)
+
+    @property
+    def quantity(self) -> str:
+        """The name of the quantity held at `value` (for `FitResult.notes`)."""
+        if isinstance(self.axis, int):
+            return f"J[{self.axis}, {self.axis}]"
+        return "nᵀ J n (n = ({:.4g}, {:.4g}, {:.4g}))".format(*self.direction)
+
+    def of(self, J: Float[Array, "3 3"]) -> Float[Array, ""]:
+        """nᵀ J n, n the unit `direction`."""
+        n = jnp.asarray(self.direction, dtype=J.dtype)
+        return n @ J @ n
+
+
+def _inertia_of(theta, scale: TraceScale | MomentScale | None):
+    """J from its log-Cholesky parameters, rescaled onto the `scale` fix if any."""
+    J = from_log_cholesky(theta)
+    if scale is not None:
+        J = J * (scale.value / scale.of(J))
+    return J
+
+
+def _scale_direction(theta):
+    """d theta / d log c for J → cJ: L → √c L."""
+    half = jnp.full((3,), 0.5, dtype=theta.dtype)
+    return jnp.concatenate([half, 0.5 * theta[3:]])
+
+
+# ---------------------------------------------------------------------------------------
 # Fitting.
 
 
@@ -288,7 +414,7 @@ class FitResult(eqx.Module):
       `from_log_cholesky`), `"torque"` (the torque's free leaves), `"omega0"` `(K, 3)`,
       `"quat0"` `(K, 3)` (rotation vector, radians).
     - `scale_identified`: `False` when the data leave the scale of J undetermined (no torque
-      and no `scale` fix); the inertia stderr is then `inf`.
+      and no `scale` fix, `TraceScale` or `MomentScale`); the inertia stderr is then `inf`.
     - `ill_determined`: number of directions of `JᵀJ` with eigenvalue below `rcond` × largest.
     - `notes`: tuple of sentences on identifiability and convergence.
     """
@@ -312,55 +438,6 @@ class FitResult(eqx.Module):
 _PARAMS = ("inertia", "torque", "initial_conditions")
 
 
-def _scale_fn(scale):
-    """(J → scalar f(J), target) for a scale fix, or None."""
-    if scale is None:
-        return None
-    if not isinstance(scale, tuple) or not scale or scale[0] not in ("trace", "moment"):
-        raise ValueError("`scale` must be None, ('trace', value) or ('moment', axis, value).")
-    if scale[0] == "trace":
-        if len(scale) != 2:
-            raise ValueError("`scale` must be ('trace', value).")
-        value = float(scale[1])
-
-        def f(J):
-            return jnp.trace(J)
-    else:
-        if len(scale) != 3:
-            raise ValueError("`scale` must be ('moment', axis, value).")
-        axis, value = scale[1], float(scale[2])
-        if isinstance(axis, numbers.Integral):
-            if not 0 <= axis < 3:
-                raise ValueError("`scale` axis index must be 0, 1 or 2.")
-            n = np.eye(3)[axis]
-        else:
-            n = np.asarray(axis, float)
-            if n.shape != (3,) or not np.linalg.norm(n) > 0:
-                raise ValueError("`scale` axis must be an index or a non-zero 3-vector.")
-            n = n / np.linalg.norm(n)
-
-        def f(J):
-            nn = jnp.asarray(n, dtype=J.dtype)
-            return nn @ J @ nn
-    if not value > 0:
-        raise ValueError("`scale` value must be positive.")
-    return f, value
-
-
-def _inertia_of(theta, scale):
-    J = from_log_cholesky(theta)
-    if scale is not None:
-        f, value = scale
-        J = J * (value / f(J))
-    return J
-
-
-def _scale_direction(theta):
-    """d theta / d log c for J → cJ: L → √c L."""
-    half = jnp.full((3,), 0.5, dtype=theta.dtype)
-    return jnp.concatenate([half, 0.5 * theta[3:]])
-
-
 def fit(
     model: RigidBody,
     data: Observations,
@@ -368,14 +445,15 @@ def fit(
     params: Sequence[str] = ("inertia", "initial_conditions"),
     torque_where: Callable | None = None,
     y0: State | None = None,
-    scale: tuple | None = None,
+    scale: TraceScale | MomentScale | None = None,
     optimizer: optax.GradientTransformation | None = None,
     steps: int = 30,
     tol: float = 1e-6,
     rcond: float = 1e-9,
     solver: diffrax.AbstractSolver = diffrax.Tsit5(),
-    rtol: float = 1e-10,
-    atol: float = 1e-10,
+    stepsize_controller: diffrax.AbstractStepSizeController | None = None,
+    rtol: float | None = None,
+    atol: float | None = None,
     max_steps: int = 4096,
     horizons: Sequence[float] | None = None,
 ) -> FitResult:
@@ -392,15 +470,18 @@ def fit(
     - `y0`: initial guesses `State(omega (K, 3), quat (K, 4))` at `data.ts[:, 0]`; default:
       the first observed ω (zeros when ω is not observed) and the first observed attitude
       (identity when attitude is not observed), of each trajectory.
-    - `scale`: fix the scale of J: `("trace", value)` or `("moment", axis, value)` (axis an
-      index 0–2 or a 3-vector). Needed when the model has no torque (see the module docstring).
+    - `scale`: fix the scale of J: `TraceScale(value)` (tr J = value) or
+      `MomentScale(axis, value)` (the moment of inertia about `axis`, an index 0–2 or a
+      3-vector). Needed when the model has no torque (see the module docstring).
     - `optimizer`: `None` (default): Levenberg–Marquardt on the residual vector (Jacobian by
       forward mode), `steps` iterations; or an optax transformation (e.g.
       `optax.chain(optax.adam(1e-2))` or `optax.lbfgs()`) run `steps` times on the loss.
     - `tol`: convergence threshold on the Gauss–Newton decrement (Levenberg–Marquardt stops
       early once it is reached); `rcond`: eigenvalues of
       JᵀJ below `rcond` × the largest count as ill-determined directions.
-    - `solver`, `rtol`, `atol`, `max_steps`: passed to `simulate`.
+    - `solver`, `stepsize_controller`, `max_steps`: passed to `simulate`. `rtol`, `atol`:
+      shorthand for `stepsize_controller=diffrax.PIDController(rtol, atol)`, each
+      defaulting to 1e-10; giving both a controller and a tolerance is a `ValueError`.
     - `horizons`: staged horizons for long or chaotic records, increasing fractions of each
       trajectory's span ending at 1, e.g. `(0.25, 0.5, 1.0)`: fit the samples up to the
       first fraction, start the next stage from that fit, and so on (the early part of a
@@ -409,7 +490,8 @@ def fit(
       compilation.
 
     The whole fit (optimisation loop and covariance) is one compiled program (`eqx.filter_jit`,
-    `lax.scan` over the steps); a second fit of the same structure and sizes reuses it.
+    `lax.scan` over the steps); a second fit of the same structure and sizes reuses it, also
+    with other values of `tol` and of a `PIDController`'s tolerances (passed as arrays).
 
     **Returns:** a `FitResult`.
     """
@@ -417,10 +499,14 @@ def fit(
         raise ValueError(f"`model` must be a RigidBody, got {type(model).__name__}.")
     if not isinstance(data, Observations):
         raise ValueError(f"`data` must be Observations, got {type(data).__name__}.")
+    if scale is not None and not isinstance(scale, (TraceScale, MomentScale)):
+        raise ValueError("`scale` must be None, identify.TraceScale(value) or "
+                         f"identify.MomentScale(axis, value), got {scale!r}.")
+    controller = _controller(stepsize_controller, rtol, atol)
     if horizons is not None:
         return _staged_fit(model, data, horizons, params=params, torque_where=torque_where,
                            y0=y0, scale=scale, optimizer=optimizer, steps=steps, tol=tol,
-                           rcond=rcond, solver=solver, rtol=rtol, atol=atol,
+                           rcond=rcond, solver=solver, stepsize_controller=controller,
                            max_steps=max_steps)
     params = tuple(params)
     for p in params:
@@ -430,7 +516,6 @@ def fit(
         raise ValueError("`params` names no free parameter.")
     if not isinstance(steps, numbers.Integral) or steps < 1:
         raise ValueError(f"`steps` must be a positive int, got {steps!r}.")
-    scale_spec = _scale_fn(scale)
     K = data.num_trajectories
 
     if y0 is None:
@@ -456,38 +541,39 @@ def fit(
     if "torque" in params and not jax.tree_util.tree_leaves(torque_dyn):
         raise ValueError("`params` names 'torque' but the model's torque has no array leaves.")
 
-    cfg = _Config(solver=solver, rtol=rtol, atol=atol, tol=tol, max_steps=int(max_steps),
-                  steps=int(steps), scale=scale_spec, optimizer=optimizer,
-                  torque_static=torque_static)
+    dtype = data.ts.dtype
+    cfg = _Config(solver=solver, stepsize_controller=_tolerances_as_arrays(controller, dtype),
+                  tol=jnp.asarray(tol, dtype), max_steps=int(max_steps), steps=int(steps),
+                  scale=scale, optimizer=optimizer, torque_static=torque_static)
     out = _run(free, fixed, q0_guess, model, data, cfg)
 
     # Assemble the result (eager, small).
-    p_opt = out["params"]
-    fitted, y0_fit = _assemble(p_opt, fixed, q0_guess, model, cfg)
+    p_opt = out.params
+    fitted = _assemble(p_opt, fixed, q0_guess, model, cfg)
     flat, unravel = ravel_pytree(p_opt)
     labels = _labels(p_opt)
     it = np.array([lab.startswith("['theta']") for lab in labels])  # theta's flat indices
-    cov = out["covariance"]
-    evals = np.asarray(out["evals"])
+    cov = out.covariance
+    evals = np.asarray(out.eigenvalues)
     ill = int(np.sum(evals < rcond * evals.max()))
     notes = []
     scale_ok = True
-    if "inertia" in params and scale_spec is None:
+    if "inertia" in params and scale is None:
         # Is the scaling of J a near-null direction of JᵀJ?
         v = np.zeros(flat.size)
         v[it] = np.asarray(_scale_direction(p_opt["theta"]))
-        H = np.asarray(out["H"])
+        H = np.asarray(out.gauss_newton)
         hv = v @ H @ v / (v @ v)
         if hv < rcond * evals.max():
             scale_ok = False
             notes.append(
                 "The data fix the inertia only up to scale (J → cJ leaves the motion "
-                "unchanged, as with no torque): pass scale=('trace', value) or "
-                "scale=('moment', axis, value), or include a known torque in the model."
+                "unchanged, as with no torque): pass scale=TraceScale(value) or "
+                "scale=MomentScale(axis, value), or include a known torque in the model."
             )
-    if scale_spec is not None and "inertia" in params:
-        notes.append(f"The scale of J is fixed by the user: {scale[0]} = {scale[-1]}.")
-    if ill > (0 if scale_ok and scale_spec is None else 1):
+    if scale is not None and "inertia" in params:
+        notes.append(f"The scale of J is fixed by the user: {scale.quantity} = {scale.value:g}.")
+    if ill > (0 if scale_ok and scale is None else 1):
         notes.append(
             f"{ill} direction(s) of parameter space are ill-determined (eigenvalue of JᵀJ "
             f"below {rcond:g} × the largest): their standard errors are large."
@@ -496,7 +582,7 @@ def fit(
     se = unravel(stderr_flat)
     stderr = {}
     if "theta" in p_opt:
-        D = jax.jacfwd(lambda th: _inertia_of(th, scale_spec).reshape(9))(p_opt["theta"])
+        D = jax.jacfwd(lambda th: _inertia_of(th, scale).reshape(9))(p_opt["theta"])
         cov_t = cov[np.ix_(it, it)]
         se_J = jnp.sqrt(jnp.clip(jnp.diag(D @ cov_t @ D.T), 0.0)).reshape(3, 3)
         stderr["inertia"] = se_J if scale_ok else jnp.full((3, 3), jnp.inf)
@@ -505,16 +591,16 @@ def fit(
     if "omega0" in p_opt:
         stderr["omega0"] = se["omega0"]
         stderr["quat0"] = se["dq0"]
-    converged = bool(np.isfinite(float(out["loss"])) and float(out["decrement"]) < tol)
+    converged = bool(np.isfinite(float(out.loss)) and float(out.decrement) < tol)
     if not converged:
         notes.append(
             f"Not converged after {steps} steps: Gauss–Newton decrement "
-            f"{float(out['decrement']):.3g} ≥ tol = {tol:g}."
+            f"{float(out.decrement):.3g} ≥ tol = {tol:g}."
         )
     return FitResult(
-        model=fitted, y0=y0_fit, loss=out["loss"], loss_history=out["loss_history"],
-        inertia_history=out["inertia_history"], grad_norm=out["grad_norm"],
-        decrement=out["decrement"], converged=converged, covariance=cov, labels=labels,
+        model=fitted.model, y0=fitted.y0, loss=out.loss, loss_history=out.loss_history,
+        inertia_history=out.inertia_history, grad_norm=out.grad_norm,
+        decrement=out.decrement, converged=converged, covariance=cov, labels=labels,
         stderr=stderr, scale_identified=scale_ok, ill_determined=ill, notes=tuple(notes),
     )
 
@@ -539,16 +625,33 @@ def _staged_fit(model, data: Observations, horizons, **kwargs) -> FitResult:
     return dataclasses.replace(res, notes=notes)
 
 
+def _tolerances_as_arrays(controller, dtype):
+    """`controller`, a `PIDController`'s tolerances checked and made arrays: the compiled fit
+    takes them as inputs, so a new value reuses it."""
+    if not isinstance(controller, diffrax.PIDController):
+        return controller
+    tols = []
+    for name in ("rtol", "atol"):
+        tol = getattr(controller, name)
+        if np.ndim(tol) != 0 or not float(tol) > 0:
+            raise ValueError(f"`{name}` must be a positive scalar, got {tol!r}.")
+        tols.append(jnp.asarray(tol, dtype))
+    return eqx.tree_at(lambda c: (c.rtol, c.atol), controller, tuple(tols))
+
+
 class _Config(eqx.Module):
-    solver: diffrax.AbstractSolver
-    rtol: float
-    atol: float
-    tol: float
-    max_steps: int = eqx.field(static=True)
-    steps: int = eqx.field(static=True)
-    scale: tuple | None = eqx.field(static=True)
-    optimizer: optax.GradientTransformation | None = eqx.field(static=True)
-    torque_static: PyTree
+    """How `_run` solves and optimises: everything but the parameters and the data. Array
+    fields are inputs of the compiled fit (a new value reuses it); the others are part of
+    its structure (a new value compiles again)."""
+
+    solver: diffrax.AbstractSolver  # of every simulation
+    stepsize_controller: diffrax.AbstractStepSizeController  # PID tolerances as arrays
+    tol: Float[Array, ""]  # Levenberg–Marquardt stops once the decrement is below it
+    max_steps: int = eqx.field(static=True)  # solver steps per trajectory
+    steps: int = eqx.field(static=True)  # optimiser iterations
+    scale: TraceScale | MomentScale | None  # the user's fix of the scale of J, if any
+    optimizer: optax.GradientTransformation | None = eqx.field(static=True)  # None: LM
+    torque_static: PyTree  # the torque's parts that are not free (`eqx.partition`)
 
 
 def _initial_guess(data: Observations) -> State:
@@ -574,22 +677,77 @@ def _labels(p) -> tuple[str, ...]:
     return tuple(labels)
 
 
-def _assemble(p, fixed, q0_guess, model, cfg):
+class _Assembled(NamedTuple):
+    """A model and initial states built from the parameters."""
+
+    model: RigidBody
+    y0: State  # leading K axis
+
+
+def _assemble(p, fixed, q0_guess, model, cfg: _Config) -> _Assembled:
     allp = {**fixed, **p}
     J = _inertia_of(allp["theta"], cfg.scale)
     torque = eqx.combine(allp["torque"], cfg.torque_static)
     m = eqx.tree_at(lambda x: (x.inertia, x.torque), model, (J, torque))
     quat = rotation.quat_multiply(q0_guess, rotation.quat_from_rotvec(allp["dq0"]))
-    return m, State(allp["omega0"], quat)
+    return _Assembled(m, State(allp["omega0"], quat))
+
+
+class _Linearisation(NamedTuple):
+    """The residuals at a point and their Jacobian there."""
+
+    jacobian: Array  # (m, P)
+    residuals: Array  # (m,)
+
+
+class _LMState(NamedTuple):
+    """Levenberg–Marquardt's loop carry."""
+
+    x: Array  # the accepted point (flat free parameters)
+    r: Array  # residuals at `x`
+    jacobian: Array  # their Jacobian at `x`
+    loss: Array  # ½ Σ r² at `x` (inf before the first trial)
+    damping: Array  # Marquardt's λ
+    trial: Array  # the point the next iteration tries
+    done: Array  # decrement below `tol`: the remaining iterations are skipped
+
+
+class _OptaxState(NamedTuple):
+    """An optax optimiser's loop carry."""
+
+    x: Array  # flat free parameters
+    opt_state: optax.OptState
+
+
+class _Iterate(NamedTuple):
+    """What each optimiser step records."""
+
+    loss: Array  # the loss at the step (LM: at the accepted point; optax: before updating)
+    inertia: Array  # (3, 3), at the point after the step
+
+
+class _Optimum(NamedTuple):
+    """What the compiled fit returns."""
+
+    params: dict  # the free parameters at the optimum, shaped like `free`
+    loss: Array  # ½ Σ r² there
+    loss_history: Array  # (steps + 1,)
+    inertia_history: Array  # (steps + 1, 3, 3)
+    grad_norm: Array  # |Jᵀr|
+    decrement: Array  # ½ gᵀ (JᵀJ)⁻¹ g
+    covariance: Array  # (JᵀJ)⁻¹ (a pseudo-inverse along a scale fix's gauge direction)
+    gauss_newton: Array  # JᵀJ
+    eigenvalues: Array  # of JᵀJ, ascending
 
 
 @filter_jit
-def _run(free, fixed, q0_guess, model, data, cfg: _Config):
+def _run(free, fixed, q0_guess, model, data, cfg: _Config) -> _Optimum:
     flat0, unravel = ravel_pytree(free)
 
     def res(flat, adjoint):
-        m, y0s = _assemble(unravel(flat), fixed, q0_guess, model, cfg)
-        return residuals(m, y0s, data, solver=cfg.solver, rtol=cfg.rtol, atol=cfg.atol,
+        built = _assemble(unravel(flat), fixed, q0_guess, model, cfg)
+        return residuals(built.model, built.y0, data, solver=cfg.solver,
+                         stepsize_controller=cfg.stepsize_controller,
                          max_steps=cfg.max_steps, adjoint=adjoint)
 
     def res_fwd(flat):
@@ -603,9 +761,9 @@ def _run(free, fixed, q0_guess, model, data, cfg: _Config):
         allp = {**fixed, **unravel(flat)}
         return _inertia_of(allp["theta"], cfg.scale)
 
-    def lin(y):
+    def lin(y) -> _Linearisation:
         Jm, r = jax.jacfwd(lambda z: (res_fwd(z), res_fwd(z)), has_aux=True)(y)
-        return Jm, r
+        return _Linearisation(Jm, r)
 
     if cfg.optimizer is None:
         # Levenberg–Marquardt (Marquardt's diagonal scaling). Each iteration linearises at
@@ -615,54 +773,59 @@ def _run(free, fixed, q0_guess, model, data, cfg: _Config):
         # Once the Gauss–Newton decrement ½ gᵀ(JᵀJ)⁻¹g at the accepted point is below `tol`
         # (the loss cannot fall by more), the remaining iterations are skipped (`lax.cond`:
         # no further solves) and the history repeats the optimum.
-        def work(carry, i):
-            x_acc, r_acc, J_acc, f_acc, lam, x_try, _ = carry
-            J_try, r_try = lin(x_try)
+        def work(s: _LMState, i) -> _LMState:
+            at_trial = lin(s.trial)
+            r_try = at_trial.residuals
             f_try = 0.5 * jnp.sum(r_try * r_try)
-            good = jnp.isfinite(f_try) & (f_try < f_acc)
+            good = jnp.isfinite(f_try) & (f_try < s.loss)
             pick = lambda a, b: jnp.where(good, a, b)  # noqa: E731
-            x_acc, r_acc, J_acc = pick(x_try, x_acc), pick(r_try, r_acc), pick(J_try, J_acc)
-            f_acc = pick(f_try, f_acc)
-            lam = jnp.where(good, jnp.maximum(lam / 3.0, 1e-9), lam * 4.0)
-            H = J_acc.T @ J_acc
-            g = J_acc.T @ r_acc
+            x, r, Jm = pick(s.trial, s.x), pick(r_try, s.r), pick(at_trial.jacobian, s.jacobian)
+            f = pick(f_try, s.loss)
+            lam = jnp.where(good, jnp.maximum(s.damping / 3.0, 1e-9), s.damping * 4.0)
+            H = Jm.T @ Jm
+            g = Jm.T @ r
             d = jnp.diag(H) + 1e-12 * jnp.max(jnp.diag(H))
             dx = -jnp.linalg.solve(H + lam * jnp.diag(d), g)
             dec = 0.5 * g @ jnp.linalg.solve(H + 1e-14 * jnp.max(d) * jnp.eye(H.shape[0]), g)
-            done = jnp.isfinite(f_acc) & (dec < cfg.tol)
-            x_next = jnp.where((i < cfg.steps) & ~done, x_acc + dx, x_acc)
-            return (x_acc, r_acc, J_acc, f_acc, lam, x_next, done)
+            done = jnp.isfinite(f) & (dec < cfg.tol)
+            trial = jnp.where((i < cfg.steps) & ~done, x + dx, x)
+            return _LMState(x=x, r=r, jacobian=Jm, loss=f, damping=lam, trial=trial, done=done)
 
-        def step(carry, i):
-            carry = jax.lax.cond(carry[-1], lambda c, i: c, work, carry, i)
-            return carry, (carry[3], inertia(carry[0]))
+        def step(s: _LMState, i):
+            s = jax.lax.cond(s.done, lambda s, i: s, work, s, i)
+            return s, _Iterate(loss=s.loss, inertia=inertia(s.x))
 
         m = jax.eval_shape(res_fwd, flat0).shape[0]
-        init = (flat0, jnp.zeros(m, flat0.dtype), jnp.zeros((m, flat0.size), flat0.dtype),
-                jnp.asarray(jnp.inf, flat0.dtype), jnp.asarray(1e-3, flat0.dtype), flat0,
-                jnp.asarray(False))
-        (x, r, Jm, _, _, _, _), (hist, Js) = jax.lax.scan(step, init,
-                                                          jnp.arange(cfg.steps + 1))
+        init = _LMState(x=flat0, r=jnp.zeros(m, flat0.dtype),
+                        jacobian=jnp.zeros((m, flat0.size), flat0.dtype),
+                        loss=jnp.asarray(jnp.inf, flat0.dtype),
+                        damping=jnp.asarray(1e-3, flat0.dtype), trial=flat0,
+                        done=jnp.asarray(False))
+        final, history = jax.lax.scan(step, init, jnp.arange(cfg.steps + 1))
         # entry i: the accepted point after trial i (entry 0: the initial guess)
+        x, r, Jm = final.x, final.r, final.jacobian
+        hist, Js = history.loss, history.inertia
     else:
         opt = cfg.optimizer
         vg = jax.value_and_grad(loss_fn)
 
-        def step(carry, _):
-            x, state = carry
-            f, g = vg(x)
+        def step(s: _OptaxState, _):
+            f, g = vg(s.x)
             if isinstance(opt, optax.GradientTransformationExtraArgs):
-                upd, state = opt.update(g, state, x, value=f, grad=g, value_fn=loss_fn)
+                upd, opt_state = opt.update(g, s.opt_state, s.x, value=f, grad=g,
+                                            value_fn=loss_fn)
             else:
-                upd, state = opt.update(g, state, x)
-            x_new = optax.apply_updates(x, upd)
-            return (x_new, state), (f, inertia(x_new))
+                upd, opt_state = opt.update(g, s.opt_state, s.x)
+            x_new = optax.apply_updates(s.x, upd)
+            return _OptaxState(x_new, opt_state), _Iterate(loss=f, inertia=inertia(x_new))
 
-        (x, _), (hist, Js) = jax.lax.scan(step, (flat0, opt.init(flat0)), None,
-                                          length=cfg.steps)
-        Jm, r = lin(x)
-        hist = jnp.concatenate([hist, (0.5 * jnp.sum(r * r))[None]])
-        Js = jnp.concatenate([inertia(flat0)[None], Js])
+        final, history = jax.lax.scan(step, _OptaxState(flat0, opt.init(flat0)), None,
+                                      length=cfg.steps)
+        x = final.x
+        at_x = lin(x)
+        Jm, r = at_x.jacobian, at_x.residuals
+        hist = jnp.concatenate([history.loss, (0.5 * jnp.sum(r * r))[None]])
+        Js = jnp.concatenate([inertia(flat0)[None], history.inertia])
 
     f = 0.5 * jnp.sum(r * r)
     H = Jm.T @ Jm
@@ -675,17 +838,12 @@ def _run(free, fixed, q0_guess, model, data, cfg: _Config):
         inv_evals = jnp.where(evals > 1e-13 * jnp.max(evals), 1.0 / jnp.maximum(evals, floor),
                               0.0)
     inv = evecs @ jnp.diag(inv_evals) @ evecs.T
-    return {
-        "params": unravel(x),
-        "loss": f,
-        "loss_history": hist,
-        "inertia_history": Js,
-        "grad_norm": jnp.linalg.norm(g),
-        "decrement": 0.5 * g @ inv @ g,
-        "covariance": inv,
-        "H": H,
-        "evals": evals,
-    }
+    return _Optimum(
+        params=unravel(x), loss=f, loss_history=hist, inertia_history=Js,
+        grad_norm=jnp.linalg.norm(g), decrement=0.5 * g @ inv @ g, covariance=inv,
+        gauss_newton=H, eigenvalues=evals,
+    )
 
 
-__all__ = ["FitResult", "Observations", "fit", "loss", "residuals"]
+__all__ = ["FitResult", "MomentScale", "Observations", "TraceScale", "fit", "loss",
+           "residuals"]

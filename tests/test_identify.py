@@ -6,12 +6,16 @@
   over noise seeds (the same compiled fit is reused: values change, structure does not);
 - the batched loss's gradient against central finite differences;
 - torque-free data: the scale of J is detected as undetermined without a scale fix, and fixed
-  by `scale=("trace", value)`;
+  by `scale=TraceScale(value)` or `scale=MomentScale(axis, value)`; the scale classes check
+  their arguments, and a tuple `scale` is refused;
+- step-size control: `stepsize_controller=PIDController(r, a)` is the same fit as
+  `rtol=r, atol=a`, and a new tolerance reuses the compiled fit;
 - bad data: NaN samples, non-increasing times, mismatched shapes, non-unit quaternions.
 
 Compilation dominates the run time: one fit structure per scenario, small records.
 """
 
+import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -149,7 +153,7 @@ def test_torque_free_scale_detected_and_fixed(free_truth):
     np.testing.assert_allclose(J / np.trace(J), J_TRUE / np.trace(J_TRUE), atol=0.02)
 
     trace = float(np.trace(J_TRUE))
-    fixed = idf.fit(guess, data, steps=12, scale=("trace", trace))
+    fixed = idf.fit(guess, data, steps=12, scale=idf.TraceScale(trace))
     assert fixed.scale_identified and fixed.converged
     assert any("fixed by the user" in n for n in fixed.notes)
     Jf = np.asarray(fixed.model.inertia)
@@ -159,6 +163,35 @@ def test_torque_free_scale_detected_and_fixed(free_truth):
     z = ((Jf - J_TRUE) / se)[UPPER]
     assert np.all(np.abs(z) < 4.0), z
     assert bool(jnp.all(rb.inertia.is_physical(fixed.inertia_history)))
+
+    # The same optimum with the scale fixed by a moment about a non-principal axis instead:
+    # nᵀ J n held at the trace fit's value gives the trace fit's J.
+    n = np.array([1.0, 1.0, 0.0]) / np.sqrt(2.0)
+    by_moment = idf.fit(guess, data, steps=12, scale=idf.MomentScale((1, 1, 0), n @ Jf @ n))
+    assert by_moment.scale_identified and by_moment.converged
+    assert any("fixed by the user: nᵀ J n" in note for note in by_moment.notes)
+    Jm = np.asarray(by_moment.model.inertia)
+    np.testing.assert_allclose(n @ Jm @ n, n @ Jf @ n, rtol=1e-12)
+    np.testing.assert_allclose(Jm, Jf, atol=1e-6 * np.max(se))
+
+
+def test_scale_classes():
+    J = jnp.asarray(J_TRUE)
+    assert float(idf.TraceScale(9).of(J)) == pytest.approx(np.trace(J_TRUE))
+    assert float(idf.MomentScale(2, 1.0).of(J)) == pytest.approx(J_TRUE[2, 2])
+    n = np.array([3.0, 0.0, 4.0]) / 5.0
+    assert float(idf.MomentScale([3, 0, 4], 1.0).of(J)) == pytest.approx(n @ J_TRUE @ n)
+    assert idf.MomentScale(np.int64(1), 2).axis == 1  # a NumPy index is an index
+    for value in (0.0, -1.0, np.nan, np.inf):
+        with pytest.raises(ValueError, match="TraceScale: `value` must be finite and positive"):
+            idf.TraceScale(value)
+        with pytest.raises(ValueError, match="MomentScale: `value` must be finite and positive"):
+            idf.MomentScale(0, value)
+    with pytest.raises(ValueError, match="`axis` index must be 0, 1 or 2"):
+        idf.MomentScale(3, 1.0)
+    for axis in ((0, 0, 0), (1, 2), np.eye(3), 1.0, True, "x", (1.0, np.nan, 0.0)):
+        with pytest.raises(ValueError, match="`axis` must be an index 0, 1 or 2 or a non-zero"):
+            idf.MomentScale(axis, 1.0)
 
 
 # ---------------------------------------------------------------------------------------
@@ -227,10 +260,38 @@ def test_fit_argument_errors():
     model = rb.RigidBody(jnp.asarray(J_TRUE))
     with pytest.raises(ValueError, match="`params`"):
         idf.fit(model, data, params=("mass",))
-    with pytest.raises(ValueError, match="`scale`"):
-        idf.fit(model, data, scale=("volume", 1.0))
+    for scale in (("trace", 1.0), ("moment", 0, 1.0), 1.0):
+        with pytest.raises(ValueError, match=r"`scale` must be None, identify.TraceScale\(value\) "
+                           r"or identify.MomentScale\(axis, value\)"):
+            idf.fit(model, data, scale=scale)
+    controller = diffrax.PIDController(rtol=1e-8, atol=1e-8)
+    for tols in ({"rtol": 1e-8}, {"atol": 1e-8}):
+        with pytest.raises(ValueError, match="not both"):
+            idf.fit(model, data, stepsize_controller=controller, **tols)
+    with pytest.raises(ValueError, match="`rtol` must be a positive scalar"):
+        idf.fit(model, data, rtol=-1e-8)
     with pytest.raises(ValueError, match="'torque'"):
         idf.fit(model, data, params=("torque",))
+
+
+def test_stepsize_controller_is_the_tolerance_shorthand(gravity_truth, monkeypatch):
+    """`stepsize_controller=PIDController(rtol=r, atol=a)` is the fit `rtol=r, atol=a` gives,
+    bitwise. The tolerances are inputs of the compiled fit: a fit at other tolerances reuses
+    it (the fit is not traced again)."""
+    data = noisy(*gravity_truth, seed=0)
+    guess = rb.RigidBody(jnp.asarray(J_GUESS), GRAVITY)
+    by_tol = idf.fit(guess, data, steps=12, rtol=1e-9, atol=1e-11)
+    traced = []
+    residuals = idf.residuals
+    monkeypatch.setattr(idf, "residuals", lambda *a, **k: traced.append(1) or residuals(*a, **k))
+    controller = diffrax.PIDController(rtol=3e-9, atol=3e-11)
+    idf.fit(guess, data, steps=12, stepsize_controller=controller)
+    by_controller = idf.fit(guess, data, steps=12,
+                            stepsize_controller=diffrax.PIDController(rtol=1e-9, atol=1e-11))
+    assert not traced
+    np.testing.assert_array_equal(by_controller.model.inertia, by_tol.model.inertia)
+    np.testing.assert_array_equal(by_controller.loss_history, by_tol.loss_history)
+    np.testing.assert_array_equal(by_controller.covariance, by_tol.covariance)
 
 
 def test_optax_optimizer_path_descends_and_stays_physical(gravity_truth):
