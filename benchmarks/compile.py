@@ -6,14 +6,15 @@ per component (seed 0), identity attitude, t ∈ [0, 20], 21 output times, rtol 
 float64, default solver (Tsit5). Cases:
 
 - `simulate`: `rb.simulate`, one trajectory;
-- `batch`: `rb.simulate_batch`, plain path (vmapped `diffeqsolve`), N = 256;
-- `lanes`: `rb.simulate_batch(..., lanes=64)`, N = 256;
-- `grad`: `jax.jit(jax.grad(loss))`, loss = Σ|ω − data|² over `simulate_batch` (plain path,
+- `default`: `rb.simulate_batch(model, y0s, ts)`, the default batching, N = 256;
+- `batch`: `rb.simulate_batch(..., batching=rb.Vmap())` (vmapped `diffeqsolve`), N = 256;
+- `lanes`: `rb.simulate_batch(..., batching=rb.Lanes(64))`, N = 256;
+- `grad`: `jax.jit(jax.grad(loss))`, loss = Σ|ω − data|² over `simulate_batch` (`Vmap`,
   `RecursiveCheckpointAdjoint`), N = 16, w.r.t. the 6 log-Cholesky parameters θ of J
   (evaluated at the true parameters + 0.05), the model built as `identify.fit` builds it,
   `rb.with_log_cholesky(model, θ)` (physical by construction, unchecked);
 - `jacfwd_lanes`, `grad_lanes`: `jax.jit(jax.jacfwd(loss))` and `jax.jit(jax.grad(loss))`,
-  the same loss through `lanes=16` (its forward sensitivities);
+  the same loss through `rb.Lanes(16)` (its forward sensitivities);
   all jitted with `compiler_options=rb.COMPILER_OPTIONS`, as rbdyn_jax advises for a
   caller's own jit (its solves are compiled with them);
 - `grad_lanes_ctor`: `grad_lanes` with the model built by the constructor,
@@ -41,7 +42,7 @@ call with the same inputs (steady state). Three processes per case: (1) no persi
 it was cacheable); "cb skip" counts the programs JAX compiled during that call but refused
 to store because they hold host callbacks (taken from JAX's log; their names are in the
 JSON). "traces" counts the solves that (3) loaded from rbdyn_jax's cache of traced programs
-(`rbdyn_jax/_traces.py`, in the same directory) instead of tracing them; a gradient is
+(`rbdyn_jax/integrate/_traces.py`, in the same directory) instead of tracing them; a gradient is
 the caller's own `jit`, which rbdyn_jax cannot store, but inside it the lane solver's
 loops (the forward solve, and the sensitivities' solves of ω's group and of the whole state)
 are loaded from there. The speed-up is first call
@@ -72,8 +73,9 @@ from importlib.metadata import version
 
 J_TRUE = [[2.0, 0.05, 0.0], [0.05, 3.0, 0.02], [0.0, 0.02, 4.0]]
 T_END, N_OUT, TOL, SEED = 20.0, 21, 1e-8, 0
-CASES = {  # name: (batch size, lanes)
+CASES = {  # name: (batch size, lanes per device: None the vmapped path, "default" the default)
     "simulate": (1, None),
+    "default": (256, "default"),
     "batch": (256, None),
     "lanes": (256, 64),
     "grad": (16, None),
@@ -165,8 +167,20 @@ def _reference_omega(w0, ts):
                                method="DOP853").y.T for w in w0])
 
 
-def _loss_fn(y0s, ts, data, lanes, ctor):
+def _batching(lanes) -> dict:
+    """`simulate_batch`'s batching arguments for a case's `lanes`."""
     import diffrax
+
+    import rbdyn_jax as rb
+
+    if lanes == "default":
+        return {}
+    if lanes is None:
+        return {"batching": rb.Vmap(), "adjoint": diffrax.RecursiveCheckpointAdjoint()}
+    return {"batching": rb.Lanes(lanes)}
+
+
+def _loss_fn(y0s, ts, data, lanes, ctor):
     import jax.numpy as jnp
 
     import rbdyn_jax as rb
@@ -178,8 +192,7 @@ def _loss_fn(y0s, ts, data, lanes, ctor):
             model = rb.RigidBody(rb.inertia.from_log_cholesky(theta))
         else:  # physical by construction, unchecked (as `identify.fit` builds its models)
             model = rb.with_log_cholesky(base, theta)
-        traj = rb.simulate_batch(model, y0s, ts, rtol=TOL, atol=TOL, lanes=lanes,
-                                 adjoint=diffrax.RecursiveCheckpointAdjoint())
+        traj = rb.simulate_batch(model, y0s, ts, rtol=TOL, atol=TOL, **_batching(lanes))
         return jnp.sum((traj.ys.omega - data) ** 2)
 
     return loss
@@ -235,9 +248,9 @@ def build_call(case):
     if case == "simulate":
         model, y0 = rb.RigidBody(jnp.array(J_TRUE)), jax.tree_util.tree_map(lambda x: x[0], y0s)
         return lambda: rb.simulate(model, y0, ts, rtol=TOL, atol=TOL)
-    if case in ("batch", "lanes"):
+    if case in ("default", "batch", "lanes"):
         model = rb.RigidBody(jnp.array(J_TRUE))
-        return lambda: rb.simulate_batch(model, y0s, ts, rtol=TOL, atol=TOL, lanes=lanes)
+        return lambda: rb.simulate_batch(model, y0s, ts, rtol=TOL, atol=TOL, **_batching(lanes))
     loss = _loss_fn(y0s, ts, jnp.asarray(_reference_omega(w0, ts_np)), lanes,
                     case in CTOR_CASES)
     theta = rb.inertia.to_log_cholesky(jnp.array(J_TRUE)) + 0.05
@@ -281,7 +294,7 @@ def child(case, cache):
     t0 = time.perf_counter()
     jax.block_until_ready(call())
     steady = time.perf_counter() - t0
-    traces = sys.modules.get("rbdyn_jax._traces")  # rbdyn_jax's cache of traced solves
+    traces = sys.modules.get("rbdyn_jax.integrate._traces")  # rbdyn_jax's cache of traced solves
     print(json.dumps({"import_jax_s": import_jax_s, "import_rbdyn_jax_s": import_rb_s,
                       "build_s": build, "first_s": first, "steady_s": steady,
                       "entries_written": entries,

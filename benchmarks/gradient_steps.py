@@ -1,11 +1,12 @@
 """Where a lane gradient's time goes, per Runge–Kutta step: the forward step against the
 step of each way of differentiating it.
 
-The lane solver's gradient (`simulate_batch(..., lanes=…)` under `jax.grad` or
+The lane solver's gradient (`simulate_batch(..., batching=rb.Lanes(…))` under `jax.grad` or
 `jax.jacfwd`) integrates forward sensitivities by the solve's own steps
-(`integrate._Sensitivity`). `gradients.py` times whole solves; this script times one Tsit5
+(`integrate._sensitivity.Sensitivity`). `gradients.py` times whole solves; this script
+times one Tsit5
 step as the lane loop takes it (diffrax's `solver.step` on the lanes' batched state,
-`integrate._LaneField`), for
+`integrate._lanes.LaneField`), for
 
 - `forward`: the state (ω, q), the step of the forward solve;
 - `sensitivities`: the state and ω's 18 columns for the six inertia parameters, the step of
@@ -57,19 +58,20 @@ import diffrax  # noqa: E402
 import equinox as eqx  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
-from diffrax._term import WrapTerm  # noqa: E402  (the term the lane loop hands its solver)
 
-from rbdyn_jax import integrate  # noqa: E402
+from rbdyn_jax import _compat  # noqa: E402  (the term the lane loop hands its solver)
+from rbdyn_jax.integrate._lanes import LaneField, Plain  # noqa: E402
+from rbdyn_jax.integrate._sensitivity import SYMMETRIC, Sensitivity  # noqa: E402
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
 import _report  # noqa: E402
 
 J = np.array([[2.0, 0.05, 0.0], [0.05, 3.0, 0.02], [0.0, 0.02, 4.0]])
 SPAN, H = 20.0, 0.005  # a 20 s solve in unit time (as `gradients.py`'s); the step in it
-P = 6  # the inertia's six parameters (`integrate._unit_columns`)
+P = 6  # the inertia's six parameters (`integrate._sensitivity.unit_columns`)
 
 
-class _ZeroField(integrate._Sensitivity):
+class _ZeroField(Sensitivity):
     """The columns carried, their rates zero."""
 
     def vector_field(self, t, ys, args):
@@ -103,12 +105,12 @@ def _loops(lanes, steps, kind_list):
     ok = jnp.ones(lanes, bool)
     solver = diffrax.Tsit5(scan_kind="lax")  # the lane loop's stage loop
     # The model's one array leaf is its inertia (`which`); ω is the state's first leaf
-    # (`carried`): the columns `_lane_jvp` integrates for a loss on ω.
+    # (`carried`): the columns `lane_jvp` integrates for a loss on ω.
     assert len(jax.tree_util.tree_leaves(eqx.filter(model, eqx.is_array))) == 1
     args = ((0,), (0,), P, (True,), (0,))
 
     def stepper(field_model, y0):
-        term = WrapTerm(diffrax.ODETerm(integrate._LaneField(field_model, False, t0, span)), 1)
+        term = _compat.wrapped_term(diffrax.ODETerm(LaneField(field_model, False, t0, span)))
         f0 = term.vf(tprev, y0, ok)  # the FSAL state, as the lane loop starts it
 
         def body(_, c):
@@ -119,12 +121,12 @@ def _loops(lanes, steps, kind_list):
         return jax.lax.fori_loop(0, steps, body, (y0, (jnp.array(False), f0)))[0]
 
     S0 = (jnp.zeros((lanes, 3 * P)),)
-    fns = {"forward": _jit(lambda y0: stepper(model, y0))}
-    for name, aug in (("sensitivities", integrate._Sensitivity(model, *args)),
+    fns = {"forward": _jit(lambda y0: stepper(Plain(model), y0))}
+    for name, aug in (("sensitivities", Sensitivity(model, *args)),
                       ("sensitivities, field zeroed", _ZeroField(model, *args)),
                       # no parameter leaf differentiated: ∂f/∂y·S alone, the same P columns
                       ("sensitivities, no parameter part",
-                       integrate._Sensitivity(model, (), (), P, (), (0,)))):
+                       Sensitivity(model, (), (), P, (), (0,)))):
         fns[name] = _jit(lambda y0, aug=aug: stepper(aug, (y0, S0)))
 
     # The reverse pass: per-lane inertia (a batched model), ω recorded at each step start.
@@ -136,7 +138,7 @@ def _loops(lanes, steps, kind_list):
 
         def step(w, Jl):
             g = eqx.tree_at(lambda g: g.model.inertia, group, Jl)
-            term = WrapTerm(diffrax.ODETerm(integrate._LaneField(g, True, t0, span)), 1)
+            term = _compat.wrapped_term(diffrax.ODETerm(LaneField(g, True, t0, span)))
             f0 = term.vf(tprev, w, ok)
             return rk.step(term, tprev, tnext, w, ok, (jnp.array(False), f0), False)[0]
 
@@ -178,7 +180,7 @@ def _loops(lanes, steps, kind_list):
         g_sens = jnp.einsum("lip,li->lp", S, lam)
         dJ = calls[f"reverse, diffrax VJP (scan_kind={kind_list[0]})"]()[1]
         g_rev = jnp.stack([dJ[:, i, i] if i == j else dJ[:, i, j] + dJ[:, j, i]
-                           for i, j in integrate._SYMMETRIC], axis=-1)
+                           for i, j in SYMMETRIC], axis=-1)
         return float(jnp.max(jnp.abs(g_sens - g_rev)) / jnp.max(jnp.abs(g_sens)))
 
     return calls, check

@@ -16,7 +16,7 @@ trajectories and times, θ the 6 log-Cholesky parameters of J
 
 Methods, each a `jax.jit`-ed function of θ (`compiler_options=rb.COMPILER_OPTIONS`, as
 rbdyn_jax advises for a caller's jit): the forward loss through `simulate_batch`
-(vmapped `diffeqsolve`) and through the lane solver (`lanes=16`: fewer lanes than each
+(its default, `batching=rb.Vmap()` and the lane solver `rb.Lanes(16)`: fewer lanes than each
 device's 32 trajectories, so that lanes refill longest-first and finish together; measured
 jacfwd 66 ms at 16 lanes vs 87–89 ms at 8, 32 and 64); `jax.grad` with
 `RecursiveCheckpointAdjoint()` (diffrax's default), with `RecursiveCheckpointAdjoint(
@@ -84,7 +84,7 @@ def problem(n, seed=0):
 
 
 def make_loss(y0s, ts, data, tol=TOL, **kw):
-    """L(θ) through `simulate_batch(..., **kw)` (adjoint, lanes)."""
+    """L(θ) through `simulate_batch(..., **kw)` (batching, adjoint)."""
 
     def loss(theta):
         model = rb.RigidBody(rb.inertia.from_log_cholesky(theta))
@@ -107,12 +107,15 @@ def central_differences(loss, h=H):
 
 def methods(y0s, ts, data):
     """name -> (kind, function of θ): kind "loss" or "grad"."""
-    plain = make_loss(y0s, ts, data)
-    lanes = make_loss(y0s, ts, data, lanes=LANES)
+    default = make_loss(y0s, ts, data)  # `simulate_batch` chooses its batching
+    plain = make_loss(y0s, ts, data, batching=rb.Vmap())
+    lanes = make_loss(y0s, ts, data, batching=rb.Lanes(LANES))
     adj = diffrax.RecursiveCheckpointAdjoint
     return {
+        "forward loss, default": ("loss", default),
         "forward loss, vmapped diffeqsolve": ("loss", plain),
         f"forward loss, lanes={LANES}": ("loss", lanes),
+        "grad, default": ("grad", jax.grad(default)),
         "grad, RecursiveCheckpointAdjoint()": ("grad", jax.grad(plain)),
         f"grad, RecursiveCheckpointAdjoint(checkpoints={MAX_STEPS})":
             ("grad", jax.grad(make_loss(y0s, ts, data, adjoint=adj(checkpoints=MAX_STEPS)))),

@@ -1,5 +1,6 @@
-"""Throughput of batched forward solves, side by side in one run: rbdyn_jax's lane solver
-(`simulate_batch(..., lanes=L)`), the plain vmapped `diffeqsolve` (`simulate_batch`), a
+"""Throughput of batched forward solves, side by side in one run: rbdyn_jax's default call
+(`simulate_batch(model, y0s, ts)`, which picks its batching), the lane solver with a given
+lane count (`batching=rb.Lanes(L)`), the vmapped `diffeqsolve` (`batching=rb.Vmap()`), a
 numba-compiled per-trajectory Dormand–Prince 5(4) (the near-limit yardstick) and a scipy
 `solve_ivp` loop, with the accuracy of each printed beside its speed.
 
@@ -23,9 +24,8 @@ XLA_FLAGS is kept) and the lane solver splits the batch over them; numba uses it
 thread count (the cores). The scipy loop is timed on at most `--scipy-max` trajectories and
 the plain vmapped solve on batches up to `--plain-max` (its lockstep cost grows with the
 batch). Compilation is excluded from the rates (a first call is made per shape and
-reported). The lane solver runs 64 lanes per device by default, as `rbdyn sweep` does: with
-the loops compiled whole, 64 lanes ran 0–20 % faster than 256 at 10³ and the same
-within 5 % at 10⁴ (benchmarks/README.md, stop 25); 256 suited XLA's defaults.
+reported). The `lanes` column runs `--lanes` lanes per device (64 by default, as
+`rbdyn sweep` does); the `default` column lets `simulate_batch` choose.
 
 Run: `python benchmarks/throughput.py [--sizes 1 10 100 1000 10000] [--models …]
 [--lanes 64]` — prints a table per model and writes results/benchmarks/throughput.json.
@@ -97,12 +97,13 @@ def timed(fn, repeats):
     return out, first, float(np.median(times))
 
 
-def run_rbdyn(name, w0, ts, lanes, repeats):
+def run_rbdyn(name, w0, ts, batching, repeats):
     model = rbdyn_model(name)
     y0s = rb.State(jnp.asarray(w0), jnp.tile(jnp.array([1.0, 0.0, 0.0, 0.0]), (len(w0), 1)))
 
     def call():
-        tr = rb.simulate_batch(model, y0s, jnp.asarray(ts), rtol=TOL, atol=TOL, lanes=lanes)
+        tr = rb.simulate_batch(model, y0s, jnp.asarray(ts), rtol=TOL, atol=TOL,
+                               batching=batching)
         return jax.block_until_ready(tr)
 
     tr, first, t = timed(call, repeats)
@@ -166,13 +167,14 @@ def main(sizes, models, lanes, scipy_max, plain_max, ref_max, out):
             ref = reference(name, w0[:min(n, ref_max)], ts)
             repeats = 3 if n <= 1000 else 1
             row = {"model": name, "batch": n,
-                   "lanes": record(run_rbdyn(name, w0, ts, lanes, repeats), n, ref),
+                   "default": record(run_rbdyn(name, w0, ts, None, repeats), n, ref),
+                   "lanes": record(run_rbdyn(name, w0, ts, rb.Lanes(lanes), repeats), n, ref),
                    "numba": record(run_baseline(_baselines.numba_solve, name, w0, ts, repeats),
                                    n, ref)}
             row["numba_equal"] = numba_equal_accuracy(name, w0, ts, repeats, ref,
                                                       row["lanes"]["median_error"])
             if n <= plain_max:
-                row["plain"] = record(run_rbdyn(name, w0, ts, None, repeats), n, ref)
+                row["plain"] = record(run_rbdyn(name, w0, ts, rb.Vmap(), repeats), n, ref)
             k = min(n, scipy_max)
             row["scipy"] = record(run_baseline(_baselines.scipy_solve, name, w0[:k], ts, 1,
                                                method="RK45"), k, ref)
@@ -184,10 +186,12 @@ def main(sizes, models, lanes, scipy_max, plain_max, ref_max, out):
     return rows
 
 
-HEAD = (f"{'model':>16} {'batch':>6} | {'lanes traj/s':>12} {'steps':>5} {'err':>7} "
+HEAD = (f"{'model':>16} {'batch':>6} | {'default':>8} {'err':>7} | "
+        f"{'lanes traj/s':>12} {'steps':>5} {'err':>7} "
         f"{'med':>7} | {'plain':>7} {'err':>7} | {'numba':>7} {'steps':>5} {'err':>7} "
         f"{'med':>7} | {'numba=':>7} {'tol':>7} {'med':>7} | {'scipy':>6} {'err':>7} | "
-        f"{'lanes/numba':>11} {'lanes/numba=':>12} {'lanes/scipy':>11} {'lanes/plain':>11}")
+        f"{'default/numba':>13} {'lanes/numba':>11} {'lanes/numba=':>12} {'lanes/scipy':>11} "
+        f"{'lanes/plain':>11}")
 
 
 def print_row(r, _printed=[]):  # noqa: B006 (print the header once)
@@ -195,16 +199,18 @@ def print_row(r, _printed=[]):  # noqa: B006 (print the header once)
         print(HEAD)
         print("-" * len(HEAD))
         _printed.append(True)
-    la, nu, sp, eq = r["lanes"], r["numba"], r["scipy"], r["numba_equal"]
+    de, la, nu, sp, eq = r["default"], r["lanes"], r["numba"], r["scipy"], r["numba_equal"]
     pl = r.get("plain")
     plain = f"{pl['traj_per_s']:>7.0f} {pl['max_error']:>7.1e}" if pl else f"{'—':>7} {'':>7}"
     ratio_plain = f"{la['traj_per_s'] / pl['traj_per_s']:>10.1f}x" if pl else f"{'—':>11}"
-    print(f"{r['model']:>16} {r['batch']:>6} | {la['traj_per_s']:>12.0f} "
+    print(f"{r['model']:>16} {r['batch']:>6} | {de['traj_per_s']:>8.0f} "
+          f"{de['max_error']:>7.1e} | {la['traj_per_s']:>12.0f} "
           f"{la['mean_steps']:>5.0f} {la['max_error']:>7.1e} {la['median_error']:>7.1e} | "
           f"{plain} | {nu['traj_per_s']:>7.0f} {nu['mean_steps']:>5.0f} "
           f"{nu['max_error']:>7.1e} {nu['median_error']:>7.1e} | {eq['traj_per_s']:>7.0f} "
           f"{eq['tol']:>7.1e} {eq['median_error']:>7.1e} | "
           f"{sp['traj_per_s']:>6.1f} {sp['max_error']:>7.1e} | "
+          f"{de['traj_per_s'] / nu['traj_per_s']:>12.2f}x "
           f"{la['traj_per_s'] / nu['traj_per_s']:>10.2f}x "
           f"{la['traj_per_s'] / eq['traj_per_s']:>11.2f}x "
           f"{la['traj_per_s'] / sp['traj_per_s']:>10.0f}x {ratio_plain}", flush=True)

@@ -1,7 +1,7 @@
 """Work–precision of batched forward solves: the largest error against the Jacobi elliptic
 solution vs the wall time per trajectory, over a range of tolerances, for diffrax's Tsit5,
-Dopri5 and Dopri8 through `simulate_batch` (vmapped `diffeqsolve`), the lane solver
-(`simulate_batch(..., lanes=64)`: 4 trajectories per lane at the default N = 512 on two
+Dopri5 and Dopri8 through `simulate_batch(..., batching=rb.Vmap())` (vmapped `diffeqsolve`),
+the lane solver (`batching=rb.Lanes(64)`: 4 trajectories per lane at the default N = 512 on two
 devices, so lanes refill) with Tsit5 and Dopri5, and the numba Dormand–Prince 5(4)
 yardstick of `benchmarks/_baselines.py`.
 
@@ -91,7 +91,8 @@ def rbdyn_runner(solver, lanes, w0, ts):
     ts = jnp.asarray(ts)
 
     def run(tol):
-        traj = rb.simulate_batch(model, y0s, ts, solver=solver, rtol=tol, atol=tol, lanes=lanes)
+        traj = rb.simulate_batch(model, y0s, ts, solver=solver, rtol=tol, atol=tol,
+                                 batching=rb.Vmap() if lanes is None else rb.Lanes(lanes))
         ok = jnp.all(traj.result == rb.RESULTS.successful)
         return traj.ys.omega, traj.stats["num_steps"], ok
 

@@ -22,6 +22,9 @@ from . import (
     inertia as inertia,
 )
 from . import (
+    integrate as integrate,
+)
+from . import (
     invariants as invariants,
 )
 from . import (
@@ -31,11 +34,15 @@ from . import (
     rotation as rotation,
 )
 from . import (
+    scenario as scenario,
+)
+from . import (
     sweep as sweep,
 )
 from . import (
     torques as torques,
 )
+from ._version import __version__ as __version__
 from .frames import (
     AbstractFrame as AbstractFrame,
 )
@@ -61,7 +68,16 @@ from .integrate import (
     RESULTS as RESULTS,
 )
 from .integrate import (
+    AbstractBatching as AbstractBatching,
+)
+from .integrate import (
+    Lanes as Lanes,
+)
+from .integrate import (
     Trajectory as Trajectory,
+)
+from .integrate import (
+    Vmap as Vmap,
 )
 from .integrate import (
     configure_xla as configure_xla,
@@ -132,5 +148,3 @@ from .torques import (
 from .torques import (
     UniformGravity as UniformGravity,
 )
-
-__version__ = "0.1.0"

@@ -11,6 +11,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike
 
+from . import _compat
+
 
 def as_float_array(x: ArrayLike, name: str) -> Array:
     """`jnp.asarray(x)` promoted to a floating dtype (JAX's default float for ints/bools).
@@ -74,19 +76,6 @@ def sqrt_eps(dtype) -> float:
     return float(jnp.finfo(dtype).eps) ** 0.5
 
 
-def _forget_traces(jitted) -> None:
-    """Drop the cached traces of equinox's jitted `error_if` helper and of `jitted`
-    (`eqx.filter_jit` functions). JAX keys a cached trace by its inputs, not by the check
-    mode, so without this a trace made in one mode would be reused in the other: NaN where
-    a caller's check should raise, or a host callback in a program meant for the cache."""
-    import equinox._errors as eqx_errors
-
-    for f in (getattr(eqx_errors, "branched_error_if_impl_jit", None), *jitted):
-        clear = getattr(getattr(f, "_cached", None), "clear_cache", None)
-        if clear is not None:
-            clear()
-
-
 @contextlib.contextmanager
 def checks_as_nan(enabled: bool = True, jitted=()):
     """While a solve is traced, make `eqx.error_if` checks (the models' inertia checks,
@@ -97,19 +86,10 @@ def checks_as_nan(enabled: bool = True, jitted=()):
     store it (a program with callbacks is never cached). Use it only where the inputs were
     validated before tracing, so the checks cannot fire on good input. `jitted`: further
     `eqx.filter_jit` functions called inside (e.g. `diffrax.diffeqsolve`) whose cached
-    traces must not cross between the modes. Equinox reads the mode (`EQX_ON_ERROR`) from a
-    module attribute at trace time; without that attribute this is a no-op (the program is
-    then still correct, only not cacheable)."""
-    import equinox._errors as eqx_errors
-
-    old = getattr(eqx_errors, "EQX_ON_ERROR", None)
-    if not enabled or old is None:
+    traces must not cross between the modes. Where equinox has no such mode this is a
+    no-op (the program is then still correct, only not cacheable)."""
+    if not enabled:
         yield
         return
-    _forget_traces(jitted)
-    eqx_errors.EQX_ON_ERROR = "nan"
-    try:
+    with _compat.error_mode_set("nan", jitted):
         yield
-    finally:
-        eqx_errors.EQX_ON_ERROR = old
-        _forget_traces(jitted)

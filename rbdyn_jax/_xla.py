@@ -22,7 +22,8 @@ import os
 
 import equinox as eqx
 import jax
-from jax._src import core as _core  # `trace_state_clean`: JAX has no public spelling
+
+from . import _compat
 
 COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
 
@@ -37,10 +38,9 @@ LOOP_OPTION = "xla_cpu_small_while_loop_byte_threshold"
 LOOP_BYTES = 1 << 40
 
 
-def _backend_started() -> bool:
-    from jax._src import xla_bridge  # JAX has no public spelling
-
-    return xla_bridge.backends_are_initialized()
+def backend_started() -> bool:
+    """Whether JAX's backend is running (and has read XLA_FLAGS)."""
+    return _compat.backends_are_initialized()
 
 
 def configure_xla(host_devices: int | None = None) -> str:
@@ -84,7 +84,7 @@ def configure_xla(host_devices: int | None = None) -> str:
         flags.append(f"{count}={int(host_devices)}")
     new = " ".join(flags)
     if new != old:
-        if _backend_started():
+        if backend_started():
             raise RuntimeError(
                 "JAX's backend is already running, and XLA reads XLA_FLAGS only when it "
                 "starts: call `configure_xla` before the first JAX computation, or start "
@@ -95,7 +95,7 @@ def configure_xla(host_devices: int | None = None) -> str:
 
 def top_level() -> bool:
     """Whether nothing is being traced now: a jitted call here compiles its own program."""
-    return _core.trace_state_clean()
+    return _compat.trace_state_clean()
 
 
 def _dispatch(jitter, fn):
@@ -132,3 +132,9 @@ def export(fn):
     """`jax.export.export(jax.jit(fn))`: `fn` traced and lowered, for storing (`_traces.py`).
     Nothing is compiled here; the exported program is compiled through `jit`."""
     return jax.export.export(jax.jit(fn))
+
+
+def loops_compiled_whole() -> bool:
+    """Whether XLA:CPU was told to compile every while loop whole (`configure_xla`, or the
+    same option in the user's `XLA_FLAGS`)."""
+    return f"{LOOP_OPTION}=" in os.environ.get("XLA_FLAGS", "")

@@ -25,7 +25,7 @@ def test_throughput_runs_and_is_accurate(tmp_path):
         # measured 4e-5). For the heavy top this compares rbdyn_jax with numba's independent
         # equations (benchmarks/_baselines.py).
         assert "plain" not in r
-        for method in ("lanes", "numba", "scipy"):
+        for method in ("default", "lanes", "numba", "scipy"):
             assert r[method]["max_error"] < 1e-3, (r["model"], method)
             assert np.isfinite(r[method]["traj_per_s"])
         # the equal-accuracy yardstick is at least as accurate as the lane solver, at the

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from helpers import cheapest_call
 
-from rbdyn_jax._cheapest import cheapest
+from rbdyn_jax.integrate._cheapest import cheapest
 
 
 def small(x, y):

@@ -341,9 +341,9 @@ def test_diffrax_codes_keep_their_values():
         diffrax.RESULTS._name_to_item)
     for item in items:
         ours = rb.RESULTS.promote(item)
-        assert int(rb.integrate._code(item)) == int(ours._value) == int(item._value)
+        assert int(rb.integrate.result_code(item)) == int(ours._value) == int(item._value)
         assert rb.RESULTS[ours] == diffrax.RESULTS[item]
-    assert int(rb.integrate._code(rb.RESULTS.nonfinite_state)) not in {
+    assert int(rb.integrate.result_code(rb.RESULTS.nonfinite_state)) not in {
         int(item._value) for item in items}
 
 
@@ -391,7 +391,7 @@ def test_no_recompile_when_only_values_change(caplog):
 
 @pytest.mark.parametrize("first", ["nan", "checked"])
 def test_the_shared_field_trace_keeps_its_check_mode(first):
-    """The vector field is one `jit` per solve (`integrate._field`), and JAX keys its
+    """The vector field is one `jit` per solve (`integrate._field.field`), and JAX keys its
     cached traces by the inputs, not by equinox's check mode. A solve of concrete times is
     traced with its checks as NaN (cacheable), one of traced times with its checks as host
     callbacks: neither may reuse the other's trace of the field, whichever comes first.
@@ -405,8 +405,8 @@ def test_the_shared_field_trace_keeps_its_check_mode(first):
               "checked": lambda: jax.make_jaxpr(lambda t: rb.simulate(model, y0, t))(ts)}
     for mode in (first, "checked" if first == "nan" else "nan"):
         fields = [e.params["jaxpr"] for e in equations(traced[mode]())
-                  if e.params.get("name") == "_field"]
-        assert fields, "the solve's field is not the jitted `_field`"
+                  if e.params.get("name") == "field"]
+        assert fields, "the solve's field is not the jitted `field`"
         for field in fields:
             assert (len(host_callbacks(field)) > 0) == (mode == "checked"), mode
 

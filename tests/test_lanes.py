@@ -1,4 +1,5 @@
-"""The lane solver, `simulate_batch(..., lanes=L)`, against the plain vmapped `diffeqsolve`.
+"""The lane solver, `simulate_batch(..., batching=rb.Lanes(L))`, against
+`batching=rb.Vmap()`, the vmapped `diffeqsolve`.
 
 The lane solver drives diffrax's own solver step and PID controller, so it must take the
 *same* steps as `diffeqsolve` for every trajectory — checked exactly through the step
@@ -33,7 +34,13 @@ import pytest
 from helpers import cheapest_call, equations, host_callbacks
 
 import rbdyn_jax as rb
-from rbdyn_jax import integrate
+from rbdyn_jax.integrate._dependencies import closed_groups
+
+
+def batching(lanes):
+    """The lane solver with `lanes` lanes, or the vmapped `diffeqsolve` for `None`."""
+    return rb.Vmap() if lanes is None else rb.Lanes(lanes)
+
 
 J = jnp.array([[2.0, 0.05, 0.0], [0.05, 3.0, 0.02], [0.0, 0.02, 4.0]])
 TS = jnp.linspace(0.0, 6.0, 13)
@@ -78,13 +85,13 @@ CASES = {
 @pytest.mark.parametrize("case", CASES)
 def test_same_steps_and_values_as_vmapped_diffeqsolve(case):
     """From a start time that is not 0: both solvers run in the unit time s = (t − t0)/span
-    and must read a time-dependent field at t0 + s·span (`integrate._unit_time`)."""
+    and must read a time-dependent field at t0 + s·span (`integrate._field.unit_time`)."""
     model, axes, solver = CASES[case]()
     y0s = initial_states()
     ts = TS + 1.5
     kw = dict(model_axes=axes, solver=solver, rtol=RTOL, atol=RTOL)
-    lanes = rb.simulate_batch(model, y0s, ts, lanes=LANES, **kw)
-    plain = rb.simulate_batch(model, y0s, ts, **kw)
+    lanes = rb.simulate_batch(model, y0s, ts, batching=rb.Lanes(LANES), **kw)
+    plain = rb.simulate_batch(model, y0s, ts, batching=rb.Vmap(), **kw)
     assert np.all(plain.result._value == 0)
     assert_same_solves(lanes, plain)
     assert lanes.ys.omega.shape == (N, len(TS), 3)
@@ -98,7 +105,7 @@ def test_results_do_not_depend_on_the_order_of_the_batch_or_the_lane():
     another iteration; their results are unchanged to the bit (a lane's arithmetic is its
     own)."""
     y0s = initial_states()
-    kw = dict(rtol=RTOL, atol=RTOL, lanes=LANES)
+    kw = dict(rtol=RTOL, atol=RTOL, batching=rb.Lanes(LANES))
     a = rb.simulate_batch(rb.RigidBody(J), y0s, TS, **kw)
     perm = np.random.default_rng(3).permutation(N)
     b = rb.simulate_batch(rb.RigidBody(J), jax.tree_util.tree_map(lambda x: x[perm], y0s),
@@ -124,12 +131,12 @@ def test_clip_floor_is_diffrax_clip_floor(dtype):
     (ε⁻ the spacing of the floats just below 1), in the solve's dtype."""
     from equinox.internal import prevbefore
 
-    from rbdyn_jax.integrate import _clip_floor
+    from rbdyn_jax.integrate._lanes import clip_floor
 
     want = jnp.ones((), dtype)
     for _ in range(100):
         want = prevbefore(want)
-    got = _clip_floor(np.dtype(dtype))
+    got = clip_floor(np.dtype(dtype))
     assert got.dtype == dtype
     np.testing.assert_array_equal(got, np.asarray(want))
     np.testing.assert_array_equal(got, dtype(1) - dtype(100) * np.finfo(dtype).epsneg)
@@ -146,7 +153,8 @@ def test_vmap_over_the_lane_solver_gives_each_member_its_own_solve():
     y0s = initial_states()
 
     def solve(w):
-        return rb.simulate_batch(heavy_top(w), y0s, TS, rtol=RTOL, atol=RTOL, lanes=LANES)
+        return rb.simulate_batch(heavy_top(w), y0s, TS, rtol=RTOL, atol=RTOL,
+                                 batching=rb.Lanes(LANES))
 
     both = jax.vmap(solve)(weights)
     alone = [solve(w) for w in weights]
@@ -162,8 +170,8 @@ def test_failures_stay_in_their_lane():
     omega = y0s.omega.at[2].set(jnp.nan).at[7].set(jnp.array([0.0, 400.0, 1.0]))
     y0s = rb.State(omega, y0s.quat)
     kw = dict(rtol=RTOL, atol=RTOL, max_steps=300)
-    lanes = rb.simulate_batch(rb.RigidBody(J), y0s, TS, lanes=LANES, **kw)
-    plain = rb.simulate_batch(rb.RigidBody(J), y0s, TS, **kw)
+    lanes = rb.simulate_batch(rb.RigidBody(J), y0s, TS, batching=rb.Lanes(LANES), **kw)
+    plain = rb.simulate_batch(rb.RigidBody(J), y0s, TS, batching=rb.Vmap(), **kw)
     codes = np.asarray(lanes.result._value)
     assert codes[2] == rb.RESULTS.nonfinite_state._value
     assert codes[7] == rb.RESULTS.max_steps_reached._value
@@ -182,7 +190,7 @@ def test_failed_trajectories_leave_the_gradient_of_the_others_alone():
 
     def loss(J, lanes):
         tr = rb.simulate_batch(rb.RigidBody(J), y0s, TS, rtol=RTOL, atol=RTOL, max_steps=300,
-                               lanes=lanes)
+                               batching=batching(lanes))
         ok = (tr.result == rb.RESULTS.successful)[:, None, None]
         return (jnp.sum(jnp.sin(jnp.where(ok, tr.ys.omega, 0.0)))
                 + jnp.sum(jnp.where(ok, tr.ys.quat, 0.0)[..., 1:] ** 2))
@@ -220,7 +228,7 @@ def test_gradients_in_both_modes_match_reverse_mode_and_finite_differences():
             model = rb.RigidBody(rb.inertia.from_log_cholesky(theta))
         else:
             model = rb.with_log_cholesky(rb.RigidBody(J), theta)
-        tr = rb.simulate_batch(model, y0s, ts, rtol=1e-11, atol=1e-11, lanes=lanes)
+        tr = rb.simulate_batch(model, y0s, ts, rtol=1e-11, atol=1e-11, batching=batching(lanes))
         return (jnp.sum((tr.ys.omega - obs.omega) ** 2)
                 + jnp.sum((tr.ys.quat - obs.quat) ** 2))
 
@@ -269,7 +277,7 @@ def test_closed_groups_follow_the_jacobian(case):
     coupled = float(jnp.max(jnp.abs(jac.omega.quat)))
     assert (coupled > 1e-3) == (expected[0] == (0, 1)), coupled
     assert coupled == 0.0 or expected[0] == (0, 1)
-    assert integrate._closed_groups(model, 0.4, y) == expected
+    assert closed_groups(model, 0.4, y) == expected
 
 
 @pytest.mark.parametrize("reads", ["omega", "quat", "both", "omega_heavy_top"])
@@ -288,7 +296,7 @@ def test_a_loss_integrates_the_sensitivities_it_reads(reads):
 
     def loss(theta, lanes):
         model = rb.with_log_cholesky(heavy_top(1.0) if heavy else rb.RigidBody(J), theta)
-        tr = rb.simulate_batch(model, y0s, ts, rtol=1e-11, atol=1e-11, lanes=lanes)
+        tr = rb.simulate_batch(model, y0s, ts, rtol=1e-11, atol=1e-11, batching=batching(lanes))
         out = 0.0
         if reads != "quat":
             out = out + jnp.sum(jnp.sin(tr.ys.omega))
@@ -322,8 +330,8 @@ def test_hessian_forward_over_reverse_through_the_lanes():
     def loss(theta, lanes, adjoint=diffrax.RecursiveCheckpointAdjoint()):
         model = rb.RigidBody(rb.inertia.from_log_cholesky(theta),
                              rb.UniformGravity(1.0, jnp.array([0.0, 0.1, 0.5])))
-        tr = rb.simulate_batch(model, y0s, ts, rtol=RTOL, atol=RTOL, lanes=lanes,
-                               adjoint=adjoint)
+        tr = rb.simulate_batch(model, y0s, ts, rtol=RTOL, atol=RTOL, batching=batching(lanes),
+                               **({} if lanes else {"adjoint": adjoint}))
         return jnp.sum(tr.ys.omega ** 2) + jnp.sum(tr.ys.quat[..., 1:] ** 2)
 
     H = jax.jit(jax.jacfwd(jax.jacrev(lambda th: loss(th, LANES))))(theta0)
@@ -353,7 +361,7 @@ def test_gradients_for_per_trajectory_models_initial_states_and_times():
     def loss(w, omega, quat, ts, lanes):
         tops = eqx.filter_vmap(heavy_top)(w)
         tr = rb.simulate_batch(tops, rb.State(omega, quat), ts, rtol=tol, atol=tol,
-                               model_axes=0, lanes=lanes)
+                               model_axes=0, batching=batching(lanes))
         return jnp.sum(jnp.sin(tr.ys.omega)) + jnp.sum(tr.ys.quat[..., 1:] ** 2)
 
     args = (weights, y0s.omega, q0, ts)
@@ -387,7 +395,7 @@ def test_inertia_gradients_are_taken_on_symmetric_tensors():
         body = (eqx.filter_vmap(lambda J: rb.RigidBody(J, orbit))(J) if axes == 0
                 else rb.RigidBody(J, orbit))
         tr = rb.simulate_batch(body, y0s, TS, rtol=RTOL, atol=RTOL, model_axes=axes,
-                               lanes=lanes)
+                               batching=batching(lanes))
         return jnp.sum(jnp.sin(tr.ys.omega)) + jnp.sum(tr.ys.quat[..., 1:] ** 2)
 
     for J_, axes in ((J, None), (Js, 0)):
@@ -399,12 +407,15 @@ def test_inertia_gradients_are_taken_on_symmetric_tensors():
                                    atol=1e-10 * float(jnp.max(jnp.abs(sym))))
 
 
-class PrincipalBody(rb.RigidBody):
+class PrincipalBody(rb.AbstractRigidBody):
     """A user's model whose `inertia` leaf is its three principal moments, shape (3,)."""
 
-    def __init__(self, moments):
-        self.inertia = moments
-        self.torque = rb.NoTorque()
+    inertia: jax.Array
+    torque: rb.AbstractTorque = rb.NoTorque()
+    normalise = rb.RigidBody.normalise  # a unit quaternion, as the rigid body's
+
+    def kinematics(self, t, y):
+        raise NotImplementedError  # no torque reads it
 
     def vector_field(self, t, y, args):
         return rb.State(rb.dynamics.euler_rhs(jnp.diag(self.inertia), y.omega, jnp.zeros(3)),
@@ -418,7 +429,7 @@ def test_an_inertia_that_is_not_a_tensor_takes_ordinary_columns():
 
     def loss(moments, lanes):
         tr = rb.simulate_batch(PrincipalBody(moments), y0s, TS, rtol=RTOL, atol=RTOL,
-                               lanes=lanes)
+                               batching=batching(lanes))
         return jnp.sum(jnp.sin(tr.ys.omega))
 
     moments = jnp.array([2.0, 3.0, 4.0])
@@ -442,11 +453,11 @@ def test_eager_gradients_and_vmaps_reuse_their_compiled_solve():
 
     def loss(J):
         return jnp.sum(rb.simulate_batch(rb.RigidBody(J), y0s, TS, rtol=RTOL, atol=RTOL,
-                                         lanes=LANES).ys.omega ** 2)
+                                         batching=rb.Lanes(LANES)).ys.omega ** 2)
 
     def omegas(w):
         return rb.simulate_batch(heavy_top(w), y0s, TS, rtol=RTOL, atol=RTOL,
-                                 lanes=LANES).ys.omega
+                                 batching=rb.Lanes(LANES)).ys.omega
 
     for f, x in ((jax.grad(loss), J), (jax.vmap(omegas), jnp.array([0.5, 1.0]))):
         for _ in range(2):
@@ -466,7 +477,8 @@ def test_a_jvp_runs_one_loop_with_the_sensitivities_and_the_same_steps():
     y0s = initial_states()
 
     def solve(J):
-        return rb.simulate_batch(rb.RigidBody(J), y0s, TS, rtol=RTOL, atol=RTOL, lanes=LANES)
+        return rb.simulate_batch(rb.RigidBody(J), y0s, TS, rtol=RTOL, atol=RTOL,
+                                 batching=rb.Lanes(LANES))
 
     jaxpr = jax.make_jaxpr(lambda J, dJ: jax.jvp(solve, (J,), (dJ,)))(J, jnp.eye(3))
     # The sensitivities' solves: one program per closed group of the state's leaves, of
@@ -497,11 +509,12 @@ def test_float32_initial_states_start_in_float64():
     y32 = jax.tree_util.tree_map(lambda x: x.astype(jnp.float32), initial_states())
     y64 = jax.tree_util.tree_map(lambda x: x.astype(jnp.float64), y32)  # exact
     kw = dict(rtol=RTOL, atol=RTOL)
-    lanes = rb.simulate_batch(rb.RigidBody(J), y32, TS, lanes=LANES, **kw)
-    plain = rb.simulate_batch(rb.RigidBody(J), y32, TS, **kw)
+    lanes = rb.simulate_batch(rb.RigidBody(J), y32, TS, batching=rb.Lanes(LANES), **kw)
+    plain = rb.simulate_batch(rb.RigidBody(J), y32, TS, batching=rb.Vmap(), **kw)
     assert lanes.ys.omega.dtype == plain.ys.omega.dtype == jnp.float64
     assert_same_solves(lanes, plain)
-    assert_same_solves(plain, rb.simulate_batch(rb.RigidBody(J), y64, TS, **kw), tol=0.0)
+    assert_same_solves(plain, rb.simulate_batch(rb.RigidBody(J), y64, TS, batching=rb.Vmap(),
+                                                **kw), tol=0.0)
 
 
 def test_argument_errors():
@@ -509,12 +522,13 @@ def test_argument_errors():
     for solver in (diffrax.Kvaerno5(), diffrax.Euler(), diffrax.ReversibleHeun()):
         with pytest.raises(ValueError, match="explicit Runge–Kutta solver.*" +
                            type(solver).__name__):
-            rb.simulate_batch(rb.RigidBody(J), y0s, TS, lanes=LANES, solver=solver)
+            rb.simulate_batch(rb.RigidBody(J), y0s, TS, batching=rb.Lanes(LANES), solver=solver)
     for bad in (0, -3, True, 2.5):
         with pytest.raises(ValueError, match="`lanes`"):
-            rb.simulate_batch(rb.RigidBody(J), y0s, TS, lanes=bad)
+            rb.simulate_batch(rb.RigidBody(J), y0s, TS, batching=rb.Lanes(bad))
     with pytest.raises(ValueError, match="`devices`"):
-        rb.simulate_batch(rb.RigidBody(J), y0s, TS, lanes=LANES, devices=len(jax.devices()) + 1)
+        rb.simulate_batch(rb.RigidBody(J), y0s, TS,
+                          batching=rb.Lanes(LANES, devices=len(jax.devices()) + 1))
 
 
 def test_two_devices_and_the_persistent_cache(tmp_path):
@@ -535,13 +549,15 @@ def test_two_devices_and_the_persistent_cache(tmp_path):
         d = np.load({str(tmp_path / "in.npz")!r})
         tr = rb.simulate_batch(rb.RigidBody(jnp.asarray(d["J"])),
                                rb.State(jnp.asarray(d["w"]), jnp.asarray(d["q"])),
-                               jnp.asarray(d["ts"]), rtol={RTOL}, atol={RTOL}, lanes={LANES})
+                               jnp.asarray(d["ts"]), rtol={RTOL}, atol={RTOL},
+                               batching=rb.Lanes({LANES}))
         import equinox as eqx
         J = jnp.asarray(d["J"])
         tops = eqx.filter_vmap(lambda w: rb.RigidBody(J, rb.UniformGravity(
             w, jnp.array([0.0, 0.1, 0.5]))))(jnp.asarray(d["weights"]))
         tr2 = rb.simulate_batch(tops, rb.State(jnp.asarray(d["w"]), jnp.asarray(d["q"])),
-                                jnp.asarray(d["ts"]), rtol={RTOL}, atol={RTOL}, lanes={LANES},
+                                jnp.asarray(d["ts"]), rtol={RTOL}, atol={RTOL},
+                                batching=rb.Lanes({LANES}),
                                 model_axes=0)
         np.savez({str(out)!r}, omega=tr.ys.omega, steps=tr.stats["num_steps"],
                  omega2=tr2.ys.omega, steps2=tr2.stats["num_steps"])
@@ -552,12 +568,12 @@ def test_two_devices_and_the_persistent_cache(tmp_path):
     env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
     subprocess.run([sys.executable, "-c", code], check=True, env=env, timeout=300)
     got = np.load(out)
-    plain = rb.simulate_batch(rb.RigidBody(J), y0s, TS, rtol=RTOL, atol=RTOL)
+    plain = rb.simulate_batch(rb.RigidBody(J), y0s, TS, rtol=RTOL, atol=RTOL, batching=rb.Vmap())
     np.testing.assert_array_equal(got["steps"], plain.stats["num_steps"])
     np.testing.assert_allclose(got["omega"], plain.ys.omega, rtol=0, atol=ROUND_OFF)
     # per-trajectory models are padded and dealt to the devices with their trajectories
     plain2 = rb.simulate_batch(eqx.filter_vmap(heavy_top)(weights), y0s, TS, rtol=RTOL,
-                               atol=RTOL, model_axes=0)
+                               atol=RTOL, model_axes=0, batching=rb.Vmap())
     np.testing.assert_array_equal(got["steps2"], plain2.stats["num_steps"])
     np.testing.assert_allclose(got["omega2"], plain2.ys.omega, rtol=0, atol=ROUND_OFF)
     assert any(p.is_file() for p in cache.rglob("*")), "nothing entered the cache"

@@ -1,4 +1,4 @@
-"""The on-disk cache of traced solves (`rbdyn_jax/_traces.py`): a later process gets the
+"""The on-disk cache of traced solves (`rbdyn_jax/integrate/_traces.py`): a later process gets the
 same results from a loaded trace as from tracing, and a key never lets one call's program
 serve another's."""
 
@@ -16,8 +16,8 @@ import pytest
 from helpers import host_callbacks
 
 import rbdyn_jax as rb
-from rbdyn_jax import _traces
-from rbdyn_jax import integrate as integ
+from rbdyn_jax._xla import filter_jit
+from rbdyn_jax.integrate import _simulate, _traces
 
 J = jnp.array([[2.0, 0.05, 0.0], [0.05, 3.0, 0.02], [0.0, 0.02, 4.0]])
 TS = np.linspace(0.0, 5.0, 11)
@@ -27,7 +27,7 @@ def solve_args(model=None, y0=None, ts=TS, solver=None, max_steps=4096, rtol=1e-
     """The arguments `simulate` hands its compiled solve."""
     model = rb.RigidBody(J) if model is None else model
     y0 = rb.State(jnp.array([0.3, -1.0, 0.5]), jnp.array([1.0, 0, 0, 0])) if y0 is None else y0
-    ts, controller, max_steps = integ._prepare(model, ts, rtol, 1e-8, max_steps)
+    ts, controller, max_steps = _simulate._prepare(model, ts, None, rtol, 1e-8, max_steps)
     return (model, y0, ts, diffrax.Tsit5() if solver is None else solver, controller,
             diffrax.RecursiveCheckpointAdjoint(), max_steps, None)
 
@@ -98,15 +98,16 @@ SCRIPT = textwrap.dedent("""
         jax.config.update("jax_compilation_cache_dir", sys.argv[1])
     import jax.numpy as jnp, numpy as np
     import rbdyn_jax as rb
-    from rbdyn_jax import _traces
+    from rbdyn_jax.integrate import _traces
     J = jnp.array([[2.0, 0.05, 0.0], [0.05, 3.0, 0.02], [0.0, 0.02, 4.0]])
     w = np.random.default_rng(1).normal(size=(12, 3)) * np.linspace(0.05, 3, 12)[:, None]
     w = jnp.asarray(w)
     y0s = rb.State(w, jnp.tile(jnp.array([1.0, 0, 0, 0]), (12, 1)))
     ts = np.linspace(0.0, 5.0, 11)
     one = rb.simulate(rb.RigidBody(J), rb.State(w[0], y0s.quat[0]), ts)
-    plain = rb.simulate_batch(rb.RigidBody(J), y0s, ts)
-    lanes = rb.simulate_batch(rb.RigidBody(J), y0s, ts, lanes=4, max_steps=50)  # 4 of 12 fail
+    plain = rb.simulate_batch(rb.RigidBody(J), y0s, ts, batching=rb.Vmap())
+    # 4 of 12 fail:
+    lanes = rb.simulate_batch(rb.RigidBody(J), y0s, ts, batching=rb.Lanes(4), max_steps=50)
     out = {}
     for name, tr in (("one", one), ("plain", plain), ("lanes", lanes)):
         for i, leaf in enumerate(jax.tree_util.tree_leaves(tr)):
@@ -193,7 +194,7 @@ def test_a_program_export_refuses_is_traced_as_without_the_cache(tmp_path, monke
         return x * scale
 
     fn.__module__ = "rbdyn_jax.integrate"  # describable, as rbdyn_jax's own solves are
-    call = _traces.cached(fn, integ.filter_jit(fn))
+    call = _traces.cached(fn, filter_jit(fn))
     before = dict(_traces.stats)
     x = jnp.array([1.5, 2.0])
     for _ in range(2):
@@ -213,17 +214,17 @@ CALLER = textwrap.dedent("""
         jax.config.update("jax_compilation_cache_dir", sys.argv[1])
     import jax.numpy as jnp, numpy as np
     import rbdyn_jax as rb
-    from rbdyn_jax import _traces, integrate
+    from rbdyn_jax.integrate import _batching, _traces
     traced = []  # the lane loops traced in this process
-    loop = integrate._lane_loop
-    integrate._lane_loop = lambda *a, **k: traced.append(1) or loop(*a, **k)
+    loop = _batching.lane_loop
+    _batching.lane_loop = lambda *a, **k: traced.append(1) or loop(*a, **k)
     J = jnp.array([[2.0, 0.05, 0.0], [0.05, 3.0, 0.02], [0.0, 0.02, 4.0]])
     w = jnp.asarray(np.random.default_rng(1).normal(size=(6, 3)))
     y0s = rb.State(w, jnp.tile(jnp.array([1.0, 0, 0, 0]), (6, 1)))
     ts = np.linspace(0.0, 3.0, 5)
     def loss(theta, scale):
         model = rb.RigidBody(rb.inertia.from_log_cholesky(theta))
-        tr = rb.simulate_batch(model, y0s, ts, lanes=2)
+        tr = rb.simulate_batch(model, y0s, ts, batching=rb.Lanes(2))
         return jnp.sum(jnp.sin(tr.ys.omega * scale) ** 2) + jnp.sum(tr.ys.quat[..., 1:] ** 2)
     th, one, two = rb.inertia.to_log_cholesky(J) + 0.05, 1.0, jnp.array([1.0, 0.5])
     out = {"grad": jax.jit(jax.grad(loss))(th, one),
@@ -240,7 +241,7 @@ def test_a_callers_gradient_holds_the_stored_loops_and_gets_the_same_results(tmp
     """A caller's own `jit(grad)`, `jit(jacfwd)`, `jit(vmap(grad))` and `jit(hessian)` of a
     loss through the lane solver, in three fresh processes: no cache; an empty cache (the
     forward loop and the sensitivities' two loops, of ω's group and of the whole state,
-    are stored: `integrate._closed_groups`); the same cache (all three loaded, and the
+    are stored: `integrate._dependencies.closed_groups`); the same cache (all three loaded, and the
     gradients trace no lane loop at all). The vmap and the Hessian transform the
     stored loops through `fn`'s own rules (`embedded`'s fallbacks). Every result bitwise
     equal (the stored program is the traced one), but the Hessian's: its fallback wraps
@@ -278,7 +279,7 @@ def test_numpy_inputs_inside_a_callers_trace_are_checked_now_not_at_run_time():
     q = jnp.tile(jnp.array([1.0, 0, 0, 0]), (3, 1))
 
     def omegas(w, Jm=np.asarray(J)):
-        traj = rb.simulate_batch(rb.RigidBody(Jm), rb.State(w, q), TS, lanes=2)
+        traj = rb.simulate_batch(rb.RigidBody(Jm), rb.State(w, q), TS, batching=rb.Lanes(2))
         return traj.ys.omega
 
     w = jnp.ones((3, 3))
@@ -290,4 +291,4 @@ def test_numpy_inputs_inside_a_callers_trace_are_checked_now_not_at_run_time():
     ts_bad = TS[::-1]
     with pytest.raises(ValueError, match="increasing"):
         jax.make_jaxpr(lambda w: rb.simulate_batch(rb.RigidBody(J), rb.State(w, q),
-                                                    ts_bad, lanes=2))(w)
+                                                    ts_bad, batching=rb.Lanes(2)))(w)

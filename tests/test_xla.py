@@ -96,7 +96,7 @@ LOOP = f"{_xla.LOOP_OPTION}={_xla.LOOP_BYTES}"
 @pytest.fixture
 def flags(monkeypatch):
     """`configure_xla` on a given XLA_FLAGS, as if JAX had not started XLA yet."""
-    monkeypatch.setattr(_xla, "_backend_started", lambda: False)
+    monkeypatch.setattr(_xla, "backend_started", lambda: False)
 
     def run(old, **kwargs):
         if old is None:
@@ -131,7 +131,7 @@ def test_configure_xla_keeps_what_xla_flags_already_say(flags):
 
 
 def test_configure_xla_refuses_what_would_have_no_effect(monkeypatch):
-    monkeypatch.setattr(_xla, "_backend_started", lambda: True)
+    monkeypatch.setattr(_xla, "backend_started", lambda: True)
     monkeypatch.setenv("XLA_FLAGS", "")
     with pytest.raises(RuntimeError, match="already running"):
         _xla.configure_xla()
@@ -146,7 +146,7 @@ def test_configure_xla_refuses_what_would_have_no_effect(monkeypatch):
 
 def test_backend_started_is_true_in_a_running_process():
     jnp.ones(2).block_until_ready()
-    assert _xla._backend_started()
+    assert _xla.backend_started()
 
 
 # Run in two fresh processes, one calling `configure_xla()` first, one with XLA's defaults.
@@ -166,14 +166,14 @@ ts = jnp.linspace(0.0, 10.0, 11)
 
 def loss(theta):
     model = rb.RigidBody(rb.inertia.from_log_cholesky(theta))
-    traj = rb.simulate_batch(model, y0s, ts, lanes=4)
+    traj = rb.simulate_batch(model, y0s, ts, batching=rb.Lanes(4))
     return jnp.sum(traj.ys.omega ** 2) + jnp.sum(traj.ys.quat[..., 1:] ** 2)
 
 theta = rb.inertia.to_log_cholesky(J)
 grad = jax.jit(jax.grad(loss), compiler_options=rb.COMPILER_OPTIONS)
 text = grad.lower(theta).compile().as_text()
-lanes = rb.simulate_batch(rb.RigidBody(J), y0s, ts, lanes=4)
-plain = rb.simulate_batch(rb.RigidBody(J), y0s, ts)
+lanes = rb.simulate_batch(rb.RigidBody(J), y0s, ts, batching=rb.Lanes(4))
+plain = rb.simulate_batch(rb.RigidBody(J), y0s, ts, batching=rb.Vmap())
 np.savez(sys.argv[2], lanes_omega=lanes.ys.omega, lanes_quat=lanes.ys.quat,
          plain_omega=plain.ys.omega, plain_quat=plain.ys.quat, grad=grad(theta),
          steps=lanes.stats["num_steps"])

@@ -8,7 +8,7 @@ in the first program that gives every output still read. A plain JAX program can
 express that choice: its dead-code elimination drops whole equations whose outputs are
 not read, but cannot make one computation stand in for another.
 
-The lane solver's derivative uses it (`integrate._lane_jvp`): a loss on a torque-free
+The lane solver's derivative uses it (`integrate._sensitivity.lane_jvp`): a loss on a torque-free
 body's ω alone then integrates ω's sensitivities (18 columns) instead of those of the
 whole state (42), and a loss on the whole state runs the one whole solve.
 

@@ -45,7 +45,8 @@ import equinox as eqx
 import jax
 import numpy as np
 
-from ._xla import COMPILER_OPTIONS, export, filter_jit, jit, top_level
+from .. import _compat
+from .._xla import COMPILER_OPTIONS, export, filter_jit, jit, top_level
 
 # The modules whose classes and functions a key may name: their code is versioned by
 # `_environment` (builtins by the Python version, which changes the bytecode cache anyway).
@@ -88,7 +89,7 @@ def _environment() -> str:
             h.update(f"{name}={importlib.metadata.version(name)};".encode())
         except importlib.metadata.PackageNotFoundError:
             h.update(f"{name}=none;".encode())
-    root = pathlib.Path(__file__).parent
+    root = pathlib.Path(__file__).parent.parent  # the rbdyn_jax package
     for path in sorted(root.rglob("*.py")):
         h.update(str(path.relative_to(root)).encode())
         h.update(path.read_bytes())
@@ -330,9 +331,7 @@ def embedded(fn, *args):
     where = directory()
     if where is None:
         return fn(*args)
-    import equinox._errors as eqx_errors
-
-    mode = getattr(eqx_errors, "EQX_ON_ERROR", None)
+    mode = _compat.error_mode()
     name = f"{fn.__module__}.{fn.__qualname__}[embedded, {mode}]"
     leaves, treedef = jax.tree_util.tree_flatten(args)
     k = _memo_key(name, treedef, leaves)

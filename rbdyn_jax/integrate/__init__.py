@@ -1,0 +1,51 @@
+"""Integration of a model with diffrax: the only part of rbdyn_jax that calls diffrax.
+
+`simulate(model, y0, ts, ...)` solves one trajectory; `simulate_batch(model, y0s, ts, ...)`
+a batch, over initial conditions and, with `model_axes`, model parameters, by a batching
+strategy (`Lanes`, the lane solver, or `Vmap`, `diffeqsolve` vmapped; the default picks the
+faster one that can run the solve). Both are compiled once per model *structure*.
+
+The modules, one idea each:
+- `_solution`: what a solve returns (`Trajectory`, `RESULTS`);
+- `_field`: the vector-field plumbing every solve shares (unit time, guarded field, start
+  checks, the finished `Trajectory`);
+- `_simulate`: the public `simulate` and `simulate_batch` and their input checks;
+- `_diffeqsolve`: one trajectory by `diffrax.diffeqsolve`, and its vmapped batch;
+- `_batching`: the strategies `Vmap` and `Lanes`, and the default;
+- `_lanes`: the lane loop and its typed state;
+- `_sensitivity`: forward sensitivities of the lane loop, its derivative rule;
+- `_dependencies`: which state leaves a derivative must carry;
+- `_cheapest`: the equation that runs the cheapest program giving what is read;
+- `_compile`, `_traces`: when a solve is compiled, and which traces are stored on disk.
+
+Every use of diffrax's, equinox's or JAX's internals is in `rbdyn_jax/_compat.py`.
+
+`COMPILER_OPTIONS` are the XLA options of every program rbdyn_jax compiles. Pass them to
+your own `jax.jit` around a solve: `jax.jit(jax.grad(loss), compiler_options=
+COMPILER_OPTIONS)`. `configure_xla()`, called before JAX computes anything, sets XLA's
+process-wide flags for faster solves on CPU.
+"""
+
+from .._xla import COMPILER_OPTIONS as COMPILER_OPTIONS
+from .._xla import configure_xla as configure_xla
+from ._batching import AbstractBatching as AbstractBatching
+from ._batching import Lanes as Lanes
+from ._batching import Vmap as Vmap
+from ._field import MODE_DEPENDENT_JITS as MODE_DEPENDENT_JITS
+from ._simulate import simulate as simulate
+from ._simulate import simulate_batch as simulate_batch
+from ._solution import (
+    RESULTS as RESULTS,
+)
+from ._solution import (
+    Trajectory as Trajectory,
+)
+from ._solution import (
+    result_code as result_code,
+)
+from ._solution import (
+    result_names as result_names,
+)
+
+__all__ = ["COMPILER_OPTIONS", "RESULTS", "AbstractBatching", "Lanes", "Trajectory", "Vmap",
+           "configure_xla", "result_code", "result_names", "simulate", "simulate_batch"]

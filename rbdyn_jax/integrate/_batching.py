@@ -1,0 +1,228 @@
+"""How `simulate_batch` runs a batch: the batching strategies `Vmap` and `Lanes`, and the
+default that picks the faster one."""
+
+import abc
+import functools
+import math
+import numbers
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import PartitionSpec
+
+from .._xla import loops_compiled_whole
+from . import _traces
+from ._compile import compiled
+from ._diffeqsolve import solve_vmapped
+from ._field import checked_times, finish, promoted
+from ._lanes import Plain, lane_loop
+from ._sensitivity import lane_jvp
+from ._solution import Trajectory, as_result
+
+
+class AbstractBatching(eqx.Module):
+    """How `simulate_batch` runs a batch of trajectories. Pass an instance as its
+    `batching=` argument; `None` chooses for you (`Lanes` where it serves, else `Vmap`)."""
+
+    @abc.abstractmethod
+    def solve(self, model, y0s, ts, *, solver, controller, adjoint, max_steps, dt0,
+              model_axes, cacheable) -> Trajectory:
+        """The batch's `Trajectory` (leading batch axis on every leaf)."""
+
+
+class Vmap(AbstractBatching):
+    """`diffrax.diffeqsolve` vmapped over the batch.
+
+    Takes any solver, step-size controller and `adjoint` diffeqsolve takes, and is
+    differentiable in both modes through that adjoint. Every trajectory of the batch steps
+    in lockstep until the slowest one finishes: choose it for implicit solvers, for a
+    given `adjoint`, or for reverse-over-reverse derivatives."""
+
+    def solve(self, model, y0s, ts, *, solver, controller, adjoint, max_steps, dt0,
+              model_axes, cacheable) -> Trajectory:
+        adjoint = diffrax.RecursiveCheckpointAdjoint() if adjoint is None else adjoint
+        return _vmapped[cacheable](model, y0s, ts, solver, controller, adjoint, max_steps,
+                                   dt0, model_axes)
+
+
+class Lanes(AbstractBatching):
+    """The lane solver: the batch flows through `lanes` lanes per device of one loop that
+    drives diffrax's solver step and step-size controller itself, and a lane whose
+    trajectory has finished takes the next one at once, so no lane idles behind the
+    slowest trajectory. The fast path for large batches.
+
+    **Arguments:**
+    - `lanes`: lanes per device; `None` chooses from the batch size and the device count.
+    - `devices`: how many local devices the batch is split over; `None` takes all of the
+      default backend (on CPU one, unless XLA was started with several host devices, e.g.
+      by `configure_xla(host_devices=…)` first).
+
+    Needs an explicit Runge–Kutta solver (a `diffrax.AbstractERK`: Tsit5, Dopri5, Dopri8,
+    …) and an adaptive controller with `rtol`/`atol` (`diffrax.PIDController`). Same steps,
+    same saved values (to round-off), `stats` and `result` as `Vmap`. Differentiable in
+    both modes (`jax.grad`, `jax.jacfwd`, w.r.t. the model, `y0s` and `ts`) by forward
+    sensitivities integrated beside the state by the same steps: the cost grows with the
+    number of differentiated parameters per trajectory, not with the number of tangents,
+    and only the sensitivities of the state the caller reads are integrated. W.r.t. `ts`
+    the derivative is f(tᵢ, y(tᵢ)) (where `Vmap` differentiates its interpolant: the two
+    agree to a step's local error). An inertia is differentiated as the symmetric tensor
+    it is: a gradient w.r.t. a raw J is (g + gᵀ)/2 of `Vmap`'s g. Second derivatives:
+    forward over either mode; reverse over reverse is refused by JAX's while loop. Takes
+    no `adjoint`.
+    """
+
+    lanes: int | None = None
+    devices: int | None = None
+
+    def __check_init__(self):
+        for name in ("lanes", "devices"):
+            v = getattr(self, name)
+            if v is not None and (isinstance(v, bool) or not isinstance(v, numbers.Integral)
+                                  or v < 1):
+                raise ValueError(f"`{name}` must be a positive int or None, got {v!r}.")
+
+    def solve(self, model, y0s, ts, *, solver, controller, adjoint, max_steps, dt0,
+              model_axes, cacheable) -> Trajectory:
+        reason = _lanes_refuse(solver, controller, adjoint)
+        if reason is not None:
+            raise ValueError(f"`Lanes` {reason}; `batching=Vmap()` takes any solver, "
+                             "controller and adjoint diffeqsolve takes.")
+        mesh = _mesh(self.devices)
+        n = jax.tree_util.tree_leaves(y0s)[0].shape[0]
+        lanes = default_lanes(n, mesh.devices.size) if self.lanes is None else int(self.lanes)
+        return _lane_solved[cacheable](model, y0s, ts, solver, controller, max_steps, dt0,
+                                       model_axes, lanes, mesh)
+
+
+def _lanes_refuse(solver, controller, adjoint) -> str | None:
+    """Why `Lanes` cannot run this solve, or `None`."""
+    if not isinstance(solver, diffrax.AbstractERK):
+        return ("needs an explicit Runge–Kutta solver (a `diffrax.AbstractERK`: Tsit5, "
+                f"Dopri5, Dopri8, Bosh3, Heun, …), got {type(solver).__name__}")
+    if not isinstance(controller, diffrax.PIDController):
+        return f"needs a `diffrax.PIDController`, got {type(controller).__name__}"
+    if adjoint is not None:
+        return ("differentiates by forward sensitivities and takes no `adjoint`, got "
+                f"{type(adjoint).__name__}")
+    return None
+
+
+# Lanes per device: about two trajectories per lane, so that lanes refill and finish
+# together, at least a few lanes (a small batch runs side by side), and at most a cap: with
+# XLA's loops compiled whole (`configure_xla`) a lane step costs little beyond its
+# arithmetic and fewer lanes win; with XLA's defaults the loop's dispatch per iteration is
+# shared by more lanes (the performance page).
+MAX_LANES_WHOLE, MAX_LANES_DEFAULT, MIN_LANES, PER_LANE = 64, 256, 8, 2
+
+
+def default_lanes(n: int, devices: int) -> int:
+    """The lane count per device for `n` trajectories over `devices` devices."""
+    cap = MAX_LANES_WHOLE if loops_compiled_whole() else MAX_LANES_DEFAULT
+    share = math.ceil(n / devices)
+    return max(1, min(cap, max(min(share, MIN_LANES), math.ceil(share / PER_LANE))))
+
+
+def default_batching(solver, controller, adjoint) -> AbstractBatching:
+    """`Lanes()` where the lane solver can run the solve, else `Vmap()`."""
+    return Vmap() if _lanes_refuse(solver, controller, adjoint) is not None else Lanes()
+
+
+def _mesh(devices) -> jax.sharding.Mesh:
+    available = jax.local_devices()
+    if devices is None:
+        devices = len(available)
+    if not 1 <= devices <= len(available):
+        raise ValueError(f"`devices` must be an int in [1, {len(available)}] (the local "
+                         f"devices), got {devices!r}.")
+    return jax.sharding.Mesh(np.asarray(available[:devices]), ("batch",))
+
+
+def lane_solve(model, y0s, ts, solver, controller, max_steps, dt0, model_axes, lanes,
+               mesh=None) -> Trajectory:
+    """The lane loop (`_lanes.lane_loop`; on each device of `mesh`, `_sharded`) and its
+    `Trajectory`s.
+
+    Differentiable in both modes by forward sensitivities: the rule of its `custom_jvp`
+    (`_sensitivity.lane_jvp`) integrates, once, the variational equations for every input
+    element with a tangent by the same steps as the solve, and contracts them with the
+    tangents. That contraction is linear, so `jax.grad` transposes it, and `jax.jacfwd`'s
+    tangents share the one solve; the tangents never enter the loop. The derivative is
+    that of the discrete solve (the step sizes are not differentiated, as in
+    `diffeqsolve`). The rule is outside the devices' `shard_map`, which the
+    sensitivities' solve enters as the forward solve does."""
+    ts = checked_times(ts)
+    batched = model_axes is not None
+    if batched:  # every array leaf with a leading trajectory axis
+        model = eqx.filter_vmap(lambda m: m, in_axes=(model_axes,))(model)
+    dyn, static = eqx.partition(model, eqx.is_array)
+    y0s = promoted(dyn, y0s, ts)  # before the loop's buffers take its dtype
+    tols, cstatic = eqx.partition(controller, eqx.is_array)
+
+    stored = _traces.embedder()  # inside a caller's transformation, stored programs
+
+    def loop(system, y0s, ts, tols):
+        return stored(lane_run, system, y0s, ts, tols, cstatic, solver, max_steps, dt0,
+                      batched, lanes, mesh)
+
+    @jax.custom_jvp
+    def solve(dyn, y0s, ts, tols):
+        return loop(Plain(eqx.combine(dyn, static)), y0s, ts, tols)
+
+    solve.defjvp(functools.partial(lane_jvp, loop, static, batched), symbolic_zeros=True)
+    ys, ok0, result, counts = solve(dyn, y0s, ts, tols)
+
+    def finished(m, ys, ok, result, counts):
+        return finish(m, ts, ys, ok, as_result(result), list(counts))
+
+    return eqx.filter_vmap(finished, in_axes=(0 if batched else None, 0, 0, 0, 0))(
+        model, ys, ok0, result, counts)
+
+
+def lane_run(system, y0s, ts, tols, cstatic, solver, max_steps, dt0, batched, lanes, mesh):
+    """The lane loop, on one device or on each of `mesh`'s."""
+    run = functools.partial(lane_loop, solver=solver, max_steps=max_steps, dt0=dt0,
+                            batched=batched, lanes=lanes)
+    if mesh is None or mesh.devices.size == 1:
+        return run(system, y0s, ts, eqx.combine(tols, cstatic))
+    return _sharded(run, system, y0s, ts, tols, cstatic, batched, mesh)
+
+
+def _sharded(run, system, y0s, ts, tols, cstatic, batched, mesh):
+    """`run` (the lane loop) on each device's share of the batch (`shard_map`: every device
+    runs its own loop, no collective inside it), its raw outputs in the batch's order. The
+    batch is padded to a multiple of the devices by repeating its last trajectory and dealt
+    out in turn (device d takes trajectories d, d + devices, …), so that a batch ordered by
+    difficulty (a sweep over spin rates, say) still gives every device an equal share of
+    the work."""
+    n_dev = mesh.devices.size
+    N = jax.tree_util.tree_leaves(y0s)[0].shape[0]
+    pad = -N % n_dev
+
+    def padded(x):  # padded to P = N + pad, dealt: row d·(P/devices) + i holds i·devices + d
+        x = jnp.concatenate([x, jnp.repeat(x[-1:], pad, axis=0)]) if pad else x
+        return x.reshape((-1, n_dev) + x.shape[1:]).swapaxes(0, 1).reshape(x.shape)
+
+    def collected(x):  # the inverse of the deal, without the padding
+        return x.reshape((n_dev, -1) + x.shape[1:]).swapaxes(0, 1).reshape(x.shape)[:N]
+
+    y0s = jax.tree_util.tree_map(padded, y0s)
+    dyn, static = eqx.partition(system, eqx.is_array)
+    if batched:
+        dyn = jax.tree_util.tree_map(padded, dyn)
+    spec = PartitionSpec("batch") if batched else PartitionSpec()
+
+    def local(dyn, y0s, ts, tols):
+        return run(eqx.combine(dyn, static), y0s, ts, eqx.combine(tols, cstatic))
+
+    out = jax.shard_map(local, mesh=mesh,
+                        in_specs=(spec, PartitionSpec("batch"), PartitionSpec(),
+                                  PartitionSpec()),
+                        out_specs=PartitionSpec("batch"), check_vma=False)(dyn, y0s, ts, tols)
+    return jax.tree_util.tree_map(collected, out)
+
+
+_vmapped = compiled(solve_vmapped)
+_lane_solved = compiled(lane_solve)

@@ -1,0 +1,351 @@
+"""The lane loop: a batch of trajectories flowing through a fixed number of lanes of one
+while loop, each lane refilled with the next trajectory as soon as its own finishes.
+
+A vmapped `diffeqsolve` runs every trajectory of a batch in lockstep until the slowest
+finishes. Here each loop iteration (1) saves at most one output time per lane from the
+lane's last step (diffrax's interpolant, as `SaveAt(ts=…)` does), (2) hands every finished
+lane the next waiting trajectory, and (3) takes one diffrax solver step in every lane that
+has no output left to save, with diffrax's step-size controller deciding acceptance and the
+next step per lane. The steps, accepted/rejected decisions and saved values are those of
+`diffeqsolve` for the same trajectory (tested), and no lane idles behind the slowest.
+"""
+
+import abc
+import dataclasses
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Bool, Float, Int, PyTree
+
+from .. import _compat
+from ..models import AbstractRigidBody
+from ._field import (
+    Guarded,
+    controller_in_unit_time,
+    per_unit_time,
+    start,
+    unit_time,
+    where_tree,
+)
+from ._solution import RESULTS, result_code
+
+
+class AbstractLaneSystem(eqx.Module):
+    """What the lane loop integrates: a rigid-body `model`'s state, possibly extended (by
+    its sensitivities, say). The loop's start checks, step-size controller and ordering
+    see the model's own state alone (`primal`), so the steps are those of the model's own
+    solve."""
+
+    model: eqx.AbstractVar[AbstractRigidBody]
+
+    @abc.abstractmethod
+    def vector_field(self, t, y, args):
+        """The rate of the whole (extended) state."""
+
+    @abc.abstractmethod
+    def primal(self, y):
+        """The model's own state within the state `y`."""
+
+    @abc.abstractmethod
+    def extend(self, ok, y, f, y0, t):
+        """The state integrated and its rate at the start `t`, from the model's checked
+        start `y` (finite where `ok`), its rate `f` and the given initial state `y0`."""
+
+
+class Plain(AbstractLaneSystem):
+    """The model's own trajectories."""
+
+    model: AbstractRigidBody
+
+    def vector_field(self, t, y, args):
+        return self.model.vector_field(t, y, args)
+
+    def primal(self, y):
+        return y
+
+    def extend(self, ok, y, f, y0, t):
+        return y, f
+
+
+class LaneField(eqx.Module):
+    """The vector field of `lanes` trajectories as one batched state (leading lane axis on
+    every leaf), each lane with its own unit time `s[:, 0]` (`unit_time`) and `ok` flag.
+    diffrax's solver step then runs on whole `(lanes, …)` arrays: its stage loop combines
+    contiguous blocks instead of a vmapped loop of tiny ones (bitwise the same arithmetic).
+    `system` carries a leading lane axis when `batched`."""
+
+    system: AbstractLaneSystem
+    batched: bool = eqx.field(static=True)
+    t0: Array
+    span: Array
+
+    def __call__(self, s, y, ok):  # `Guarded` per lane: the vmapped path's arithmetic
+        axis = 0 if self.batched else None
+        return eqx.filter_vmap(lambda m, s, x, ok: Guarded(m, self.t0, self.span)(s, x, ok),
+                               in_axes=(axis, 0, 0, 0))(self.system, s[:, 0], y, ok)
+
+
+class LaneState(eqx.Module):
+    """The lane loop's state. `L` lanes, `N` trajectories, `n` output times; times in the
+    unit time s ∈ [0, 1] (`unit_time`)."""
+
+    # Per lane:
+    idx: Int[Array, " L"]  # the lane's trajectory, as a position in the hand-out order; N: idle
+    tprev: Float[Array, " L"]  # start of the lane's next step
+    tnext: Float[Array, " L"]  # end of the lane's next step
+    y: PyTree  # the state at `tprev`
+    solver_state: PyTree  # the solver's (its first stage, for an FSAL method)
+    controller_state: PyTree  # the step-size controller's
+    ok: Bool[Array, " L"]  # the trajectory's start was finite
+    model: PyTree  # the lanes' model arrays, when every trajectory has its own; else None
+    dense: PyTree  # the last accepted step's dense output (for the interpolant)
+    dense_t: Float[Array, "2 L"]  # the last accepted step's interval
+    pending: Bool[Array, " L"]  # an output time falls in the last accepted step
+    save: Int[Array, " L"]  # the next output time's index
+    counts: Int[Array, "3 L"]  # steps, accepted steps, rejected steps
+    result: Int[Array, " L"]  # the `RESULTS` code so far
+    # Shared:
+    next: Int[Array, ""]  # the next position in the hand-out order
+    ys: PyTree  # (N, n, …) the saved outputs; +inf where never saved
+    out_counts: Int[Array, "N 3"]  # each trajectory's `counts`, once finished
+    out_result: Int[Array, " N"]  # each trajectory's code, once finished
+
+
+def lane_select(mask, new, old, axis=0):
+    """Per-lane `where` on pytrees whose lane axis is `axis`."""
+
+    def sel(a, b):
+        return jnp.where(mask.reshape((1,) * axis + mask.shape + (1,) * (b.ndim - axis - 1)),
+                         a, b)
+
+    return jax.tree_util.tree_map(sel, new, old)
+
+
+def clip_floor(dtype) -> np.floating:
+    """diffeqsolve's end-of-interval threshold (a step ending above it ends at t1) for the
+    unit time's t1 = 1 (`unit_time`): 1 moved down by 100 floats, as its 100 calls of
+    equinox's `prevbefore` move t1, i.e. 1 − 100·ε⁻ (ε⁻ the spacing of the floats just
+    below 1; exact in the dtype). A NumPy constant."""
+    dtype = np.dtype(dtype)
+    return dtype.type(1) - dtype.type(100) * np.finfo(dtype).epsneg
+
+
+def take(tree, i):
+    return jax.tree_util.tree_map(lambda x: x[i], tree)
+
+
+def _term(model, t0, span):
+    return _compat.wrapped_term(diffrax.ODETerm(Guarded(model, t0, span)))
+
+
+def _interpolate(solver, tprev, tnext, dense, t):
+    """The solver's interpolant of each lane's last step at the unit time `t`.
+
+    diffrax's Runge–Kutta interpolants are linear in the step's dense information (y0, y1
+    and the stage increments k), with weights depending on θ = (t − t0)/(t1 − t0) only.
+    The weights come from the solver's own interpolant evaluated on unit vectors (one row
+    per lane: a plain matrix product); the lanes' states are then combined elementwise,
+    where the interpolant vmapped over lanes would make one tiny batched dot per lane."""
+    dt = tnext - tprev
+    theta = jnp.where(dt > 0, (t - tprev) / jnp.where(dt > 0, dt, 1.0), 0.0)
+    keys = sorted(k for k in dense if k != "k")
+    stages = jax.tree_util.tree_leaves(dense["k"])[0].shape[0]
+    eye = jnp.eye(len(keys) + stages, dtype=theta.dtype)
+    probe = dict(zip(keys, eye), k=eye[len(keys):])
+    zero, one = jnp.zeros((), theta.dtype), jnp.ones((), theta.dtype)
+    w = jax.vmap(lambda th: solver.interpolation_cls(t0=zero, t1=one, **probe)
+                 .evaluate(th))(theta).T  # (keys + stages, lanes)
+
+    def combine(*leaves):  # unrolled: XLA:CPU's reductions over a few rows are slow
+        *ys, k = leaves
+        terms = [(w[i], y) for i, y in enumerate(ys)]
+        terms += [(w[len(keys) + j], k[j]) for j in range(stages)]
+        out = None
+        for wi, x in terms:
+            term = wi.reshape(wi.shape + (1,) * (x.ndim - 1)) * x
+            out = term if out is None else out + term
+        return out
+
+    return jax.tree_util.tree_map(combine, *[dense[k] for k in keys], dense["k"])
+
+
+def lane_loop(system: AbstractLaneSystem, y0s, ts, controller, *, solver, max_steps, dt0,
+              batched, lanes):
+    """All trajectories of `y0s` through `lanes` lanes of one while loop; the raw saved
+    states (before `finish`), the start flags, result codes and step counts.
+
+    Trajectories are handed out longest-first, by |f(t0, y0)| in the tolerance scale (the
+    rate the state moves at, which sets the step count of these rotational problems), so
+    the last ones are short and the lanes finish nearly together. `system` has a leading
+    trajectory axis on every array leaf when `batched`.
+    """
+    if getattr(solver, "scan_kind", "lax") is None:
+        # Runge–Kutta stages in a plain while loop rather than diffrax's checkpointed one
+        # (a custom VJP, which forward-mode autodiff cannot pass); the same arithmetic.
+        solver = eqx.tree_at(lambda s: s.scan_kind, solver, "lax", is_leaf=lambda x: x is None)
+    N = jax.tree_util.tree_leaves(y0s)[0].shape[0]
+    L = min(lanes, N)
+    n = ts.shape[0]
+    start_time, span, ts, dt0 = unit_time(ts, dt0)
+    controller = controller_in_unit_time(controller, start_time, span)
+    t0, t1 = jnp.zeros((), ts.dtype), jnp.ones((), ts.dtype)
+    t1_floor = jnp.asarray(clip_floor(ts.dtype))  # diffeqsolve's clip
+    dyn, static = eqx.partition(system, eqx.is_array)
+    axis = 0 if batched else None
+    fsal = getattr(getattr(solver, "tableau", None), "fsal", False)
+
+    def first(m, y0):
+        ok, y, f = start(m.model, m.primal(y0), start_time)  # f at y: the stand-in if not ok
+        y_run, f_run = m.extend(ok, y, f, y0, start_time)
+        term = _term(m.model, start_time, span)
+        tnext, cstate = controller.init(term, t0, t1, y, dt0, ok, solver.func,
+                                        solver.error_order(term))
+        tnext = jnp.minimum(tnext, t1)
+        if fsal:
+            # An explicit FSAL Runge–Kutta step starts from f(t0, y0): give it now (what
+            # `solver.init` would compute), so that a refilled lane does not make every
+            # lane re-evaluate its first stage.
+            sstate = (jnp.array(False), per_unit_time(span, where_tree(ok, f_run, 0.0)))
+        else:
+            sstate = solver.init(_term(m, start_time, span), t0, tnext, y_run, ok)
+        # How long the trajectory will take: |f(t0, y0)| in the controller's tolerance
+        # scale. An ordering only: no tangents through it.
+        f, y_ = jax.lax.stop_gradient((f, y))
+        d = sum(jnp.sum((a / (controller.atol + controller.rtol * jnp.abs(b))) ** 2)
+                for a, b in zip(jax.tree_util.tree_leaves(f), jax.tree_util.tree_leaves(y_)))
+        d = jnp.where(ok & ~jnp.isnan(d), d, -1.0)  # an overflow to inf goes first
+        return ok, y_run, tnext, sstate, jax.tree_util.tree_map(jnp.asarray, cstate), d
+
+    ok0, y0r, tnext0, sstate0, cstate0, difficulty = eqx.filter_vmap(
+        first, in_axes=(axis, 0))(system, y0s)
+    order = jnp.argsort(-difficulty)  # longest first
+    error_order = solver.error_order(diffrax.ODETerm(Guarded(system, start_time, span)))
+    primal = system.primal
+
+    def control(tprev, tnext, y, y1, y_error, cstate):
+        y_error = jax.tree_util.tree_map(lambda x: jnp.where(jnp.isnan(x), jnp.inf, x), y_error)
+        keep, tp, tn, _, cstate, result = controller.adapt_step_size(
+            tprev, tnext, y, y1, None, y_error, error_order, cstate)
+        tp = jnp.minimum(tp, t1)
+        tn = jnp.where(tn > t1_floor, jnp.where(keep, t1, tp + 0.5 * (t1 - tp)), tn)
+        cstate = jax.tree_util.tree_map(jnp.asarray, cstate)
+        return keep, tp, tn, cstate, result_code(result)
+
+    def step(m, tprev, tnext, y, ok, sstate):
+        term = _compat.wrapped_term(diffrax.ODETerm(LaneField(m, batched, start_time, span)))
+        return solver.step(term, tprev[:, None], tnext[:, None], y, ok, sstate, False)
+
+    lane = order[:L]
+    m0 = take(dyn, lane) if batched else None
+    tprev0 = jnp.full(L, t0)
+    y_lane, ss_lane, ok_lane = take(y0r, lane), take(sstate0, lane), ok0[lane]
+    dense_struct = jax.eval_shape(lambda: step(
+        eqx.combine(m0 if batched else dyn, static), tprev0, tnext0[lane], y_lane, ok_lane,
+        ss_lane)[2])
+    state = LaneState(
+        idx=jnp.arange(L, dtype=jnp.int32), tprev=tprev0, tnext=tnext0[lane], y=y_lane,
+        solver_state=ss_lane, controller_state=take(cstate0, lane), ok=ok_lane, model=m0,
+        dense=jax.tree_util.tree_map(lambda x: jnp.zeros(x.shape, x.dtype), dense_struct),
+        dense_t=jnp.zeros((2, L), ts.dtype), pending=jnp.zeros(L, bool),
+        save=jnp.zeros(L, jnp.int32), counts=jnp.zeros((3, L), int),
+        result=jnp.zeros(L, jnp.int32), next=jnp.asarray(L, jnp.int32),
+        ys=jax.tree_util.tree_map(lambda x: jnp.full((N, n) + x.shape[1:], jnp.inf, x.dtype),
+                                  y0s),
+        out_counts=jnp.zeros((N, 3), int), out_result=jnp.zeros(N, jnp.int32),
+    )
+    # The state, the solver's state, the step's dense output and the saved values take a
+    # batch axis (`jax.vmap`) from the model and the initial states (and tangents, for a
+    # derivative of the sensitivities themselves), but the buffers start as constants and
+    # some lane states from y0 alone. JAX finds which carries of a while loop take them by
+    # a fixpoint that re-traces the whole body on each pass; tying those carries to the
+    # inputs from the start (a select that always picks the initial value) makes it
+    # converge in one pass.
+    inputs = [x for x in jax.tree_util.tree_leaves((dyn, y0s, sstate0)) if
+              jnp.issubdtype(x.dtype, jnp.inexact)]
+    if inputs:
+        anchor = sum(jnp.sum(x) for x in inputs)
+        never = jnp.zeros((), bool)
+
+        def tied(x):
+            if not jnp.issubdtype(x.dtype, jnp.inexact):
+                return x
+            return jnp.where(never, anchor.astype(x.dtype), x)
+
+        state = dataclasses.replace(
+            state, **{k: jax.tree_util.tree_map(tied, getattr(state, k))
+                      for k in ("y", "solver_state", "dense", "ys")})
+
+    lane_ids = jnp.arange(L, dtype=order.dtype)
+
+    def cond(c: LaneState):
+        return jnp.any(c.idx < N)
+
+    def body(c: LaneState) -> LaneState:
+        active = c.idx < N
+        current = order[jnp.minimum(c.idx, N - 1)]  # each lane's row of the batch
+        # (1) Save one output time from each lane's last step.
+        s = jnp.minimum(c.save, n - 1)
+        vals = _interpolate(solver, c.dense_t[0], c.dense_t[1], c.dense, ts[s])
+        # Lanes with nothing to save write to rows N + lane, out of bounds and dropped. Every
+        # row is then distinct, as `unique_indices` promises, and forward-mode autodiff
+        # scatters the tangents as it scatters the values (without the promise, JAX's
+        # scatter JVP masks the whole (N, n, …) buffer at every iteration: quadratic in N).
+        row = jnp.where(c.pending, current, N + lane_ids)
+        ys = jax.tree_util.tree_map(
+            lambda o, v: o.at[row, s].set(v, mode="drop", unique_indices=True), c.ys, vals)
+        save = c.save + c.pending.astype(jnp.int32)
+        s = jnp.minimum(save, n - 1)
+        pending = c.pending & (save < n) & (ts[s] <= c.dense_t[1])
+        # (2) Finished lanes report and take the next trajectory.
+        done = active & ~pending & ((c.tprev >= t1) | (c.result != 0))
+        row = jnp.where(done, current, N + lane_ids)
+        out_counts = c.out_counts.at[row].set(c.counts.T, mode="drop", unique_indices=True)
+        out_result = c.out_result.at[row].set(c.result, mode="drop", unique_indices=True)
+        new = c.next + jnp.cumsum(done, dtype=jnp.int32) - 1
+        nxt = c.next + jnp.sum(done, dtype=jnp.int32)
+        pick = order[jnp.minimum(new, N - 1)]
+        idx = jnp.where(done, jnp.where(new < N, new, N), c.idx)
+        tprev = jnp.where(done, t0, c.tprev)
+        tnext = lane_select(done, tnext0[pick], c.tnext)
+        y = lane_select(done, take(y0r, pick), c.y)
+        sstate = lane_select(done, take(sstate0, pick), c.solver_state)
+        cstate = lane_select(done, take(cstate0, pick), c.controller_state)
+        ok = lane_select(done, ok0[pick], c.ok)
+        m = lane_select(done, take(dyn, pick), c.model) if batched else None
+        save = jnp.where(done, 0, save)
+        counts = jnp.where(done, 0, c.counts)
+        result = jnp.where(done, 0, c.result)
+        # (3) One solver step in every lane with nothing left to save.
+        go = (idx < N) & ~pending & (tprev < t1) & (result == 0)
+        y1, y_error, dense, ss1, _ = step(eqx.combine(m if batched else dyn, static), tprev,
+                                          tnext, y, ok, sstate)
+        ss1 = jax.tree_util.tree_map(lambda a, b: jnp.broadcast_to(a, b.shape), ss1, sstate)
+        keep, tp, tn, cs1, step_result = jax.vmap(control)(
+            tprev, tnext, primal(y), primal(y1), primal(y_error), cstate)
+        accept = go & keep
+        y = lane_select(accept, y1, y)
+        sstate = lane_select(accept, ss1, sstate)
+        cstate = lane_select(go, cs1, cstate)
+        dense = dict(lane_select(accept, {k: v for k, v in dense.items() if k != "k"},
+                                 {k: v for k, v in c.dense.items() if k != "k"}),
+                     k=lane_select(accept, dense["k"], c.dense["k"], axis=1))
+        dense_t = jnp.where(accept, jnp.stack([tprev, tnext]), c.dense_t)
+        tprev = jnp.where(go, tp, tprev)
+        tnext = jnp.where(go, tn, tnext)
+        counts = counts + jnp.stack([go, accept, go & ~keep]).astype(int)
+        result = jnp.where(go, step_result, result)
+        maxed = go & (counts[0] >= max_steps) & (tprev < t1) & (result == 0)
+        result = jnp.where(maxed, result_code(RESULTS.max_steps_reached), result)
+        s = jnp.minimum(save, n - 1)
+        pending = pending | (accept & (save < n) & (ts[s] <= dense_t[1]))
+        return LaneState(idx=idx, tprev=tprev, tnext=tnext, y=y, solver_state=sstate,
+                         controller_state=cstate, ok=ok, model=m, dense=dense,
+                         dense_t=dense_t, pending=pending, save=save, counts=counts,
+                         result=result, next=nxt, ys=ys, out_counts=out_counts,
+                         out_result=out_result)
+
+    c = jax.lax.while_loop(cond, body, state)
+    return c.ys, ok0, c.out_result, c.out_counts

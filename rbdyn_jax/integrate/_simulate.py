@@ -1,0 +1,165 @@
+"""The public solves: `simulate` (one trajectory) and `simulate_batch` (a batch)."""
+
+import numbers
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import ArrayLike, Float, PyTree
+
+from .._checks import as_float_array
+from ..models import AbstractRigidBody
+from ._batching import AbstractBatching, default_batching
+from ._compile import cacheable, compiled, thrown
+from ._diffeqsolve import solve
+from ._solution import Trajectory
+
+DEFAULT_RTOL = DEFAULT_ATOL = 1e-8
+
+
+def _tolerance(tol, name, dtype):
+    """A checked tolerance as an array of `dtype`: a traced one is checked at run time."""
+    if jnp.ndim(tol) != 0:
+        raise ValueError(f"`{name}` must be a scalar, got shape {jnp.shape(tol)}.")
+    if isinstance(tol, jax.core.Tracer):  # value known only at run time
+        tol = eqx.error_if(tol, ~(tol > 0), f"`{name}` must be positive.")
+        return jnp.asarray(tol, dtype)
+    if not float(tol) > 0:
+        raise ValueError(f"`{name}` must be a positive number, got {tol!r}.")
+    with jax.ensure_compile_time_eval():  # concrete, also inside a caller's trace
+        return jnp.asarray(tol, dtype)
+
+
+def _controller(stepsize_controller, rtol, atol, dtype):
+    """The step-size controller of a solve: `stepsize_controller`, or a
+    `diffrax.PIDController(rtol, atol)`. A PID controller's tolerances become arrays, so
+    that new values reuse the compiled solve (and may be traced)."""
+    if stepsize_controller is None:
+        stepsize_controller = diffrax.PIDController(
+            rtol=DEFAULT_RTOL if rtol is None else rtol,
+            atol=DEFAULT_ATOL if atol is None else atol)
+    elif rtol is not None or atol is not None:
+        raise ValueError("Give the tolerances either as `rtol`/`atol` or inside "
+                         "`stepsize_controller`, not both.")
+    if not isinstance(stepsize_controller, diffrax.AbstractStepSizeController):
+        raise ValueError("`stepsize_controller` must be a diffrax step-size controller, got "
+                         f"{type(stepsize_controller).__name__}.")
+    if isinstance(stepsize_controller, diffrax.PIDController):
+        tols = (_tolerance(stepsize_controller.rtol, "rtol", dtype),
+                _tolerance(stepsize_controller.atol, "atol", dtype))
+        stepsize_controller = eqx.tree_at(lambda c: (c.rtol, c.atol), stepsize_controller,
+                                          tols)
+    return stepsize_controller
+
+
+def _prepare(model, ts, stepsize_controller, rtol, atol, max_steps):
+    if not isinstance(model, AbstractRigidBody):
+        raise ValueError(f"`model` must be a rigid-body model, got {type(model).__name__}.")
+    ts = as_float_array(ts, "ts")
+    if ts.ndim != 1 or ts.shape[0] < 2:
+        raise ValueError(f"`ts` must be a 1-D array of at least 2 times, got shape {ts.shape}.")
+    if not isinstance(ts, jax.core.Tracer):  # checked here, so not in the compiled solve
+        t = np.asarray(ts)  # NumPy: concrete even while a caller's function is traced
+        if not np.all(np.isfinite(t)) or np.any(np.diff(t) <= 0):
+            raise ValueError("`ts` must be finite and strictly increasing.")
+    if not isinstance(max_steps, numbers.Integral) or isinstance(max_steps, bool) or max_steps < 1:
+        raise ValueError(f"`max_steps` must be a positive int, got {max_steps!r}.")
+    controller = _controller(stepsize_controller, rtol, atol, ts.dtype)
+    return ts, controller, int(max_steps)
+
+
+_solved = compiled(solve)
+
+
+def simulate(
+    model: AbstractRigidBody,
+    y0: PyTree,
+    ts: Float[ArrayLike, " n"],
+    *,
+    solver: diffrax.AbstractSolver = diffrax.Tsit5(),
+    stepsize_controller: diffrax.AbstractStepSizeController | None = None,
+    rtol: float | None = None,
+    atol: float | None = None,
+    max_steps: int = 16_384,
+    adjoint: diffrax.AbstractAdjoint = diffrax.RecursiveCheckpointAdjoint(),
+    dt0: float | None = None,
+    throw: bool = True,
+) -> Trajectory:
+    """Integrate `model` from `y0` at `ts[0]`, saving the state at every time of `ts`.
+
+    Compiled once per model *structure*: new parameter values, initial conditions, times
+    or tolerances reuse the compiled solve.
+
+    **Arguments:**
+    - `model`: a rigid-body model (`RigidBody`, `RelativeRigidBody`, …).
+    - `y0`: its initial state (`State(omega, quat)` for the quaternion models); its
+      quaternion (γ in the Poisson form) is normalised first.
+    - `ts`: strictly increasing output times; the solve runs from `ts[0]` to `ts[-1]`.
+    - `solver`, `adjoint`: diffrax objects, passed through unchanged.
+    - `stepsize_controller`: a diffrax step-size controller, passed through (its
+      tolerances as arrays); default `diffrax.PIDController(rtol=1e-8, atol=1e-8)`.
+    - `rtol`, `atol`: shorthand for `stepsize_controller=diffrax.PIDController(rtol,
+      atol)` (the other defaulting to 1e-8); positive scalars, which may be traced.
+    - `max_steps`: the most steps the solver may take.
+    - `dt0`: initial step; `None` takes 0.01 (in the unit of `ts`), what `diffeqsolve`
+      takes.
+    - `throw`: raise a runtime error when the result is not `RESULTS.successful`;
+      otherwise the code is returned in `Trajectory.result`.
+
+    **Returns:** a `Trajectory`.
+    """
+    ts, controller, max_steps = _prepare(model, ts, stepsize_controller, rtol, atol, max_steps)
+    traj = _solved[cacheable(ts, controller)](model, y0, ts, solver, controller, adjoint,
+                                              max_steps, dt0)
+    return thrown(traj) if throw else traj
+
+
+def simulate_batch(
+    model: AbstractRigidBody,
+    y0s: PyTree,
+    ts: Float[ArrayLike, " n"],
+    *,
+    model_axes: PyTree | None = None,
+    batching: AbstractBatching | None = None,
+    solver: diffrax.AbstractSolver = diffrax.Tsit5(),
+    stepsize_controller: diffrax.AbstractStepSizeController | None = None,
+    rtol: float | None = None,
+    atol: float | None = None,
+    max_steps: int = 16_384,
+    adjoint: diffrax.AbstractAdjoint | None = None,
+    dt0: float | None = None,
+    throw: bool = False,
+) -> Trajectory:
+    """Solve a batch of trajectories: `simulate` over a batch of initial conditions and,
+    optionally, of models.
+
+    **Arguments:** as `simulate`, and
+    - `y0s`: initial states with a leading batch axis on every leaf.
+    - `model_axes`: `None` (default) shares `model` across the batch; `0` maps every array
+      leaf of `model` along its leading axis (build such a model with
+      `eqx.filter_vmap(lambda J: RigidBody(J, torque))(Js)`); or any `in_axes` prefix of
+      the model for `eqx.filter_vmap` (e.g. batch only the inertia).
+    - `batching`: how the batch is run: `Lanes(...)` (the lane solver) or `Vmap()`
+      (`diffeqsolve` vmapped). `None` (default) takes `Lanes()` where it can run the
+      solve (an explicit Runge–Kutta solver, a `PIDController`, no `adjoint`), else
+      `Vmap()`. Both give the same trajectories to round-off.
+    - `adjoint`: for `Vmap` only (default there `diffrax.RecursiveCheckpointAdjoint()`);
+      giving one selects `Vmap` by default.
+    - `throw`: default `False`: a failing trajectory (`max_steps_reached`,
+      `nonfinite_state`, …) gets its own code in `result` and the others are unaffected.
+
+    **Returns:** a `Trajectory` with a leading batch axis on every leaf (including `ts`,
+    `stats` and `result`).
+    """
+    ts, controller, max_steps = _prepare(model, ts, stepsize_controller, rtol, atol, max_steps)
+    if batching is None:
+        batching = default_batching(solver, controller, adjoint)
+    elif not isinstance(batching, AbstractBatching):
+        raise ValueError("`batching` must be `rbdyn_jax.Lanes(...)`, `rbdyn_jax.Vmap()` or "
+                         f"None, got {type(batching).__name__}.")
+    traj = batching.solve(model, y0s, ts, solver=solver, controller=controller,
+                          adjoint=adjoint, max_steps=max_steps, dt0=dt0,
+                          model_axes=model_axes, cacheable=cacheable(ts, controller))
+    return thrown(traj) if throw else traj
