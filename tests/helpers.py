@@ -211,3 +211,21 @@ def relative_setup(rng):
                gamma=Rr.inv().apply(E_Z), gamma0=Ra.inv().apply(E_Z),
                q_abs=xyzw_to_wxyz(Ra.as_quat()))
     return model, kin, ref
+
+
+def small_scenario(**over) -> dict:
+    """A small torque-free sweep scenario (test_sweep.py, test_scenario.py): dispersed
+    inertia, rates and attitude."""
+    d = {
+        "name": "small",
+        "model": {"kind": "rigid_body",
+                  "inertia": {"principal": [1.0, 2.0, 2.5], "log_cholesky_sigma": 0.05}},
+        "initial": {"omega": {"dist": "normal", "mean": [0.1, 1.0, 0.1], "std": 0.3},
+                    "attitude": {"dist": "uniform_so3"}},
+        "time": {"t1": 4.0, "n": 9},
+        "solver": {"rtol": 1e-9, "atol": 1e-9},
+        "outputs": {"summaries": ["energy_drift", "max_abs_omega", "first_flip_time"]},
+    }
+    for k, v in over.items():
+        d[k] = v
+    return d

@@ -13,6 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import scipy.stats
+from helpers import small_scenario as small
 from scipy.spatial.transform import Rotation
 
 import rbdyn_jax as rb
@@ -32,23 +33,6 @@ from rbdyn_jax.scenario import (
     UniformSO3,
     list_scenarios,
 )
-
-
-def small(**over) -> dict:
-    """A small torque-free scenario: dispersed inertia, rates and attitude."""
-    d = {
-        "name": "small",
-        "model": {"kind": "rigid_body",
-                  "inertia": {"principal": [1.0, 2.0, 2.5], "log_cholesky_sigma": 0.05}},
-        "initial": {"omega": {"dist": "normal", "mean": [0.1, 1.0, 0.1], "std": 0.3},
-                    "attitude": {"dist": "uniform_so3"}},
-        "time": {"t1": 4.0, "n": 9},
-        "solver": {"rtol": 1e-9, "atol": 1e-9},
-        "outputs": {"summaries": ["energy_drift", "max_abs_omega", "first_flip_time"]},
-    }
-    for k, v in over.items():
-        d[k] = v
-    return d
 
 
 def minimal(kind: str = "rigid_body", torques=(), frame=None) -> dict:
