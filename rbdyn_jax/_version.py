@@ -1,3 +1,3 @@
-"""The package's version (one place: `pyproject.toml` reads the same number)."""
+"""The package's version, in one place: `pyproject.toml` reads it from here."""
 
 __version__ = "0.1.0"

@@ -63,7 +63,7 @@ CONVENTIONS = (
 # The compiled chunk solver
 # ----------------------------------------------------------------------------------------
 
-def _solve_block(scenario: Scenario, dists, key, idx, tols, lanes):
+def _solve_block(scenario: Scenario, dists, key, idx, lanes):
     """Sample and solve the trajectories `idx` (through `lanes` lanes of the lane solver);
     per-trajectory outputs."""
     values = jax.vmap(lambda i: scenario.sample(dists, key, i))(idx)
@@ -121,20 +121,20 @@ class _Runner:
         sc, lanes = self.scenario, self.lanes
         self.mesh = jax.sharding.Mesh(np.asarray(self.devices), ("batch",))
 
-        def per_device(idx, dists, key, tols):
+        def per_device(idx, dists, key):
             # Fixed blocks of _PER_LANE × lanes trajectories, one after the other: the
             # block's program is then the same for every chunk size and device count, so
             # the results are bitwise identical across them (a lane-solver loop over the
             # whole share compiles differently for each share size and rounds differently).
             # Fixed blocks also keep a share of 2048 on 2 XLA:CPU host devices from hanging
             # in the XLA runtime, as one loop over it did (all threads asleep).
-            out = jax.lax.map(lambda b: _solve_block(sc, dists, key, b, tols, lanes),
+            out = jax.lax.map(lambda b: _solve_block(sc, dists, key, b, lanes),
                               idx.reshape(-1, _PER_LANE * lanes))
             return jax.tree_util.tree_map(lambda x: x.reshape((-1,) + x.shape[2:]), out)
 
         # No collectives inside the solver loop: each device runs its own while loops.
         sharded = jax.shard_map(per_device, mesh=self.mesh,
-                                in_specs=(P("batch"), P(), P(), P()), out_specs=P("batch"),
+                                in_specs=(P("batch"), P(), P()), out_specs=P("batch"),
                                 check_vma=False)
         self.fn = jit(sharded)
 
@@ -149,9 +149,8 @@ class _Runner:
         full = np.concatenate([idx, np.full(self.size - n, idx[-1], idx.dtype)])
         arr = jax.make_array_from_callback(
             (self.size,), NamedSharding(self.mesh, P("batch")), lambda i: full[i])
-        tols = jnp.asarray([self.scenario.rtol, self.scenario.atol])
         with checks_as_nan(jitted=MODE_DEPENDENT_JITS):  # traced on the first call only
-            out = self.fn(arr, self.scenario.dists, key, tols)
+            out = self.fn(arr, self.scenario.dists, key)
         if jax.process_count() > 1:  # multi-host: every process gets the whole chunk
             from jax.experimental import multihost_utils
 

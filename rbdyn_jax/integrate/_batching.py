@@ -34,12 +34,11 @@ class AbstractBatching(eqx.Module):
 
 
 class Vmap(AbstractBatching):
-    """`diffrax.diffeqsolve` vmapped over the batch.
-
-    Takes any solver, step-size controller and `adjoint` diffeqsolve takes, and is
-    differentiable in both modes through that adjoint. Every trajectory of the batch steps
-    in lockstep until the slowest one finishes: choose it for implicit solvers, for a
-    given `adjoint`, or for reverse-over-reverse derivatives."""
+    """`diffrax.diffeqsolve` vmapped over the batch: every trajectory steps until the
+    slowest has finished. Takes any solver, step-size controller and `adjoint` that
+    diffeqsolve takes (default `RecursiveCheckpointAdjoint()`), and differentiates through
+    that adjoint. Choose it for an implicit solver, a chosen adjoint, or reverse-over-reverse
+    derivatives; the default takes it where `Lanes` cannot run the solve."""
 
     def solve(self, model, y0s, ts, *, solver, controller, adjoint, max_steps, dt0,
               model_axes, cacheable) -> Trajectory:
@@ -49,29 +48,26 @@ class Vmap(AbstractBatching):
 
 
 class Lanes(AbstractBatching):
-    """The lane solver: the batch flows through `lanes` lanes per device of one loop that
-    drives diffrax's solver step and step-size controller itself, and a lane whose
-    trajectory has finished takes the next one at once, so no lane idles behind the
-    slowest trajectory. The fast path for large batches.
+    """The lane solver, the fast path for batches: each device runs `lanes` lanes of one
+    loop that drives diffrax's solver step and step-size controller itself, and a lane
+    whose trajectory has finished takes the next one at once, so no lane idles behind the
+    slowest trajectory. The default wherever it can run the solve.
 
     **Arguments:**
     - `lanes`: lanes per device; `None` chooses from the batch size and the device count.
-    - `devices`: how many local devices the batch is split over; `None` takes all of the
-      default backend (on CPU one, unless XLA was started with several host devices, e.g.
-      by `configure_xla(host_devices=…)` first).
+    - `devices`: how many local devices share the batch; `None`, all of the default
+      backend (on CPU one, unless XLA was started with several, `configure_xla`).
 
-    Needs an explicit Runge–Kutta solver (a `diffrax.AbstractERK`: Tsit5, Dopri5, Dopri8,
-    …) and an adaptive controller with `rtol`/`atol` (`diffrax.PIDController`). Same steps,
-    same saved values (to round-off), `stats` and `result` as `Vmap`. Differentiable in
-    both modes (`jax.grad`, `jax.jacfwd`, w.r.t. the model, `y0s` and `ts`) by forward
-    sensitivities integrated beside the state by the same steps: the cost grows with the
-    number of differentiated parameters per trajectory, not with the number of tangents,
-    and only the sensitivities of the state the caller reads are integrated. W.r.t. `ts`
-    the derivative is f(tᵢ, y(tᵢ)) (where `Vmap` differentiates its interpolant: the two
-    agree to a step's local error). An inertia is differentiated as the symmetric tensor
-    it is: a gradient w.r.t. a raw J is (g + gᵀ)/2 of `Vmap`'s g. Second derivatives:
-    forward over either mode; reverse over reverse is refused by JAX's while loop. Takes
-    no `adjoint`.
+    Needs an explicit Runge–Kutta solver (`diffrax.AbstractERK`: Tsit5, Dopri5, …) and a
+    `diffrax.PIDController`; takes no `adjoint`. Same steps and saved values (to
+    round-off), `stats` and `result` as `Vmap`. Differentiable in both modes by forward
+    sensitivities integrated by the same steps: the cost grows with the differentiated
+    parameters per trajectory (6 for an inertia), not with the tangents, and only the
+    sensitivities of the state the caller reads are integrated. An inertia is
+    differentiated as the symmetric tensor it is (a gradient w.r.t. a raw J is
+    (g + gᵀ)/2 of `Vmap`'s g); w.r.t. `ts` the derivative is f(tᵢ, y(tᵢ)), which agrees
+    with `Vmap`'s (of its interpolant) to a step's local error. Reverse over reverse is
+    refused by JAX's while loop: choose `Vmap` for it.
     """
 
     lanes: int | None = None
