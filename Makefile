@@ -1,16 +1,17 @@
 # Quick start: `make run` (set up + main job), `make test` (set up + tests).
+# `make docs` builds the documentation site into site/ (open site/index.html).
 PYTHON ?= python3
 VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: run test setup clean
+.PHONY: run test docs setup clean
 
 setup: $(STAMP)
 
 $(STAMP): pyproject.toml requirements.lock
 	$(PYTHON) -m venv $(VENV)
-	$(PY) -m pip install --quiet -c requirements.lock -e ".[test,bench]"
+	$(PY) -m pip install --quiet -c requirements.lock -e ".[test,bench,docs]"
 	touch $(STAMP)
 
 # The main job: a Monte Carlo sweep of the shipped default scenario, then its plots.
@@ -22,5 +23,9 @@ run: $(STAMP)
 test: $(STAMP)
 	$(PY) -m pytest -q -n 2
 
+# The documentation site, built offline into site/ (strict: a broken link fails the build).
+docs: $(STAMP)
+	NO_MKDOCS_2_WARNING=1 $(PY) -m mkdocs build --strict
+
 clean:
-	rm -rf $(VENV)
+	rm -rf $(VENV) site
