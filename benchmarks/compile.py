@@ -26,9 +26,8 @@ float64, default solver (Tsit5). Cases:
 - `bare_diffrax`: the machine's yardstick, no rbdyn_jax: `jax.jit(jax.vmap(solve))` of
   `diffrax.diffeqsolve` (Tsit5, `PIDController`, `SaveAt(ts=…)`) on the scipy baseline's
   right-hand side (`_baselines._numpy_rhs`) in `jax.numpy`, N = 256, compiled with JAX's
-  defaults. First calls vary with the machine (on this project's 2-core VMs, by 2× between
-  days), so the table gives each case's first call also as a multiple of this one, measured
-  in the same run.
+  defaults. First calls vary with the machine and from one run to the next, so the table
+  gives each case's first call also as a multiple of this one, measured in the same run.
 
 The data are ω(t) of the true body from scipy's `solve_ivp` (so that no JAX program is
 compiled before the timed call). Every measurement runs in a fresh process (this script

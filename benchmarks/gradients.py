@@ -3,7 +3,7 @@ reverse mode (three diffrax adjoints), forward mode (diffrax's `ForwardMode`), b
 through the lane solver (its forward sensitivities) and central finite differences, each
 beside the cost of one forward loss.
 
-Setting (the performance issue's): torque-free body with products of inertia,
+Setting: torque-free body with products of inertia,
 J = [[2, 0.05, 0], [0.05, 3, 0.02], [0, 0.02, 4]], N trajectories (default 64) with
 ω0 ~ N(0, 1) per axis (numpy `default_rng(0)`), identity initial attitude, t ∈ [0, 20] with 21
 output times, Tsit5, rtol = atol = 1e-8, `max_steps` = 4096 for every solve, float64. Data:
@@ -17,8 +17,8 @@ trajectories and times, θ the 6 log-Cholesky parameters of J
 Methods, each a `jax.jit`-ed function of θ (`compiler_options=rb.COMPILER_OPTIONS`, as
 rbdyn_jax advises for a caller's jit): the forward loss through `simulate_batch`
 (its default, `batching=rb.Vmap()` and the lane solver `rb.Lanes(16)`: fewer lanes than each
-device's 32 trajectories, so that lanes refill longest-first and finish together; measured
-jacfwd 66 ms at 16 lanes vs 87–89 ms at 8, 32 and 64); `jax.grad` with
+device's 32 trajectories, so that lanes refill longest-first and finish together; of 8, 16,
+32 and 64 lanes, 16 gives the fastest `jax.jacfwd` here); `jax.grad` with
 `RecursiveCheckpointAdjoint()` (diffrax's default), with `RecursiveCheckpointAdjoint(
 checkpoints=4096)` (every step stored) and with `BacksolveAdjoint()`; `jax.jacfwd` with
 `ForwardMode()`; `jax.jacfwd` and `jax.grad` through the lane solver; central
@@ -145,8 +145,9 @@ def first_call(fn, theta):
 
 def timings(fns, theta, repeats):
     """Per method, the fastest and the median of `repeats` calls, taken in rounds that call
-    every method once: this VM's speed drifts by up to 2× within minutes, and a drift then
-    slows every method of a round alike instead of one method's calls."""
+    every method once: a machine's speed can drift within minutes (a shared or virtual
+    machine's most of all), and a drift then slows every method of a round alike instead
+    of one method's calls."""
     times = {name: [] for name in fns}
     for _ in range(repeats):
         for name, f in fns.items():

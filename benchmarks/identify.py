@@ -13,8 +13,9 @@ rtol = atol = 1e-10, float64 (JAX on its default backend, recorded in the JSON).
 
 Both methods solve the same problem:
 - free parameters: the log-Cholesky θ of the planar inertia J' (6; J' = L Lᵀ,
-  J = tr(J') I − J', PHYSICS.md §3) and, per trajectory, ω0 (3) and a rotation-vector
-  correction δ of the attitude, q0 = q0_guess ⊗ exp(δ) (3): 6 + 6K parameters;
+  J = tr(J') I − J', docs/physics.md#log-cholesky-parametrisation) and, per trajectory,
+  ω0 (3) and a rotation-vector correction δ of the attitude, q0 = q0_guess ⊗ exp(δ) (3):
+  6 + 6K parameters;
 - whitened residuals [(ω_sim − ω_obs)/σ_ω ; rotvec(q_obs* ⊗ q_sim)/σ_q], cost ½ Σ r²;
 - starting guess: J_guess = 1.1 · diag(J_true) (no products of inertia, moments 10 % off),
   ω0 and q0 the first observed samples, δ = 0.

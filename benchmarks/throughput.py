@@ -4,13 +4,13 @@ lane count (`batching=rb.Lanes(L)`), the vmapped `diffeqsolve` (`batching=rb.Vma
 numba-compiled per-trajectory Dormand–Prince 5(4) (the near-limit yardstick) and a scipy
 `solve_ivp` loop, with the accuracy of each printed beside its speed.
 
-Setting (the performance issue's): J = [[2, 0.05, 0], [0.05, 3, 0.02], [0, 0.02, 4]],
+Setting: J = [[2, 0.05, 0], [0.05, 3, 0.02], [0, 0.02, 4]],
 ω0 ~ N(0, 1) per axis (seed 0), identity initial attitude, t ∈ [0, 100], 101 outputs,
 rtol = atol = 1e-8, float64, three models (`benchmarks/_baselines.py` writes the same
 equations independently):
 
-- `torque_free`: accuracy against the Jacobi elliptic solution (PHYSICS.md §4, in principal
-  axes);
+- `torque_free`: accuracy against the Jacobi elliptic solution (docs/physics.md#torque-free-motion,
+  in principal axes);
 - `heavy_top`: uniform gravity, weight 1 at r_c = (0, 0, 0.5);
 - `gravity_gradient`: M = ε γ × Jγ with ε = 3 (orbit rate 1);
   for these two the reference is the numba solver at rtol = atol = 1e-12 on the first
@@ -119,8 +119,8 @@ def run_baseline(solve, name, w0, ts, repeats, tol=TOL, **kw):
 
 def numba_equal_accuracy(name, w0, ts, repeats, ref, target):
     """numba at the loosest tolerance TOL/2ᵏ (k = 0 … 5) whose median error is at most
-    `target` (the lane solver's): the yardstick at equal accuracy, as the issue's speed
-    target is stated. The error is tried on the trajectories with a reference, then the
+    `target` (the lane solver's median error): the yardstick at equal accuracy, the fair
+    comparison of speeds. The error is tried on the trajectories with a reference, then the
     whole batch is timed at that tolerance."""
     q0 = np.tile([1.0, 0.0, 0.0, 0.0], (len(ref), 1))
     for k in range(6):

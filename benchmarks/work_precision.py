@@ -5,7 +5,7 @@ the lane solver (`batching=rb.Lanes(64)`: 4 trajectories per lane at the default
 devices, so lanes refill) with Tsit5 and Dopri5, and the numba Dormand–Prince 5(4)
 yardstick of `benchmarks/_baselines.py`.
 
-Setting (the performance issue's): torque-free body with products of inertia,
+Setting: torque-free body with products of inertia,
 J = [[2, 0.05, 0], [0.05, 3, 0.02], [0, 0.02, 4]], ω0 ~ N(0, 1) per axis (numpy
 `default_rng(0)`), identity initial attitude, t ∈ [0, 100] with 101 output times,
 rtol = atol = tol for tol in 1e-5 … 1e-11, float64. The exact ω(t) is the elliptic solution in
@@ -75,7 +75,8 @@ def exact_rates(w0, ts):
 
 
 def timed(fn, repeats):
-    """Median wall time of `repeats` calls of `fn` (results blocked on) and the last result."""
+    """Median wall time of `repeats` calls of `fn` (each waited for with
+    `block_until_ready`) and the last result."""
     times = []
     for _ in range(repeats):
         t0 = time.perf_counter()

@@ -1,5 +1,5 @@
 """Gravity-gradient torque, integrable case A = B = m C: nutation period and first integrals
-(PHYSICS.md §7, seed 004).
+(Shinibaev et al. (2013); docs/physics.md#the-integrable-case).
 
 A body with A = B = 1, C = 1.5 (m = 2/3, n = (1 − m)/m = 1/2) rotates about its centre of
 mass under the Newtonian gravity-gradient torque ε γ × J γ, ε = 3μ/R³ = 3, in the Poisson
@@ -8,8 +8,8 @@ direction to the attracting centre). In this case
 
     r = r0,   |γ|² = 1,   C1 = p² + q² + ε n γ''²,   C2 = γ p + γ' q + r0 (n + 1) γ''
 
-are first integrals, and γ'' nutates between two roots of the quartic of 004 eq. (19). The
-example
+are first integrals, and γ'' nutates between two roots of the quartic of Shinibaev et al.
+(2013), eq. (19) (docs/physics.md#nutation-quadrature). The example
 
 - locates the turning points of γ'' (zeros of γ''' = q γ − p γ', found from the saved
   states by a local cubic fit) and compares the times between successive ones with the
@@ -114,7 +114,8 @@ def main(t_end: float = 30.0, n_out: int = 3001, out_dir: str = "results/example
     ax.plot(tp, np.interp(tp, t, u), "o", color="C3", markersize=4, label="turning points")
     for r in (u_lo, u_hi):
         ax.axhline(r, color="k", linestyle="--", linewidth=0.6)
-    ax.plot([], [], "k--", linewidth=0.6, label="roots of the quartic (004 eq. 19)")
+    ax.plot([], [], "k--", linewidth=0.6,
+            label="roots of the quartic (Shinibaev et al. 2013, eq. 19)")
     ax.set_xlabel("t")
     ax.set_ylabel("γ''")
     span = u_hi - u_lo

@@ -1,5 +1,5 @@
 """Identify a full inertia tensor, products of inertia included, from noisy records of a heavy
-top (PHYSICS.md §3–4; `rbdyn_jax.identify`).
+top (docs/physics.md#inertia, docs/physics.md#absolute-motion; `rbdyn_jax.identify`).
 
 One body with inertia about the fixed point
 
@@ -11,12 +11,12 @@ component) and the attitude (noise: q_obs = q ⊗ exp(δ), δ ~ N(0, σ_q² I), 
 at 50 times over t ∈ [0, 5 s]. Without a torque the data would fix J only up to scale
 (J → cJ leaves Euler's equations unchanged); the known weight fixes the scale.
 
-`identify.fit` starts from principal moments only (no products of inertia, moments 10 % off)
-and frees the log-Cholesky parameters of J' (PHYSICS.md §3: every iterate is physical) and the
-initial state of each record; Levenberg–Marquardt, then the Gauss–Newton covariance at the
-optimum gives the standard errors of J. The printout compares the fitted and true J in units
-of those standard errors (≲ 3 expected; measured max 1.3 with the default seed, standard errors
-≤ 1.3e-3, χ²/dof = 0.94).
+`identify.fit` starts from principal moments only (no products of inertia, moments 10 % off) and
+frees the log-Cholesky parameters of J' (docs/physics.md#log-cholesky-parametrisation: every
+iterate is physical) and the initial state of each record; Levenberg–Marquardt, then the
+Gauss–Newton covariance at the optimum gives the standard errors of J. The printout compares the
+fitted and true J in units of those standard errors (≲ 3 expected; measured max 1.3 with the
+default seed, standard errors ≤ 1.3e-3, χ²/dof = 0.94).
 
 Run: `python examples/identify_inertia.py` (writes results/examples/identify_inertia.png).
 """

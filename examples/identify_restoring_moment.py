@@ -1,17 +1,19 @@
 """Identify the slowly varying restoring moment of a Lagrange top from its attitude record alone
-(PHYSICS.md §6, seed 002; `rbdyn_jax.identify`).
+(Zinkevich & Kozachenko (2008); docs/physics.md#restoring-moment; `rbdyn_jax.identify`).
 
 A symmetric top, J = diag(1, 1, 1.5), spins about its axis (r0 = 1.5) under the restoring
-moment of §6, k(τ, ψ) sinθ (cos φ, −sin φ, 0) with k = ε K(τ) sin ψ, τ = ε t, ε = 0.1 and
-K(τ) = 1 + 0.5 τ (`RestoringMoment(PolynomialSinPsi([1.0, 0.5], ε))`). It is released from
-ZXZ angles (ψ0, θ0, φ0) = (1.0, 0.8, 0.3) with no transverse rate. Only its attitude is
-recorded — quaternions with noise q_obs = q ⊗ exp(δ), δ ~ N(0, σ_q² I), σ_q = 1e-3 rad — at
-101 times over t ∈ [0, 1/ε]; ω is not observed.
+moment of docs/physics.md#equations-of-motion, k(τ, ψ) sinθ (cos φ, −sin φ, 0) with
+k = ε K(τ) sin ψ, τ = ε t, ε = 0.1 and K(τ) = 1 + 0.5 τ
+(`RestoringMoment(PolynomialSinPsi([1.0, 0.5], ε))`). It is released from ZXZ angles
+(ψ0, θ0, φ0) = (1.0, 0.8, 0.3) with no transverse rate. Only its attitude is recorded —
+quaternions with noise q_obs = q ⊗ exp(δ), δ ~ N(0, σ_q² I), σ_q = 1e-3 rad — at 101 times
+over t ∈ [0, 1/ε]; ω is not observed.
 
-The information on K sits in the precession: ψ' ≈ k / (C r) (§6 first approximation), so
-tan(ψ/2) = tan(ψ0/2) exp(F1(τ)) with F1 = (C r0)⁻¹ ∫₀^τ K; over τ ∈ [0, 1] ψ advances by
-≈ 0.5 rad and the τ² part of F1 (from the slope 0.5 of K) bends that curve by ~0.1 rad,
-hundreds of σ_q. The spin r0, which also enters F1, is fixed by the phase φ(t) (≈ r0 t).
+The information on K sits in the precession: ψ' ≈ k / (C r) (the first approximation,
+docs/physics.md#first-approximation), so tan(ψ/2) = tan(ψ0/2) exp(F1(τ)) with
+F1 = (C r0)⁻¹ ∫₀^τ K; over τ ∈ [0, 1] ψ advances by ≈ 0.5 rad and the τ² part of F1 (from the
+slope 0.5 of K) bends that curve by ~0.1 rad, hundreds of σ_q. The spin r0, which also enters
+F1, is fixed by the phase φ(t) (≈ r0 t).
 
 `identify.fit` frees only the coefficients (`params=("torque", "initial_conditions")`,
 `torque_where=lambda t: t.k.coeffs`; ε and the inertia stay known) and the initial state,

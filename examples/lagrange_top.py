@@ -1,19 +1,19 @@
 """A Lagrange top under a slowly varying restoring moment, against its averaged motion
-(PHYSICS.md §6, seed 002).
+(Zinkevich & Kozachenko (2008); docs/physics.md#restoring-moment).
 
-A dynamically symmetric top (A = B, C) spins fast about its axis, r0 = 1, under the
-restoring moment k(τ, ψ) sinθ (cos φ, −sin φ, 0) with k = ε K(τ) sin ψ, K(τ) = 1 + 0.5 τ,
-τ = ε t, plus a small constant body-fixed moment M = ε² M* (seed 002's perturbation). The
-full equations are integrated in the seed's form — Euler's equations with ZXZ angles
-(`EulerAngleRigidBody`) — over t ∈ [0, 1/ε] from p0 = q0 = 0 (the axis released without
-precession, so the fast nutation is fully excited), and compared with the averaged
+A dynamically symmetric top (A = B, C) spins fast about its axis, r0 = 1, under the restoring
+moment k(τ, ψ) sinθ (cos φ, −sin φ, 0) with k = ε K(τ) sin ψ, K(τ) = 1 + 0.5 τ, τ = ε t, plus a
+small constant body-fixed moment M = ε² M* (the perturbation of Zinkevich & Kozachenko (2008),
+eq. (3)). The full equations are integrated in the paper's form, eq. (1) — Euler's equations
+with ZXZ angles (`EulerAngleRigidBody`) — over t ∈ [0, 1/ε] from p0 = q0 = 0 (the axis released
+without precession, so the fast nutation is fully excited), and compared with the averaged
 solutions of `rbdyn_jax.analytic`:
 
 - first approximation: θ = θ0, r = r0 + M3 t / C, tan(ψ/2) = tan(ψ0/2) exp(F1(τ)); its error
   is the O(ε) nutation (amplitude ~ A k / (C r0)²) plus the O(ε) drift of the mean motion;
 - second approximation: the fast nutation and the O(ε) mean corrections, error O(ε²).
 
-The seed's assumptions hold: sqrt(p² + q²) ≲ 2k/(C r0) ≪ r, C r0² = 1.5 ≫ k ≤ 1.5 ε,
+The paper's assumptions (its eq. (2)) hold: sqrt(p² + q²) ≲ 2k/(C r0) ≪ r, C r0² = 1.5 ≫ k ≤ 1.5 ε,
 |M| = O(ε²) ≪ k. Measured at ε = 0.02 (ε = 0.01): first approximation max|Δψ| 8.8e-3
 (4.2e-3), max|Δθ| 1.5e-2 (7.3e-3) — O(ε), the θ error being the nutation, which swings
 between θ0 and θ0 + 2·(its amplitude) rather than about θ0; second approximation max|Δψ|

@@ -1,4 +1,5 @@
-"""A body on a rotating platform (PHYSICS.md §5, seed 000 §4).
+"""A body on a rotating platform (Mukhametzyanov (2009), §4;
+docs/physics.md#balancing-transport-moment).
 
 The platform (transport frame O1) turns with a time-varying attitude given by ZXZ angles
 ψ_e = 0.4 t, θ_e = 0.5 + 0.2 sin t, φ_e = −0.3 t. The body carries the balancing moment
@@ -48,7 +49,7 @@ def main(t_end: float = 100.0, n_out: int = 4001, out_dir: str = "results/exampl
     }
     print(f"relative kinetic energy drift: {summary['T_r_relative_drift']:.2e}")
     print(f"|ω_r| in [{speed.min():.4f}, {speed.max():.4f}] ⊂ [{lo:.4f}, {hi:.4f}] "
-          f"(000 eq. 18; end ratio sqrt(C/A) = {np.sqrt(C / A):.4f})")
+          f"(Mukhametzyanov (2009), eq. (18); end ratio sqrt(C/A) = {np.sqrt(C / A):.4f})")
 
     import matplotlib
 

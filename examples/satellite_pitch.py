@@ -1,5 +1,5 @@
 """A satellite in a circular orbit librating in pitch under the gravity-gradient torque
-(PHYSICS.md §7 combined with §5).
+(docs/physics.md#circular-orbit, docs/physics.md#pitch-libration).
 
 The orbital (LVLH) frame turns at the orbit rate n about the orbit normal; the body's
 attitude relative to it is integrated with `RelativeRigidBody(J, CircularOrbit(n),

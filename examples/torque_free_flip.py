@@ -1,4 +1,6 @@
-"""Torque-free asymmetric body: the intermediate-axis flip and the polhode (PHYSICS.md §4).
+"""Torque-free asymmetric body: the intermediate-axis flip and the polhode.
+
+See the physics guide, docs/physics.md#torque-free-motion.
 
 A body with principal moments A < B < C is spun almost about its intermediate axis. The
 angular velocity in the body follows a polhode — the intersection of the energy ellipsoid

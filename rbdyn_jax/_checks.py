@@ -1,4 +1,4 @@
-"""Input checks shared by the pure-function layers (PHYSICS.md conventions, STYLE.md §5).
+"""Input checks shared by the pure-function layers (conventions: docs/physics.md#conventions).
 
 Static mistakes (shapes, strings) raise `ValueError` at trace time naming the argument;
 value-dependent mistakes go through `eqx.error_if`, whose returned value must be used.
@@ -59,8 +59,8 @@ def holds_now(check, *args) -> bool:
 
     The fast path of a value check on concrete input: `check` is written once for an array
     namespace `xp`, runs here in NumPy, and the caller skips `eqx.error_if` when it holds. In
-    JAX the first check of a process traces, lowers and compiles a program (~0.35 s for the
-    first model built, measured). Otherwise, and for non-finite input (some NumPy routines
+    JAX the first check of a process traces, lowers and compiles a program, a noticeable
+    wait for the first model built. Otherwise, and for non-finite input (some NumPy routines
     reject it), the caller takes its usual `eqx.error_if` path, which raises as always."""
     if any(isinstance(a, jax.core.Tracer) for a in jax.tree_util.tree_leaves(args)):
         return False

@@ -2,8 +2,9 @@
 
 `plot_sweep` reads the store with xarray and writes four figures: histograms of the per-trajectory
 summaries, sample time histories of the body rates and nutation angle, sample polhodes on their
-kinetic-energy ellipsoids (PHYSICS.md §4; hodographs of ω_r for relative motion, §5), and the
-counts per status code. Only successful trajectories (`status == 0`) enter the first three.
+kinetic-energy ellipsoids (docs/physics.md#torque-free-motion; hodographs of ω_r for relative
+motion, docs/physics.md#balancing-transport-moment), and the counts per status code. Only
+successful trajectories (`status == 0`) enter the first three.
 
 matplotlib and xarray are imported inside `plot_sweep`, so this module imports without them.
 Figures are built as `matplotlib.figure.Figure` on an Agg canvas, never through `pyplot`, so no
@@ -184,10 +185,11 @@ def plot_sweep(path, out_dir=None, *, n_sample: int = 8) -> list[pathlib.Path]:
       trajectories with a finite value, each with its count, mean and standard deviation;
       skipped when the dataset has no summaries.
     - `trajectories.png`: ω_x, ω_y, ω_z (rad/s) and the nutation angle θ (deg) against time.
-    - `polhodes.png`: ω(t) in 3-D on the ellipsoid ωᵀ J ω = ω(0)ᵀ J ω(0) (PHYSICS.md §4); for a
-      `relative_rigid_body` dataset, the hodograph of ω_r on the ellipsoid of the initial
-      relative kinetic energy (PHYSICS.md §5, conserved only when the transport moment is
-      balanced).
+    - `polhodes.png`: ω(t) in 3-D on the ellipsoid ωᵀ J ω = ω(0)ᵀ J ω(0)
+      (docs/physics.md#torque-free-motion); for a `relative_rigid_body` dataset, the
+      hodograph of ω_r on the ellipsoid of the initial relative kinetic energy
+      (docs/physics.md#balancing-transport-moment: conserved only when the transport moment
+      is balanced).
     - `status.png`: the number of trajectories per status code that occurs (and for 0, always),
       named from `status_codes`.
 

@@ -42,8 +42,8 @@ def cross(a: Array, b: Array) -> Array:
 def matvec_parts(J: Array, v: list[Array]) -> list[Array]:
     """`J v` for a matrix `(…, 3, 3)` and a vector given as its three components (`split`);
     returns the three components of the product."""
-    # Written out: XLA:CPU runs a batched 3×3 einsum as a slow library call (measured
-    # ~5 µs per 512 lanes, more than the rest of the right-hand side).
+    # Written out: XLA:CPU runs a batched 3×3 einsum as a slow library call, which can cost
+    # more than the rest of the right-hand side.
     return [J[..., i, 0] * v[0] + J[..., i, 1] * v[1] + J[..., i, 2] * v[2] for i in range(3)]
 
 

@@ -2,8 +2,8 @@
 here, which pass `COMPILER_OPTIONS` to XLA.
 
 XLA:CPU compiles each fused kernel of a program through its MLIR "fusion emitters" by
-default. Its classic emitters compile a solver program (~100 kernels) about a third
-faster, and the program runs as fast (benchmarks/README.md, `compile.py`).
+default. Its classic emitters compile a solver program (~100 kernels) markedly faster,
+and the program runs as fast (the performance page, docs/performance.md).
 `xla_cpu_use_fusion_emitters` is a field of XLA's `DebugOptions`; only the CPU backend
 reads it.
 
@@ -47,11 +47,11 @@ def configure_xla(host_devices: int | None = None) -> str:
     """Set `XLA_FLAGS` for rbdyn_jax's solves on CPU; call it before JAX computes anything.
 
     - Every while loop XLA:CPU can compile as one function is compiled so (`LOOP_OPTION`),
-      without its runtime's dispatch of each kernel at every iteration. Measured on 2
-      cores against XLA's defaults (benchmarks/README.md, stop 23): the lane solver runs
-      1.11–1.15× faster at 256 lanes and ~2.5× at 16, the vmapped `diffeqsolve`
-      1.13–1.6×, a gradient through the lanes ~1.4×; a first call compiles 0.15–0.35 s
-      longer. The trajectories, steps and gradients are the same (tested).
+      without its runtime's dispatch of each kernel at every iteration: the lane solver
+      (most of all with few lanes), the vmapped `diffeqsolve` and gradients through the
+      lanes run faster than with XLA's defaults, for a slightly longer first compilation
+      (the performance page, docs/performance.md). The trajectories, steps and gradients
+      are the same (tested).
     - `host_devices`: if given, XLA starts that many CPU devices
       (`--xla_force_host_platform_device_count`), so that the lane solver and the sweep
       can use every core (`simulate_batch(..., devices=…)`).

@@ -4,20 +4,23 @@ Nothing here integrates an ODE: every function is a closed form, a special funct
 fixed quadrature, so it is independent of the diffrax machinery it is meant to check.
 
 - Torque-free axisymmetric body, angular velocity and attitude in closed form
-  (PHYSICS.md §4): `torque_free_symmetric`.
-- Torque-free triaxial body, Jacobi elliptic functions (PHYSICS.md §4; Landau & Lifshitz,
-  *Mechanics* §37) on both sides of the separatrix and on it: `torque_free_elliptic`,
-  `torque_free_elliptic_period`, with the special functions `ellipj`, `ellipk`,
-  `ellipkinc` implemented in JAX (descending Landen transformation and Carlson's `R_F`).
-- Lagrange top under a non-stationary restoring moment `k = ε K(τ) sin ψ` (PHYSICS.md §6,
-  seed 002): first approximation `lagrange_top_first_approximation` and a second
-  approximation `lagrange_top_second_approximation`.
-- Integrable gravity-gradient case `A = B = m C` (PHYSICS.md §7, seed 004): the nutation
-  half period by quadrature, `gg_nutation_half_period`, its quartic
-  `gg_nutation_quartic`, and the first integrals `gg_integrable_case_integrals`.
+  (docs/physics.md#torque-free-motion): `torque_free_symmetric`.
+- Torque-free triaxial body, Jacobi elliptic functions (docs/physics.md#torque-free-motion;
+  Landau & Lifshitz, *Mechanics* §37) on both sides of the separatrix and on it:
+  `torque_free_elliptic`, `torque_free_elliptic_period`, with the special functions
+  `ellipj`, `ellipk`, `ellipkinc` implemented in JAX (descending Landen transformation and
+  Carlson's `R_F`).
+- Lagrange top under a non-stationary restoring moment `k = ε K(τ) sin ψ`
+  (Zinkevich & Kozachenko (2008); docs/physics.md#restoring-moment): first approximation
+  `lagrange_top_first_approximation` and a second approximation
+  `lagrange_top_second_approximation`.
+- Integrable gravity-gradient case `A = B = m C` (Shinibaev et al. (2013);
+  docs/physics.md#the-integrable-case): the nutation half period by quadrature,
+  `gg_nutation_half_period`, its quartic `gg_nutation_quartic`, and the first integrals
+  `gg_integrable_case_integrals`.
 
-The JAX functions are pure, jit-able and accept leading `*batch` axes; the §7 quadrature
-is NumPy/SciPy (a reference evaluated once per initial condition).
+The JAX functions are pure, jit-able and accept leading `*batch` axes; the nutation
+quadrature is NumPy/SciPy (a reference evaluated once per initial condition).
 """
 
 import math
@@ -58,8 +61,8 @@ _LANDEN_STEPS = 10
 _CARLSON_STEPS = 16
 # |L² − 2TB| below this many ulps of its two terms counts as exactly on the separatrix.
 _SEPARATRIX_ULPS = 16.0
-# Default Gauss–Legendre order of the §6 quadratures: exact for polynomial K of degree
-# ≤ 2·32 − 1 = 63 and converged to rounding for K analytic near [0, τ] with τ = O(1).
+# Default Gauss–Legendre order of the restoring-moment quadratures: exact for polynomial K
+# of degree ≤ 2·32 − 1 = 63 and converged to rounding for K analytic near [0, τ] with τ = O(1).
 _GL_ORDER = 32
 
 _Times = Float[Array, " n"]
@@ -239,7 +242,7 @@ def ellipkinc(phi: ScalarLike, m: ScalarLike) -> Scalar:
 
 
 # ---------------------------------------------------------------------------------------
-# torque-free axisymmetric body (PHYSICS.md §4)
+# torque-free axisymmetric body (docs/physics.md#torque-free-motion)
 # ---------------------------------------------------------------------------------------
 
 
@@ -271,8 +274,8 @@ def torque_free_symmetric(
 ) -> tuple[Float[Array, "*batch n 3"], Float[Array, "*batch n 4"]]:
     """Torque-free motion of an axisymmetric body `A = B ≠ C` in closed form.
 
-    PHYSICS.md §4 (Euler–Poinsot). In the body, `r` is constant and `(p, q)` rotates at
-    `λ = (C − A) r / A` (`p' = −λ q`, `q' = λ p`). The attitude is
+    See docs/physics.md#torque-free-motion (Euler–Poinsot). In the body, `r` is constant
+    and `(p, q)` rotates at `λ = (C − A) r / A` (`p' = −λ q`, `q' = λ p`). The attitude is
 
         R(t) = Rot(L̂_inertial, |L| t / A) · R0 · Rot(e_z, −λ t),   L_inertial = R0 J ω0,
 
@@ -309,7 +312,8 @@ def torque_free_symmetric(
 
 
 # ---------------------------------------------------------------------------------------
-# torque-free triaxial body: Jacobi elliptic functions (PHYSICS.md §4, L&L §37)
+# torque-free triaxial body: Jacobi elliptic functions (L&L §37;
+# docs/physics.md#torque-free-motion)
 # ---------------------------------------------------------------------------------------
 
 
@@ -461,8 +465,9 @@ def torque_free_elliptic(
 ) -> Float[Array, "*batch n 3"]:
     """Torque-free body angular velocity of a triaxial body (Jacobi elliptic functions).
 
-    PHYSICS.md §4; Landau & Lifshitz, *Mechanics* §37. With the moments sorted as
-    `I1 < I2 < I3`, `2T = Σ I_k ω_k²`, `L² = Σ I_k² ω_k²` and `d_k = L² − 2T I_k`:
+    Landau & Lifshitz, *Mechanics* §37; docs/physics.md#torque-free-motion. With the
+    moments sorted as `I1 < I2 < I3`, `2T = Σ I_k ω_k²`, `L² = Σ I_k² ω_k²` and
+    `d_k = L² − 2T I_k`:
 
     - `L² > 2T I2` (`d2 > 0`, circulation about the axis of largest moment):
       `ω1 = s a cn u`, `ω2 = b sn u`, `ω3 = s c dn u`, with
@@ -530,7 +535,8 @@ def torque_free_elliptic_period(moments: VectorLike, omega0: VectorLike) -> Scal
 
 
 # ---------------------------------------------------------------------------------------
-# Lagrange top under a non-stationary restoring moment (PHYSICS.md §6, seed 002)
+# Lagrange top under a non-stationary restoring moment (Zinkevich & Kozachenko (2008);
+# docs/physics.md#restoring-moment)
 # ---------------------------------------------------------------------------------------
 
 
@@ -559,7 +565,9 @@ def _call_K(K: Callable, s: Array) -> Array:
 
 
 def _psi_first(psi0: Array, F1: Array) -> Array:
-    """ψ with `tan(ψ/2) = tan(ψ0/2) exp(F1)`, on the 2π branch of ψ0 (PHYSICS.md §6)."""
+    """ψ with `tan(ψ/2) = tan(ψ0/2) exp(F1)`, on the 2π branch of ψ0.
+
+    docs/physics.md#first-approximation."""
     j = jnp.round(psi0 / (2.0 * jnp.pi))
     psr = psi0 - 2.0 * jnp.pi * j  # in [−π, π]
     half = 0.5 * psr
@@ -591,8 +599,9 @@ def lagrange_top_first_approximation(
 ) -> tuple[_Times, _Times, _Times]:
     """First approximation of a Lagrange top under `k(τ, ψ) = ε K(τ) sin ψ`.
 
-    PHYSICS.md §6 (seed 002, averaged system in the first approximation): with the full
-    equations `A p' + (C − A) q r = k sinθ cosφ`, `A q' + (A − C) p r = −k sinθ sinφ`,
+    Zinkevich & Kozachenko (2008), the averaged system in the first approximation
+    (docs/physics.md#first-approximation): with the full equations (their eq. (1))
+    `A p' + (C − A) q r = k sinθ cosφ`, `A q' + (A − C) p r = −k sinθ sinφ`,
     `C r' = M3` (perturbing `M1 = M2 = 0`; constant body-fixed ones average out at this
     order) and slow time `τ = ε t`,
 
@@ -614,12 +623,14 @@ def lagrange_top_first_approximation(
     - `A`, `C`: equatorial and axial moments of inertia about the fixed point (`A` is
         unused at this order; it is taken for symmetry with the second approximation).
     - `r0`: initial axial spin `r(0)` (non-zero).
-    - `psi0`, `theta0`: initial precession and nutation angles (ZXZ, PHYSICS.md §1).
+    - `psi0`, `theta0`: initial precession and nutation angles (ZXZ,
+        docs/physics.md#euler-angles).
     - `eps`: the small parameter ε of `τ = ε t` and `k = ε K(τ) sin ψ`.
     - `K`: `K(τ)`, a JAX-traceable function called with an array of slow times and acting
         elementwise. It is a static argument of an internal `jit`: pass the same function
         object to reuse the compilation.
-    - `M3`: constant axial perturbing moment (physical units, `M3 = ε² M3*` in the seed).
+    - `M3`: constant axial perturbing moment (physical units, `M3 = ε² M3*` of Zinkevich &
+        Kozachenko (2008), eq. (3)).
     - `quad_order`: Gauss–Legendre order of the quadrature.
 
     **Returns:**
@@ -663,23 +674,24 @@ def lagrange_top_second_approximation(
 ) -> tuple[_Times, _Times, _Times]:
     """Second approximation of the Lagrange top of `lagrange_top_first_approximation`.
 
-    PHYSICS.md §6, after seed 002's formulas following its eq. (5), re-derived and
-    corrected (the seed's printed forms fail the initial conditions at O(ε) and have sign
-    and factor slips; see below). Errors `O(ε²)` over `t = O(1/ε)`.
+    docs/physics.md#second-approximation: the formulas of Zinkevich & Kozachenko (2008)
+    that follow their eq. (5), re-derived and corrected (the printed forms fail the initial
+    conditions at O(ε) and have sign and factor slips; see below). Errors `O(ε²)` over
+    `t = O(1/ε)`.
 
     Mean motion (guiding centre: `L = A e × ė + C r e`, `dL/dt = N`, solved for ė to
-    second order; it reproduces the seed's `g(τ)`):
+    second order; it reproduces the paper's `g(τ)`):
 
         dψ̄/dτ = K sinψ̄ / (C r0) + ε A cosθ0 K² sin²ψ̄ / (C r0)³ − K sinψ̄ M3 τ / (ε C² r0²),
         θ̄ = θ̄0 + A sinθ̄0 (k(τ) − k(0)) / (C r0)²,   k = ε K(τ) sin ψ̄,
 
     the first line solved as `ψ̄ = ψ1 + sinψ1(τ) ∫₀^τ g(s) / sinψ1(s) ds` (`ψ1`: the first
-    approximation from `ψ̄0`, `g` the two correction terms; the seed's `exp(∓F)` factors
-    are `sinψ1(0) / sinψ1(τ)` in closed form). The seed's two θ integrals
+    approximation from `ψ̄0`, `g` the two correction terms; the paper's `exp(∓F)` factors
+    are `sinψ1(0) / sinψ1(τ)` in closed form). The paper's two θ integrals
     `∫ ∂K/∂τ sinψ1` and `∫ K² sin2ψ1` combine, with the correct factor `ε/2` on the second
     (printed `1/4`), into the closed form above.
 
-    Fast nutation (the seed's S1, S2, with S1's sign corrected):
+    Fast nutation (the paper's S1, S2, with S1's sign corrected):
 
         ψ = ψ̄ − (A / (C r0 sinθ0)) e^{F/2} [â0 cos χ + b̂0 sin χ],
         θ = θ̄ + (A / (C r0)) e^{F/2} [â0 sin χ − b̂0 cos χ],
@@ -687,7 +699,7 @@ def lagrange_top_second_approximation(
         e^{F} = sinψ̄0 / sinψ1(τ),
         â0 = p0 − (k0 / (C r0)) sinθ0 sinφ0,   b̂0 = −q0 + (k0 / (C r0)) sinθ0 cosφ0,
 
-    (`ε a`, `ε b` of the seed at `t = 0`, `k0 = ε K(0) sin ψ0`), and the mean initial values
+    (`ε a`, `ε b` of the paper at `t = 0`, `k0 = ε K(0) sin ψ0`), and the mean initial values
     `ψ̄0 = ψ0 − S1(0)`, `θ̄0 = θ0 − S2(0)`, so that `ψ(0) = ψ0`, `θ(0) = θ0` exactly.
     Perturbing moments `M1 = M2 = 0`.
 
@@ -768,7 +780,8 @@ def _second_impl(ts, A_, C_, r0_, ps0, th0, eps_, M3_, ph0, p0, q0, K, quad_orde
 
 
 # ---------------------------------------------------------------------------------------
-# gravity gradient, integrable case A = B = m C (PHYSICS.md §7, seed 004)
+# gravity gradient, integrable case A = B = m C (Shinibaev et al. (2013);
+# docs/physics.md#the-integrable-case)
 # ---------------------------------------------------------------------------------------
 
 
@@ -777,7 +790,8 @@ def gg_integrable_case_integrals(
 ) -> tuple[Scalar, Scalar, Scalar, Scalar]:
     """First integrals of the integrable gravity-gradient case `A = B = m C`.
 
-    PHYSICS.md §7 (seed 004, eqs. 7, 8, 10, 13), `n = (1 − m)/m = (C − A)/A`:
+    Shinibaev et al. (2013), eqs. (7), (8), (10), (13), collected as (14)
+    (docs/physics.md#the-integrable-case), `n = (1 − m)/m = (C − A)/A`:
     `C1 = p² + q² + ε n γ''²`, `C2 = γ p + γ' q + r (n + 1) γ''`, `r`, `|γ|²`.
 
     **Arguments:** `A` (= B), `C`, `eps` (ε = 3μ/R³), `(*batch)`; body angular velocity
@@ -802,8 +816,9 @@ def gg_integrable_case_integrals(
 def gg_nutation_quartic(
     A: float, C: float, eps: float, omega0: ArrayLike, gamma0: ArrayLike
 ) -> np.ndarray:
-    """Coefficients of the quartic `Q(u) = (du/dt)²`, `u = γ''` (PHYSICS.md §7, eq. 19).
+    """Coefficients of the quartic `Q(u) = (du/dt)²`, `u = γ''`, of the nutation quadrature.
 
+    Shinibaev et al. (2013), eq. (19); docs/physics.md#nutation-quadrature.
     From `r = r0`, `p² + q² = C1 − ε n u²`, `γ p + γ' q = C2 − r0 (n + 1) u`,
     `γ² + γ'² = 1 − u²`, Poisson `u' = q γ − p γ'` and the identity
     `(pγ + qγ')² + (qγ − pγ')² = (p² + q²)(γ² + γ'²)`:
@@ -812,7 +827,7 @@ def gg_nutation_quartic(
              = a0 u⁴ + a2 u² + a3 u + a4,
         a0 = ε n,  a2 = −(ε n + C1 + r0² (n + 1)²),  a3 = 2 C2 r0 (n + 1),  a4 = C1 − C2²,
 
-    exactly PHYSICS.md's (and seed 004's) coefficients.
+    exactly the coefficients of Shinibaev et al. (2013), eq. (19).
 
     **Arguments:** moments `A` (= B) and `C`, `eps` = ε, initial `omega0 = (p0, q0, r0)` and
     unit `gamma0 = (γ0, γ'0, γ''0)` (shape `(3,)` each).
@@ -860,9 +875,10 @@ def gg_nutation_half_period(
 ) -> float:
     """Half period of the nutation γ''(t) in the integrable gravity-gradient case.
 
-    PHYSICS.md §7, eq. (19): the time between successive turning points of `u = γ''` is
-    `∫ du / √Q(u)` between the two adjacent real roots `u1 < u2` of the quartic
-    `gg_nutation_quartic` that bracket `γ''0` (Q > 0 between them, inside [−1, 1]).
+    Shinibaev et al. (2013), eq. (19) (docs/physics.md#nutation-quadrature): the time
+    between successive turning points of `u = γ''` is `∫ du / √Q(u)` between the two
+    adjacent real roots `u1 < u2` of the quartic `gg_nutation_quartic` that bracket `γ''0`
+    (Q > 0 between them, inside [−1, 1]).
     Writing `Q = (u − u1)(u2 − u) g(u)` (g: Q divided by the two roots' factors, positive
     on [u1, u2]) and `u = mid + half · sin φ` removes both inverse-square-root endpoint
     singularities:
@@ -931,7 +947,7 @@ def gg_nutation_half_period(
     def integrand(phi):
         return 1.0 / np.sqrt(-np.polyval(quotient, mid + half * np.sin(phi)))
 
-    import scipy.integrate  # here, not at the top: it is ~0.6 s of `import rbdyn_jax`
+    import scipy.integrate  # here, not at the top: it would slow `import rbdyn_jax`
 
     value, _ = scipy.integrate.quad(
         integrand, -0.5 * np.pi, 0.5 * np.pi, epsabs=0.0, epsrel=1e-13, limit=200

@@ -1,4 +1,4 @@
-"""The `rbdyn` command (the only layer that prints; DESIGN.md).
+"""The `rbdyn` command: the only layer that prints (the library below it returns values).
 
 - `rbdyn sweep SCENARIO --n N --out PATH [--chunk C] [--seed S] [--devices D] [--resume]`:
   a Monte Carlo sweep of a scenario (a TOML file or a shipped name, `rbdyn scenarios`)
@@ -10,6 +10,7 @@
   printing them with standard errors and writing fit.json and a PNG of observed vs fitted.
 - `rbdyn scenarios`: the shipped scenarios.
 - `rbdyn demo`: the shipped default body, one trajectory, printed.
+- `rbdyn --version`: the installed version.
 
 On a CPU-only machine `rbdyn sweep` splits the host into `--devices` XLA devices (default:
 one per core), since one XLA CPU device uses about one core for these solves. Every command
@@ -22,6 +23,19 @@ import argparse
 import os
 import sys
 import time
+
+
+def _version() -> str:
+    """The installed version, from the package metadata (which needs no JAX), or from
+    `rbdyn_jax/_version.py` in a source tree that is not installed."""
+    from importlib import metadata
+
+    try:
+        return metadata.version("rbdyn_jax")
+    except metadata.PackageNotFoundError:
+        from ._version import __version__
+
+        return __version__
 
 
 def _default_body():
@@ -60,7 +74,7 @@ def demo(n_steps: int = 5, duration: float = 100.0) -> int:
     Jp = inertia.planar(J)
     print("rbdyn demo: the default body (6 point masses, about its centre of mass)")
     print(f"  mass {masses.sum():.3f} kg, centre of mass {np.round(com, 4)} m")
-    print("  inertia tensor J [kg m²] (PHYSICS.md §3):")
+    print("  inertia tensor J [kg m²] (docs/physics.md#inertia-tensor):")
     for row in np.asarray(J):
         print("    " + "  ".join(f"{x:+.5f}" for x in row))
     A, B, C = np.asarray(moments)
@@ -72,7 +86,8 @@ def demo(n_steps: int = 5, duration: float = 100.0) -> int:
     print(f"  principal frame as ZXZ angles (ψ, θ, φ) [deg]: {np.round(np.degrees(angles), 3)}")
 
     # The default scenario: torque-free spin started 1° off the intermediate principal axis,
-    # which flips again and again (Euler–Poinsot, PHYSICS.md §4), solved with diffrax.
+    # which flips again and again (Euler–Poinsot, docs/physics.md#torque-free-motion),
+    # solved with diffrax.
     from . import invariants
     from .integrate import RESULTS, simulate
     from .models import RigidBody
@@ -472,6 +487,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="rbdyn", description="Rotational dynamics of rigid bodies in JAX."
     )
+    parser.add_argument("--version", action="version", version=f"rbdyn {_version()}")
     sub = parser.add_subparsers(dest="command", required=True)
     p_sweep = sub.add_parser("sweep", help="Monte Carlo sweep of a scenario, streamed to zarr")
     p_sweep.add_argument("scenario", help="scenario TOML file or shipped name (rbdyn scenarios)")

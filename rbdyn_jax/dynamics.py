@@ -1,4 +1,6 @@
-"""Right-hand sides of Euler's dynamic equations, absolute and relative (PHYSICS.md §4–5).
+"""Right-hand sides of Euler's dynamic equations, absolute and relative.
+
+See the physics guide, docs/physics.md#absolute-motion and docs/physics.md#relative-motion.
 
 Pure functions on arrays: no diffrax, no state classes. Every vector is in **body
 components**; `J` is the full (possibly non-diagonal) inertia tensor about the fixed point
@@ -58,8 +60,8 @@ def _cholesky_solve(L, b):
 def _solve(J, b):
     """`J⁻¹ b` for a symmetric positive-definite 3×3 `J` by an unrolled Cholesky
     factorisation (reads the lower triangle). Elementwise arithmetic only: no LAPACK call
-    per right-hand-side evaluation (measured 1.4× faster in vmapped solves). Its derivative
-    is `dx = J⁻¹ (db − dJ x)` (`_solve_jvp`)."""
+    per right-hand-side evaluation, which would slow a vmapped solve down (the performance
+    page, docs/performance.md). Its derivative is `dx = J⁻¹ (db − dJ x)` (`_solve_jvp`)."""
     return jnp.stack(_cholesky_solve(_cholesky(J), split(b)), axis=-1)
 
 
@@ -79,12 +81,12 @@ def _solve_jvp(primals, tangents):
     """`dx = J⁻¹ (db − dJ x)` with the factor of the solve itself, dJ the symmetric matrix
     of dJ's lower triangle (what `_solve` reads). The factor's own tangents are never
     formed: a sensitivity column per inertia element (`integrate._Sensitivity`) costs a
-    product with J⁻¹ instead of the derivative of the factorisation (the gradient of a
-    batched loss w.r.t. a 3×3 inertia through the lane solver: 5.5× → 4.0× its forward
-    solve, measured). J⁻¹'s six entries are formed from the factor, so that each component
-    of dx is a three-term sum: by two triangular solves, each component is the end of a
-    chain through the others, which XLA recomputes for each (the lane gradient of
-    `benchmarks/gradients.py` on one device: 7–18 % less, three interleaved pairs)."""
+    product with J⁻¹ instead of the derivative of the factorisation, a markedly cheaper
+    gradient of a loss w.r.t. the inertia through the lane solver. J⁻¹'s six entries are
+    formed from the factor, so that each component of dx is a three-term sum: by two
+    triangular solves, each component is the end of a chain through the others, which XLA
+    recomputes for each (`benchmarks/gradients.py` measures the lane gradient; see the
+    performance page, docs/performance.md)."""
     (J, b), (dJ, db) = primals, tangents
     L = _cholesky(J)
     x = _cholesky_solve(L, split(b))
@@ -106,7 +108,9 @@ _solve.defjvp(_solve_jvp, symbolic_zeros=True)
 
 
 def euler_rhs(J: MatrixLike, omega: VectorLike, moment: VectorLike) -> Vector:
-    """Angular acceleration from Euler's equations `J ω' = J ω × ω + M` (PHYSICS.md §4).
+    """Angular acceleration from Euler's equations `J ω' = J ω × ω + M`.
+
+    Mukhametzyanov (2009), eq. (1); docs/physics.md#eulers-equations.
 
     For a diagonal `J = diag(A, B, C)` this is `A p' = (B − C) q r + Mx` and cyclic.
 
@@ -125,7 +129,9 @@ def euler_rhs(J: MatrixLike, omega: VectorLike, moment: VectorLike) -> Vector:
 
 
 def transport_moment(J: MatrixLike, omega_e: VectorLike, eps_e: VectorLike) -> Vector:
-    """Transport inertia moment `M_e = −J ε_e + J ω_e × ω_e` (PHYSICS.md §5, 000 eq. 2).
+    """Transport inertia moment `M_e = −J ε_e + J ω_e × ω_e`.
+
+    Mukhametzyanov (2009), eq. (2); docs/physics.md#transport-and-coriolis-moments.
 
     **Arguments:** `J` `(*batch, 3, 3)`; `omega_e`, `eps_e`: the transport frame's absolute
     angular velocity and acceleration, both in body components.
@@ -137,10 +143,13 @@ def transport_moment(J: MatrixLike, omega_e: VectorLike, eps_e: VectorLike) -> V
 
 
 def coriolis_moment(J: MatrixLike, omega_r: VectorLike, omega_e: VectorLike) -> Vector:
-    """Coriolis inertia moment by the theorem of 000 eq. (5): `M_c = 2 ω_r × J' ω_e`.
+    """Coriolis inertia moment by the compact form: `M_c = 2 ω_r × J' ω_e`.
 
-    Equal to the three-term form `J ω_r × ω_e + J ω_e × ω_r − J (ω_e × ω_r)` of 000 eq. (2),
-    with `J' = ½ tr(J) I − J` the planar inertia tensor (PHYSICS.md §3, §5).
+    The theorem of Mukhametzyanov (2009), eq. (5); docs/physics.md#compact-form.
+
+    Equal to the three-term form `J ω_r × ω_e + J ω_e × ω_r − J (ω_e × ω_r)` of
+    Mukhametzyanov (2009), eq. (2), with `J' = ½ tr(J) I − J` the planar inertia tensor
+    (docs/physics.md#planar-inertia-tensor).
     """
     J, (omega_r, omega_e) = _prepare(J, {"omega_r": omega_r, "omega_e": omega_e})
     c = cross_parts(split(omega_r), matvec_parts(planar(J), split(omega_e)))
@@ -154,7 +163,9 @@ def relative_rhs(
     eps_e: VectorLike,
     moment: VectorLike,
 ) -> Vector:
-    """Relative angular acceleration by the compact form, 000 eq. (11) (PHYSICS.md §5):
+    """Relative angular acceleration by the compact form of Euler's equations.
+
+    Mukhametzyanov (2009), eq. (11); docs/physics.md#compact-form:
 
         J ε_r = J ω_r × ω_r − J ε_e + J ω_e × ω_e + 2 ω_r × J' ω_e + M
 

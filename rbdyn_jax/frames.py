@@ -1,4 +1,6 @@
-"""Transport frames O1 (PHYSICS.md §5): how the parent frame of a relative model moves.
+"""Transport frames O1: how the parent frame of a relative model moves.
+
+See the physics guide, docs/physics.md#transport-frame.
 
 A frame gives, at time t, its attitude relative to O0 (a quaternion, O1 → O0 components)
 and its absolute angular velocity and acceleration **in O1 components**, ω_e¹ and dω_e¹/dt.
@@ -63,12 +65,15 @@ class ConstantRate(AbstractFrame):
 
 
 class EulerAngleFrame(AbstractFrame):
-    """O1 given by its Euler angles relative to O0 as a function of time (000 eq. 14).
+    """O1 given by its Euler angles relative to O0 as a function of time.
+
+    Mukhametzyanov (2009), eq. (14); docs/physics.md#euler-angle-frames.
 
     `angles_fn(t) -> (3,)` angles of `seq` (default "ZXZ" = (ψ_e, θ_e, φ_e)); its rates and
     second derivatives come from forward-mode autodiff, and ω_e¹ from the kinematic map of
-    PHYSICS.md §2 (`rotation.euler_rates_to_omega`). `angles_fn` may be an `eqx.Module`
-    whose coefficients are leaves. A constant `quat0` pre-multiplies the attitude.
+    docs/physics.md#euler-angle-rates (`rotation.euler_rates_to_omega`). `angles_fn` may be
+    an `eqx.Module` whose coefficients are leaves. A constant `quat0` pre-multiplies the
+    attitude.
     """
 
     angles_fn: Callable
@@ -99,7 +104,8 @@ class EulerAngleFrame(AbstractFrame):
 class HarmonicAngles(eqx.Module):
     """Euler angles `offset + rate·t + amplitude·sin(frequency·t + phase)` (componentwise),
     an `angles_fn` for `EulerAngleFrame` whose coefficients are leaves (sweeps disperse
-    them; a platform turning at a constant rate with a nodding axis, PHYSICS.md §5)."""
+    them; a platform turning at a constant rate with a nodding axis,
+    docs/physics.md#euler-angle-frames)."""
 
     offset: Float[Array, "3"]
     rate: Float[Array, "3"]
@@ -119,9 +125,9 @@ class HarmonicAngles(eqx.Module):
 
 
 class CircularOrbit(AbstractFrame):
-    """Orbital (LVLH) frame of a circular orbit of rate `n` (PHYSICS.md §7): x1 along-track,
-    y1 = −orbit normal, z1 = nadir; it turns about the orbit normal, `ω_e¹ = (0, −n, 0)`.
-    O0 is the orbital frame at t = 0 (or `quat0` relative to it)."""
+    """Orbital (LVLH) frame of a circular orbit of rate `n` (docs/physics.md#circular-orbit):
+    x1 along-track, y1 = −orbit normal, z1 = nadir; it turns about the orbit normal,
+    `ω_e¹ = (0, −n, 0)`. O0 is the orbital frame at t = 0 (or `quat0` relative to it)."""
 
     n: Float[Array, ""]
     quat0: Float[Array, "4"]

@@ -1,5 +1,6 @@
 """Parameter identification: fit inertia, torque parameters and initial states to observed
-trajectories through the solver (DESIGN.md; PHYSICS.md §3–4, §6).
+trajectories through the solver (docs/physics.md#inertia, docs/physics.md#absolute-motion,
+docs/physics.md#restoring-moment).
 
 - `Observations(ts, omega=None, quat=None, sigma_omega=None, sigma_quat=None, mask=None)`:
   K trajectories of n samples (padded and masked where their lengths differ), checked once
@@ -9,9 +10,10 @@ trajectories through the solver (DESIGN.md; PHYSICS.md §3–4, §6).
   geodesic angle, sign-invariant, finite gradient at zero) divided by `sigma_quat` — over all
   trajectories at once (`jax.vmap`, no Python loop over trajectories). `loss` is ½ Σ r².
 - `fit(model, data, *, params=("inertia", "initial_conditions"), ...) -> FitResult`: the
-  inertia free through the log-Cholesky parameters of J' (PHYSICS.md §3, every iterate is
-  physical), the torque's array leaves, and the initial state of every trajectory (ω0 and a
-  rotation-vector correction of q0). Levenberg–Marquardt on the residual vector (default) or
+  inertia free through the log-Cholesky parameters of J'
+  (docs/physics.md#log-cholesky-parametrisation, every iterate is physical), the torque's
+  array leaves, and the initial state of every trajectory (ω0 and a rotation-vector
+  correction of q0). Levenberg–Marquardt on the residual vector (default) or
   any optax transformation, inside **one** compiled program with the Gauss–Newton covariance
   `(JᵀJ)⁻¹` at the optimum. Step-size control is a diffrax controller passed through to
   `simulate` (`stepsize_controller=`; `rtol=`/`atol=` are shorthand for a `PIDController`).
@@ -262,7 +264,8 @@ def residuals(
 ) -> Float[Array, " m"]:
     """Whitened residual vector of `model` started at `y0s` (`State` with a leading K axis)
     against `data`: `[(ω_sim − ω_obs)/σ_ω ; rotvec(q_obs* ⊗ q_sim)/σ_q]` flattened, zero at
-    masked samples (PHYSICS.md §2, §4). `|rotvec|` is the geodesic angle between observed
+    masked samples (docs/physics.md#quaternion-kinematics,
+    docs/physics.md#eulers-equations). `|rotvec|` is the geodesic angle between observed
     and simulated attitude, invariant to the sign of either quaternion. A failed solve gives
     NaN residuals for its trajectory.
 
@@ -460,10 +463,11 @@ def fit(
     """Fit the free parameters of `model` (and the initial states) to `data`.
 
     **Arguments:**
-    - `model`: a `RigidBody` (absolute motion, PHYSICS.md §4) giving the structure and the
-      initial guess (its inertia must be strictly physical, J' ≻ 0).
+    - `model`: a `RigidBody` (absolute motion, docs/physics.md#eulers-equations) giving
+      the structure and the initial guess (its inertia must be strictly physical, J' ≻ 0).
     - `data`: `Observations` of K trajectories.
-    - `params`: which parts are free, any of `"inertia"` (log-Cholesky θ of J', PHYSICS.md §3),
+    - `params`: which parts are free, any of `"inertia"` (log-Cholesky θ of J',
+      docs/physics.md#log-cholesky-parametrisation),
       `"torque"` (the array leaves of `model.torque`, or those `torque_where(torque)` picks,
       as the `where` of `eqx.tree_at`), `"initial_conditions"` (ω0 and a rotation-vector
       correction δ of q0 = q0_guess ⊗ exp(δ), per trajectory). Not free: held at the guess.

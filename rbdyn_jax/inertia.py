@@ -1,12 +1,14 @@
-"""Inertia tensors: construction, planar tensor, principal axes, physical checks (PHYSICS.md §3).
+"""Inertia tensors: construction, planar tensor, principal axes, physical checks.
+
+See the physics guide, docs/physics.md#inertia.
 
 Pure, batch-agnostic functions: every argument may carry leading `*batch` axes, which broadcast
 against each other (also under `jax_numpy_rank_promotion="raise"`). All arrays are in body
-components about the same point O. The physical condition used throughout is PHYSICS.md §3: `J`
-belongs to a real mass distribution iff its planar inertia tensor `J' = ½ tr(J) I − J` is
-positive semidefinite, i.e. iff the principal moments satisfy the triangle inequalities
-`A + B ≥ C`, `B + C ≥ A`, `C + A ≥ B` (which imply they are non-negative). Value checks use the
-relative tolerance `√eps` of the dtype.
+components about the same point O. The physical condition used throughout
+(docs/physics.md#physical-consistency): `J` belongs to a real mass distribution iff its planar
+inertia tensor `J' = ½ tr(J) I − J` is positive semidefinite, i.e. iff the principal moments
+satisfy the triangle inequalities `A + B ≥ C`, `B + C ≥ A`, `C + A ≥ B` (which imply they are
+non-negative). Value checks use the relative tolerance `√eps` of the dtype.
 """
 
 import equinox as eqx
@@ -23,7 +25,7 @@ LogCholeskyLike = Float[ArrayLike, "*batch 6"]
 
 _NOT_PHYSICAL = (
     "is not physical (planar inertia J' must be positive semidefinite: the principal moments "
-    "must satisfy A + B ≥ C, B + C ≥ A, C + A ≥ B; PHYSICS.md §3)."
+    "must satisfy A + B ≥ C, B + C ≥ A, C + A ≥ B; docs/physics.md#physical-consistency)."
 )
 
 
@@ -76,7 +78,7 @@ def _physical(J: Array, xp=jnp) -> Array:
 def from_principal(moments: VectorLike, axes: MatrixLike | None = None) -> Matrix:
     """Inertia tensor from principal moments and axes, `J = C diag(moments) Cᵀ`.
 
-    PHYSICS.md §3 (principal axes).
+    docs/physics.md#principal-axes.
 
     **Arguments:**
 
@@ -99,7 +101,8 @@ def from_principal(moments: VectorLike, axes: MatrixLike | None = None) -> Matri
         axes = check_trailing(axes, (3, 3), "axes")
     tol = sqrt_eps(moments.dtype)
     m = jax.lax.stop_gradient(moments)
-    # Principal planar moments (B + C − A)/2, (C + A − B)/2, (A + B − C)/2 (PHYSICS.md §3).
+    # Principal planar moments (B + C − A)/2, (C + A − B)/2, (A + B − C)/2
+    # (docs/physics.md#planar-inertia-tensor).
     planar_moments = 0.5 * jnp.sum(m, axis=-1, keepdims=True) - m
     scale = jnp.max(jnp.abs(m), axis=-1, keepdims=True)
     bad = jnp.any(~(planar_moments >= -tol * scale), axis=-1)
@@ -117,8 +120,8 @@ def from_point_masses(
 ) -> Matrix:
     """Inertia tensor of point masses, `J = Σ m (|r|² I − r rᵀ)`, `r = position − about`.
 
-    PHYSICS.md §3: `J[0, 0] = Σ m (y² + z²)`, …, `J[0, 1] = −Σ m x y`, …. Computed as
-    `J = tr(J') I − J'` with the planar tensor `J' = Σ m r rᵀ`.
+    docs/physics.md#inertia-tensor: `J[0, 0] = Σ m (y² + z²)`, …, `J[0, 1] = −Σ m x y`, ….
+    Computed as `J = tr(J') I − J'` with the planar tensor `J' = Σ m r rᵀ`.
 
     **Arguments:**
 
@@ -149,7 +152,7 @@ def from_point_masses(
 
 
 def planar(J: MatrixLike) -> Matrix:
-    """Planar inertia tensor `J' = ½ tr(J) I − J` (PHYSICS.md §3).
+    """Planar inertia tensor `J' = ½ tr(J) I − J` (docs/physics.md#planar-inertia-tensor).
 
     **Arguments:**
 
@@ -165,7 +168,9 @@ def planar(J: MatrixLike) -> Matrix:
 
 
 def from_planar(Jp: MatrixLike) -> Matrix:
-    """Inertia tensor from the planar inertia tensor, `J = tr(J') I − J'` (PHYSICS.md §3).
+    """Inertia tensor from the planar inertia tensor, `J = tr(J') I − J'`.
+
+    docs/physics.md#planar-inertia-tensor.
 
     **Arguments:**
 
@@ -184,7 +189,7 @@ def _from_planar(Jp: Array, xp=jnp) -> Array:
 
 
 def principal_axes(J: MatrixLike) -> tuple[Vector, Matrix]:
-    """Principal moments and axes, `J = C diag(moments) Cᵀ` (PHYSICS.md §3).
+    """Principal moments and axes, `J = C diag(moments) Cᵀ` (docs/physics.md#principal-axes).
 
     Eigen-decomposition (`jnp.linalg.eigh`) of the symmetric part `½ (J + Jᵀ)`. No value check:
     use [`check_inertia`][] first if `J` may be unphysical.
@@ -215,7 +220,7 @@ def principal_axes(J: MatrixLike) -> tuple[Vector, Matrix]:
 
 
 def ellipsoid_semi_axes(J: MatrixLike) -> tuple[Vector, Matrix]:
-    """Semi-axes of the inertia ellipsoid `ρᵀ J ρ = 1` (PHYSICS.md §3).
+    """Semi-axes of the inertia ellipsoid `ρᵀ J ρ = 1` (docs/physics.md#inertia-tensor).
 
     **Arguments:**
 
@@ -232,7 +237,9 @@ def ellipsoid_semi_axes(J: MatrixLike) -> tuple[Vector, Matrix]:
 
 
 def moment_about(J: MatrixLike, axis: VectorLike) -> Scalar:
-    """Moment of inertia about an axis through O, `nᵀ J n`, `n = axis / |axis|` (PHYSICS.md §3).
+    """Moment of inertia about an axis through O, `nᵀ J n`, `n = axis / |axis|`.
+
+    docs/physics.md#inertia-tensor.
 
     **Arguments:**
 
@@ -253,7 +260,7 @@ def moment_about(J: MatrixLike, axis: VectorLike) -> Scalar:
 
 
 def kinetic_energy(J: MatrixLike, omega: VectorLike) -> Scalar:
-    """Rotational kinetic energy `T = ½ ωᵀ J ω` (PHYSICS.md §3).
+    """Rotational kinetic energy `T = ½ ωᵀ J ω` (docs/physics.md#inertia-tensor).
 
     **Arguments:**
 
@@ -270,7 +277,7 @@ def kinetic_energy(J: MatrixLike, omega: VectorLike) -> Scalar:
 
 
 def angular_momentum(J: MatrixLike, omega: VectorLike) -> Vector:
-    """Angular momentum about O, `L = J ω`, in body components (PHYSICS.md §3).
+    """Angular momentum about O, `L = J ω`, in body components (docs/physics.md#inertia-tensor).
 
     **Arguments:**
 
@@ -287,7 +294,9 @@ def angular_momentum(J: MatrixLike, omega: VectorLike) -> Vector:
 
 
 def is_physical(J: MatrixLike) -> BoolArray:
-    """Whether `J` is the inertia tensor of some real mass distribution (PHYSICS.md §3).
+    """Whether `J` is the inertia tensor of some real mass distribution.
+
+    docs/physics.md#physical-consistency.
 
     True iff `J` is finite, symmetric within `√eps · max|J|`, and its planar tensor is positive
     semidefinite, `J' ⪰ 0` (smallest eigenvalue ≥ `−√eps · max|J|`) — equivalently, the principal
@@ -309,7 +318,8 @@ def is_physical(J: MatrixLike) -> BoolArray:
 def check_inertia(J: MatrixLike, name: str = "inertia") -> Matrix:
     """Return `J` unchanged, with runtime errors if it is not symmetric or not physical.
 
-    The conditions are those of [`is_physical`][] (PHYSICS.md §3). Use the returned value:
+    The conditions are those of [`is_physical`][] (docs/physics.md#physical-consistency).
+    Use the returned value:
     a traced `J` comes back carrying the `eqx.error_if` checks (gradients pass through
     unchanged); a concrete one is checked at once, in NumPy.
 
@@ -332,7 +342,9 @@ def check_inertia(J: MatrixLike, name: str = "inertia") -> Matrix:
 
 
 def to_log_cholesky(J: MatrixLike) -> LogCholesky:
-    """Log-Cholesky parameters of the planar inertia tensor, `J' = L Lᵀ` (PHYSICS.md §3).
+    """Log-Cholesky parameters of the planar inertia tensor, `J' = L Lᵀ`.
+
+    docs/physics.md#log-cholesky-parametrisation.
 
     `L` is lower triangular with positive diagonal (`jnp.linalg.cholesky` of `J'`); the
     parameters are ordered
@@ -374,7 +386,7 @@ def _theta_of(L, xp=jnp):
 
 def _log_cholesky_now(J):
     """`to_log_cholesky` of a concrete, physical `J` in NumPy (an eager JAX evaluation
-    compiles each of its operations on first use: ~0.8 s in a fresh process, measured), or
+    compiles each of its operations on first use, a noticeable wait in a fresh process), or
     `None` where J' is singular, for the JAX path to raise its error."""
     try:
         L = np.linalg.cholesky(_planar(0.5 * (J + _transpose(J, np)), np))
@@ -387,8 +399,8 @@ def _log_cholesky_now(J):
 def from_log_cholesky(theta: LogCholeskyLike) -> Matrix:
     """Inertia tensor from log-Cholesky parameters, `J = tr(J') I − J'`, `J' = L Lᵀ`.
 
-    PHYSICS.md §3. Every real `theta` gives a physical `J` with `J' ≻ 0`, so fitting `theta`
-    keeps a fitted inertia physical.
+    docs/physics.md#log-cholesky-parametrisation. Every real `theta` gives a physical `J`
+    with `J' ≻ 0`, so fitting `theta` keeps a fitted inertia physical.
 
     **Arguments:**
 

@@ -1,4 +1,8 @@
-"""First integrals and other conserved quantities along a trajectory (PHYSICS.md §4–7).
+"""First integrals and other conserved quantities along a trajectory.
+
+See the physics guide: docs/physics.md#torque-free-motion,
+docs/physics.md#balancing-transport-moment, docs/physics.md#torque-and-integrals and
+docs/physics.md#the-integrable-case.
 
 Pure functions of `(model, trajectory)`, evaluated at every saved time (the leading axis of
 `trajectory.ys`); each returns an array with that time axis. They use the model's own
@@ -44,7 +48,8 @@ def _quad(J, v):
 
 @_over_batch
 def kinetic_energy(model: AbstractRigidBody, traj: Trajectory) -> Float[Array, " n"]:
-    """Absolute kinetic energy `T = ½ ωᵀ J ω`, ω = ω_r + ω_e (PHYSICS.md §3)."""
+    """Absolute kinetic energy `T = ½ ωᵀ J ω`, ω = ω_r + ω_e
+    (docs/physics.md#inertia-tensor)."""
     kin = _kinematics(model, traj)
     return 0.5 * _quad(model.inertia, kin.omega)
 
@@ -53,9 +58,10 @@ def kinetic_energy(model: AbstractRigidBody, traj: Trajectory) -> Float[Array, "
 def energy(model: AbstractRigidBody, traj: Trajectory) -> Float[Array, " n"]:
     """Total energy `T + V` of an absolute model with conservative torques: the heavy top
     (`V = mg r_c·γ₀`), the constant-k restoring moment (`V = k cosθ`), the gravity gradient
-    (`V = ½ ε γᵀ J γ`, PHYSICS.md §7). Raises `NotImplementedError` for a torque with no
-    potential. For a relative model in a moving frame this sum is not an integral (use the
-    frame's own integral, e.g. the Jacobi integral of a circular orbit): a `ValueError`."""
+    (`V = ½ ε γᵀ J γ`, docs/physics.md#torque-and-integrals). Raises `NotImplementedError`
+    for a torque with no potential. For a relative model in a moving frame this sum is not
+    an integral (use the frame's own integral, e.g. the Jacobi integral of a circular
+    orbit): a `ValueError`."""
     if isinstance(model, RelativeRigidBody) and not isinstance(model.frame, Inertial):
         raise ValueError("`energy` is the absolute-motion energy; a RelativeRigidBody in a "
                          "moving frame does not conserve it.")
@@ -67,7 +73,8 @@ def energy(model: AbstractRigidBody, traj: Trajectory) -> Float[Array, " n"]:
 @_over_batch
 def angular_momentum_inertial(model: AbstractRigidBody, traj: Trajectory) -> Float[Array, "n 3"]:
     """Angular momentum `L = R(q) J ω` in inertial (O0) components; constant for a
-    torque-free body (PHYSICS.md §4). Needs the attitude (not the Poisson form)."""
+    torque-free body (docs/physics.md#torque-free-motion). Needs the attitude (not the
+    Poisson form)."""
     kin = _kinematics(model, traj)
     if kin.quat_inertial is None:
         raise ValueError("`angular_momentum_inertial` needs the attitude; the Poisson form "
@@ -79,20 +86,22 @@ def angular_momentum_inertial(model: AbstractRigidBody, traj: Trajectory) -> Flo
 @_over_batch
 def area_integral(model: AbstractRigidBody, traj: Trajectory) -> Float[Array, " n"]:
     """Area integral `(J ω)·γ`: the angular momentum about the parent z-axis, conserved
-    under torques symmetric about it (heavy top, gravity gradient; PHYSICS.md §6–7)."""
+    under torques symmetric about it (heavy top, gravity gradient;
+    docs/physics.md#torque-and-integrals)."""
     kin = _kinematics(model, traj)
     return jnp.einsum("ij,nj,ni->n", model.inertia, kin.omega, kin.gamma)
 
 
 @_over_batch
 def gamma_norm(model: AbstractRigidBody, traj: Trajectory) -> Float[Array, " n"]:
-    """|γ|, which is 1 for the Poisson vector (PHYSICS.md §7)."""
+    """|γ|, which is 1 for the Poisson vector (docs/physics.md#poisson-equations)."""
     return jnp.linalg.norm(_kinematics(model, traj).gamma, axis=-1)
 
 
 @_over_batch
 def relative_kinetic_energy(model: AbstractRigidBody, traj: Trajectory) -> Float[Array, " n"]:
-    """`T_r = ½ ω_rᵀ J ω_r` (PHYSICS.md §5), conserved under `BalancingTransport`."""
+    """`T_r = ½ ω_rᵀ J ω_r`, conserved under `BalancingTransport`
+    (docs/physics.md#balancing-transport-moment)."""
     return 0.5 * _quad(model.inertia, _kinematics(model, traj).omega_r)
 
 
@@ -106,7 +115,8 @@ def _gravity_gradient_eps(model: AbstractRigidBody) -> Array:
 
 @_over_batch
 def gg_integrable_integrals(model: AbstractRigidBody, traj: Trajectory):
-    """The four integrals of the integrable case A = B = m C of PHYSICS.md §7:
+    """The four integrals of the integrable case A = B = m C (Shinibaev et al. (2013),
+    eq. (14); docs/physics.md#the-integrable-case):
 
         r,   γ² + γ'² + γ''²,   C1 = p² + q² + ε n γ''²,   C2 = γ p + γ' q + r (n + 1) γ'',
 

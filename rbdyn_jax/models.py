@@ -1,13 +1,16 @@
 """Rigid-body models: pytrees whose leaves are their parameters, with `vector_field(t, y, args)`.
 
-- `RigidBody(inertia, torque)`: absolute motion, Euler's equations (PHYSICS.md §4) with
-  quaternion kinematics (§2); state `State(omega, quat)`.
+- `RigidBody(inertia, torque)`: absolute motion, Euler's equations
+  (docs/physics.md#eulers-equations) with quaternion kinematics
+  (docs/physics.md#quaternion-kinematics); state `State(omega, quat)`.
 - `RelativeRigidBody(inertia, frame, torque)`: motion relative to a transport frame O1 by
-  the compact form, 000 eq. (11) (§5); state `State(omega_r, quat_r)`.
+  the compact form, Mukhametzyanov (2009), eq. (11) (docs/physics.md#compact-form); state
+  `State(omega_r, quat_r)`.
 - `EulerAngleRigidBody(inertia, torque)`: the same equations with ZXZ angles as the
-  attitude (the top of §6 as the seed writes it); state `EulerState(omega, angles)`.
+  attitude (the top of docs/physics.md#equations-of-motion as Zinkevich & Kozachenko (2008)
+  write it); state `EulerState(omega, angles)`.
 - `PoissonRigidBody(inertia, torque)`: the same equations with the Poisson vector γ
-  (§7); state `PoissonState(omega, gamma)`.
+  (docs/physics.md#torque-and-integrals); state `PoissonState(omega, gamma)`.
 
 All share `dynamics.euler_rhs` / `relative_rhs` and the torques of `torques.py`. The
 inertia is checked (symmetric, physical) when the model is built, by its field's converter
@@ -110,7 +113,8 @@ class AbstractRigidBody(eqx.Module):
 
 
 class RigidBody(AbstractRigidBody):
-    """Absolute rotation about a fixed point or the centre of mass (PHYSICS.md §4):
+    """Absolute rotation about a fixed point or the centre of mass
+    (docs/physics.md#eulers-equations):
 
         J ω' = J ω × ω + M,    q' = ½ q ⊗ (0, ω),
 
@@ -136,7 +140,8 @@ class RigidBody(AbstractRigidBody):
 
 
 class RelativeRigidBody(AbstractRigidBody):
-    """Rotation relative to a moving transport frame O1 (PHYSICS.md §5, 000 eq. (11)):
+    """Rotation relative to a moving transport frame O1 (Mukhametzyanov (2009), eq. (11);
+    docs/physics.md#compact-form):
 
         J ε_r = J ω_r × ω_r − J ε_e + J ω_e × ω_e + 2 ω_r × J' ω_e + M,
         q_r' = ½ q_r ⊗ (0, ω_r),
@@ -174,7 +179,8 @@ class RelativeRigidBody(AbstractRigidBody):
 
 class EulerAngleRigidBody(AbstractRigidBody):
     """Absolute motion with ZXZ Euler angles (ψ, θ, φ) as the attitude, as the top of
-    PHYSICS.md §6 is written: Euler's equations and the inverse kinematic map of §2,
+    Zinkevich & Kozachenko (2008), eq. (1), is written (docs/physics.md#equations-of-motion):
+    Euler's equations and the inverse kinematic map of docs/physics.md#euler-angle-rates,
     `ψ' = (p sinφ + q cosφ)/sinθ`, `θ' = p cosφ − q sinφ`, `φ' = r − (p sinφ + q cosφ) cotθ`.
     Singular at sinθ = 0: keep θ away from 0 and π (`rotation.gimbal_lock_distance`).
 
@@ -186,8 +192,9 @@ class EulerAngleRigidBody(AbstractRigidBody):
 
     def kinematics(self, t, y: EulerState) -> Kinematics:
         theta, phi = y.angles[1], y.angles[2]
+        # Shinibaev et al. (2013), eq. (4); docs/physics.md#poisson-equations
         gamma = jnp.stack([jnp.sin(theta) * jnp.sin(phi), jnp.sin(theta) * jnp.cos(phi),
-                           jnp.cos(theta)])  # 004 eq. (4)
+                           jnp.cos(theta)])
         return _absolute_kinematics(t, y.omega, rotation.euler_to_quat(y.angles, "ZXZ"), gamma)
 
     def vector_field(self, t, y: EulerState, args) -> EulerState:
@@ -200,7 +207,8 @@ class EulerAngleRigidBody(AbstractRigidBody):
 
 
 class PoissonRigidBody(AbstractRigidBody):
-    """Absolute motion in the Poisson form (PHYSICS.md §7, 004 eqs. (2)–(3)):
+    """Absolute motion in the Poisson form (Shinibaev et al. (2013), eqs. (2)–(3);
+    docs/physics.md#torque-and-integrals):
 
         J ω' = J ω × ω + M,    γ' = γ × ω,
 
@@ -232,14 +240,16 @@ def with_log_cholesky(model: AbstractRigidBody, theta: Float[ArrayLike, "*batch 
     """`model` with its inertia replaced by `inertia.from_log_cholesky(theta)`, unchecked:
     the way to fit an inertia (what `identify.fit` does).
 
-    Every real `theta` gives a physical inertia (PHYSICS.md §3: `J' = L Lᵀ` with a
-    positive diagonal of `L`, so `J' ≻ 0`, the triangle inequalities hold and J ≻ 0), so the
-    checks of a model's constructor hold by construction and are skipped. Building the
+    Every real `theta` gives a physical inertia (docs/physics.md#log-cholesky-parametrisation:
+    `J' = L Lᵀ` with a positive diagonal of `L`, so `J' ≻ 0`, the triangle inequalities
+    hold and J ≻ 0), so the checks of a model's constructor hold by construction and are
+    skipped. Building the
     model from a traced `theta` with the constructor instead, `RigidBody(from_log_cholesky(
     theta))`, checks the inertia at run time with `eqx.error_if`, a host callback in your
-    program, and JAX's persistent compilation cache never stores a program that holds one
-    (`benchmarks/compile.py`: a second process's `jit(grad(loss))` through the lane solver
-    ~9× faster than the first with this function, 1.7–1.9× with the constructor).
+    program, and JAX's persistent compilation cache never stores a program that holds one:
+    a later process compiles it again, where with this function it loads it from the
+    cache (`benchmarks/compile.py` measures it; the performance page,
+    docs/performance.md).
 
     **Arguments:**
     - `model`: any rigid-body model; every field but the inertia is kept.

@@ -1,13 +1,15 @@
 """Attitude kinematics: quaternions, direction-cosine matrices, Euler/Cardan angles.
 
-Conventions (PHYSICS.md §1): Hamilton quaternions, scalar first `[w, x, y, z]`; `R(q)` maps
-body components to parent components, `v_parent = R(q) v_body`; Euler sequences exactly as
-`scipy.spatial.transform.Rotation`: upper case ("ZXZ") intrinsic, rotations about the moving
-axes, `R = R_a(α) R_b(β) R_c(γ)`; lower case ("zxz") extrinsic, about the fixed axes, so that
-"abc" with angles (α, β, γ) is intrinsic "CBA" with angles (γ, β, α).
+Conventions (docs/physics.md#quaternions, docs/physics.md#euler-angles): Hamilton quaternions,
+scalar first `[w, x, y, z]`; `R(q)` maps body components to parent components,
+`v_parent = R(q) v_body`; Euler sequences exactly as `scipy.spatial.transform.Rotation`: upper
+case ("ZXZ") intrinsic, rotations about the moving axes, `R = R_a(α) R_b(β) R_c(γ)`; lower case
+("zxz") extrinsic, about the fixed axes, so that "abc" with angles (α, β, γ) is intrinsic "CBA"
+with angles (γ, β, α).
 
 Every function is pure, accepts leading `*batch` axes and is safe under `jit`, `vmap` and
-`grad` (singular branches use a double `where` and Taylor series, STYLE.md §8).
+`grad`: singular branches use a double `where` (a safe argument in the branch not taken) and
+Taylor series near zero, so that values and gradients stay finite there.
 """
 
 import equinox as eqx
@@ -77,7 +79,7 @@ def _safe_hypot(x: Array, y: Array) -> Array:
 
 
 def quat_multiply(q1: QuaternionLike, q2: QuaternionLike) -> Quaternion:
-    """Hamilton product `q1 ⊗ q2` (PHYSICS.md §1): `R(q1 ⊗ q2) = R(q1) R(q2)`.
+    """Hamilton product `q1 ⊗ q2` (docs/physics.md#quaternions): `R(q1 ⊗ q2) = R(q1) R(q2)`.
 
     **Arguments:** `q1`, `q2`: quaternions `[w, x, y, z]` with broadcastable batch axes.
 
@@ -119,7 +121,7 @@ def quat_normalize(q: QuaternionLike) -> Quaternion:
 
 
 def quat_rotate(q: QuaternionLike, v: VectorLike) -> Vector:
-    """`R(q) v`: body components `v` to parent components (PHYSICS.md §1); `q` unit.
+    """`R(q) v`: body components `v` to parent components (docs/physics.md#quaternions); `q` unit.
 
     Computed as `v + 2w (u × v) + 2 u × (u × v)` with `q = [w, u]`.
     """
@@ -133,7 +135,7 @@ def quat_rotate(q: QuaternionLike, v: VectorLike) -> Vector:
 
 
 def quat_to_dcm(q: QuaternionLike) -> Matrix:
-    """Direction-cosine matrix `R(q)` (body → parent, PHYSICS.md §1).
+    """Direction-cosine matrix `R(q)` (body → parent, docs/physics.md#quaternions).
 
     Uses the homogeneous form divided by `|q|²`, so a non-unit `q` gives the rotation of
     `q / |q|`.
@@ -269,7 +271,8 @@ def euler_to_quat(angles: AnglesLike, seq: str) -> Quaternion:
     """Unit quaternion of Euler/Cardan angles, as `Rotation.from_euler(seq, angles)`.
 
     **Arguments:** `angles`: `(*batch, 3)` radians; `seq`: one of the 12 sequences, upper
-    case intrinsic ("ZXZ": `R = Rz(ψ) Rx(θ) Rz(φ)`, PHYSICS.md §1), lower case extrinsic.
+    case intrinsic ("ZXZ": `R = Rz(ψ) Rx(θ) Rz(φ)`, docs/physics.md#euler-angles), lower
+    case extrinsic.
 
     **Returns:** `(*batch, 4)` quaternion `[w, x, y, z]`.
     """
@@ -363,10 +366,10 @@ def dcm_to_euler(
 def gimbal_lock_distance(angles: AnglesLike, seq: str) -> Scalar:
     """Angular distance (radians) of the second angle from the singular set of `seq`.
 
-    The Euler-rate map of a sequence is singular where its first and third rotation axes
-    align (PHYSICS.md §2, the "paradox" of Pars §7.16): second angle ≡ 0 (mod π) for
-    proper sequences (first axis = third axis, e.g. ZXZ), ≡ π/2 (mod π) for Tait–Bryan
-    ones (e.g. XYZ). Returns `min_k |β − β_k|` over that set, in [0, π/2].
+    The Euler-rate map of a sequence is singular where its first and third rotation axes align
+    (docs/physics.md#gimbal-lock, the "paradox" of Pars (1971), §7.16): second angle ≡ 0 (mod π)
+    for proper sequences (first axis = third axis, e.g. ZXZ), ≡ π/2 (mod π) for Tait–Bryan ones
+    (e.g. XYZ). Returns `min_k |β − β_k|` over that set, in [0, π/2].
     """
     angles = check_trailing(angles, (3,), "angles")
     axes, _ = parse_seq(seq)
@@ -400,11 +403,11 @@ def _reorder(x: Array, seq: str) -> Array:
 
 
 def euler_rates_to_omega(angles: AnglesLike, rates: AnglesLike, seq: str) -> Vector:
-    """Body angular velocity from Euler-angle rates (PHYSICS.md §2).
+    """Body angular velocity from Euler-angle rates (docs/physics.md#euler-angle-rates).
 
     For "ZXZ" = (ψ, θ, φ) this is literally `p = ψ' sinθ sinφ + θ' cosφ`,
-    `q = ψ' sinθ cosφ − θ' sinφ`, `r = ψ' cosθ + φ'`; for "ZYZ" Pars' (7.16.1). Valid for
-    all 12 sequences, intrinsic or extrinsic; the result is in body components (the frame
+    `q = ψ' sinθ cosφ − θ' sinφ`, `r = ψ' cosθ + φ'`; for "ZYZ" Pars (1971), eq. (7.16.1). Valid
+    for all 12 sequences, intrinsic or extrinsic; the result is in body components (the frame
     rotated by `euler_to_dcm(angles, seq)`).
 
     **Arguments:** `angles`, `rates`: `(*batch, 3)` in the order of `seq`.
@@ -422,12 +425,12 @@ def euler_rates_to_omega(angles: AnglesLike, rates: AnglesLike, seq: str) -> Vec
 def omega_to_euler_rates(angles: AnglesLike, omega: VectorLike, seq: str) -> Angles:
     """Euler-angle rates from the body angular velocity (inverse of `euler_rates_to_omega`).
 
-    For "ZXZ" it reproduces PHYSICS.md §2: `ψ' = (p sinφ + q cosφ)/sinθ`,
-    `θ' = p cosφ − q sinφ`, `φ' = r − (p sinφ + q cosφ) cotθ`. Solved in closed form with
-    the adjugate of the map `[c_a c_b c_c]`, whose determinant is ±sin β (proper) or ±cos β
-    (Tait–Bryan): the result is non-finite only where that determinant is exactly zero,
-    the singular set measured by `gimbal_lock_distance`, and finite, with a finite
-    gradient, everywhere else (large near the singular set: check that distance).
+    For "ZXZ" it reproduces docs/physics.md#euler-angle-rates: `ψ' = (p sinφ + q cosφ)/sinθ`,
+    `θ' = p cosφ − q sinφ`, `φ' = r − (p sinφ + q cosφ) cotθ`. Solved in closed form with the
+    adjugate of the map `[c_a c_b c_c]`, whose determinant is ±sin β (proper) or ±cos β
+    (Tait–Bryan): the result is non-finite only where that determinant is exactly zero, the
+    singular set measured by `gimbal_lock_distance`, and finite, with a finite gradient,
+    everywhere else (large near the singular set: check that distance).
 
     **Arguments:** `angles`, `omega`: `(*batch, 3)`.
 
@@ -468,7 +471,9 @@ def vee(Omega: MatrixLike) -> Vector:
 
 
 def quat_derivative(q: QuaternionLike, omega: VectorLike) -> Quaternion:
-    """Quaternion kinematics `q' = ½ q ⊗ (0, ω)`, ω in body components (PHYSICS.md §2)."""
+    """Quaternion kinematics `q' = ½ q ⊗ (0, ω)`, ω in body components.
+
+    docs/physics.md#quaternion-kinematics."""
     q = check_trailing(q, (4,), "q")
     omega = check_trailing(omega, (3,), "omega")
     zero = jnp.zeros_like(omega[..., :1])
@@ -476,9 +481,11 @@ def quat_derivative(q: QuaternionLike, omega: VectorLike) -> Quaternion:
 
 
 def dcm_derivative(R: MatrixLike, omega: VectorLike) -> Matrix:
-    """`R' = R [ω]×` for `R` body → parent and ω in body components (PHYSICS.md §2).
+    """`R' = R [ω]×` for `R` body → parent and ω in body components.
 
-    Equivalently Pars' `l' + Ω l = 0` with `l = Rᵀ` and `Ω = [ω]×`.
+    docs/physics.md#direction-cosines.
+
+    Equivalently `l' + Ω l = 0` with `l = Rᵀ` and `Ω = [ω]×`, Pars (1971), eq. (7.15.4).
     """
     R = check_trailing(R, (3, 3), "R")
     R, W = _broadcast(R, skew(omega), trailing=(2, 2))
@@ -488,8 +495,8 @@ def dcm_derivative(R: MatrixLike, omega: VectorLike) -> Matrix:
 def omega_from_dcm(R: MatrixLike, R_dot: MatrixLike) -> Vector:
     """Body angular velocity from a rotation matrix and its rate: `Ω = −l' lᵀ`, `l = Rᵀ`.
 
-    This is Pars' formula (PHYSICS.md §2); Ω is skew-symmetric for an exact rotation
-    path, and its skew part is taken so rounding in `R_dot` does not leak in.
+    Pars (1971), eq. (7.15.7); docs/physics.md#direction-cosines. Ω is skew-symmetric for an
+    exact rotation path, and its skew part is taken so rounding in `R_dot` does not leak in.
     """
     R = check_trailing(R, (3, 3), "R")
     R_dot = check_trailing(R_dot, (3, 3), "R_dot")
@@ -500,7 +507,9 @@ def omega_from_dcm(R: MatrixLike, R_dot: MatrixLike) -> Vector:
 
 
 def poisson(gamma: VectorLike, omega: VectorLike) -> Vector:
-    """Poisson equation `γ' = γ × ω` for a vector fixed in the parent frame (PHYSICS.md §2).
+    """Poisson equation `γ' = γ × ω` for a vector fixed in the parent frame.
+
+    Shinibaev et al. (2013), eq. (3); docs/physics.md#poisson-equations.
 
     `gamma` holds its body components, `omega` the body angular velocity; written out,
     `dγ/dt = r γ' − q γ''`, `dγ'/dt = p γ'' − r γ`, `dγ''/dt = q γ − p γ'`.

@@ -161,8 +161,8 @@ class DispersedInertia(AbstractDistribution):
     tensor J' = L Lᵀ (`inertia.to_log_cholesky`) are perturbed, the log-diagonal by
     `sigma · N(0, 1)` and each off-diagonal `L_ij` by `sigma · sqrt(L_ii L_jj) · N(0, 1)`,
     a relative spread of about `sigma` in every moment and product of inertia. Every sample
-    is physical (triangle inequalities hold) by construction (PHYSICS.md §3). Centred on
-    `nominal`."""
+    is physical (triangle inequalities hold) by construction
+    (docs/physics.md#log-cholesky-parametrisation). Centred on `nominal`."""
 
     nominal: jax.Array
     sigma: jax.Array
@@ -332,8 +332,8 @@ def _inertia_spec(x, path) -> DispersedInertia:
             raise _fail(key, "a symmetric 3×3 matrix", t["matrix"])
     if not bool(_inertia.is_physical(jnp.asarray(J))) or not np.all(np.linalg.eigvalsh(J) > 0):
         raise _fail(key, "a physical inertia (positive moments obeying the triangle "
-                    "inequalities A + B ≥ C, PHYSICS.md §3) with no zero moment", x.get(
-                        "principal", x.get("matrix")))
+                    "inequalities A + B ≥ C, docs/physics.md#physical-consistency) with no "
+                    "zero moment", x.get("principal", x.get("matrix")))
     sigma = _number(t.get("log_cholesky_sigma", 0.0), f"{path}.log_cholesky_sigma", nonneg=True)
     if sigma > 0 and not np.all(np.linalg.eigvalsh(np.asarray(_inertia.planar(J))) > 0):
         raise _fail(f"{path}.log_cholesky_sigma", "0 for a flat body (a zero planar moment, "
@@ -520,7 +520,8 @@ SUMMARIES: dict[str, tuple[str, Callable]] = {
                        lambda m, tr: _nutation(tr.ys.quat[-1])),
     "energy_drift": ("max |E − E0| / |E0| over the output times (conservative models)",
                      lambda m, tr: _relative_drift(invariants.energy(m, tr))),
-    "relative_energy_drift": ("max |T_r − T_r0| / T_r0, relative kinetic energy (PHYSICS §5)",
+    "relative_energy_drift": ("max |T_r − T_r0| / T_r0, relative kinetic energy "
+                              "(docs/physics.md#balancing-transport-moment)",
                               lambda m, tr: _relative_drift(
                                   invariants.relative_kinetic_energy(m, tr))),
     "first_flip_time": ("first sign change of ω along the intermediate principal axis, s",

@@ -1,7 +1,9 @@
-"""State of a rigid body and the record a torque is evaluated on (DESIGN.md bottom layer).
+"""State of a rigid body and the record a torque is evaluated on.
 
-Conventions (PHYSICS.md §1): vectors in body components; quaternions `[w, x, y, z]`, with
-`R(q)` mapping body components to the parent frame's components.
+The bottom layer of the package: it imports no other module of it, so that torques and models
+can both use it. Conventions (docs/physics.md#conventions): vectors in body components;
+quaternions `[w, x, y, z]`, with `R(q)` mapping body components to the parent frame's
+components.
 """
 
 import equinox as eqx
@@ -9,7 +11,7 @@ from jaxtyping import Array, Float
 
 
 class State(eqx.Module):
-    """State of the quaternion forms of the equations (PHYSICS.md §2, §4, §5).
+    """State of the quaternion forms of the equations (docs/physics.md#quaternion-kinematics).
 
     **Fields:**
     - `omega`: `(*batch, 3)` body angular velocity in body components — absolute for
@@ -23,16 +25,18 @@ class State(eqx.Module):
 
 
 class EulerState(eqx.Module):
-    """State of the Euler-angle form (PHYSICS.md §6): `omega` = (p, q, r) in body
-    components and `angles` = ZXZ (ψ, θ, φ) of the body relative to the parent frame."""
+    """State of the Euler-angle form (docs/physics.md#equations-of-motion): `omega` =
+    (p, q, r) in body components and `angles` = ZXZ (ψ, θ, φ) of the body relative to the
+    parent frame."""
 
     omega: Float[Array, "*batch 3"]
     angles: Float[Array, "*batch 3"]
 
 
 class PoissonState(eqx.Module):
-    """State of the Poisson form (PHYSICS.md §7): `omega` in body components and `gamma`,
-    the body components of the parent frame's z-axis (γ, γ', γ'')."""
+    """State of the Poisson form (docs/physics.md#poisson-equations): `omega` in body
+    components and `gamma`, the body components of the parent frame's z-axis
+    (γ, γ', γ'')."""
 
     omega: Float[Array, "*batch 3"]
     gamma: Float[Array, "*batch 3"]
@@ -46,9 +50,10 @@ class Kinematics(eqx.Module):
     - `omega`: absolute angular velocity ω = ω_r + ω_e.
     - `omega_r`: angular velocity relative to the parent frame (= `omega` in absolute models).
     - `omega_e`, `eps_e`: the parent frame's absolute angular velocity and acceleration
-      (zero in absolute models; PHYSICS.md §5).
+      (zero in absolute models; docs/physics.md#transport-frame).
     - `gamma`: the parent frame's z-axis (O0's z0 for absolute models, O1's z1 — the nadir
-      for a circular orbit — for relative ones; PHYSICS.md §2, §7).
+      for a circular orbit — for relative ones; docs/physics.md#poisson-equations,
+      docs/physics.md#circular-orbit).
     - `gamma_inertial`: the inertial z0-axis (equal to `gamma` in absolute models).
     - `quat`: attitude relative to the parent frame, or `None` where the state form does
       not carry it (the Poisson form).

@@ -52,7 +52,8 @@ from .integrate import (
 from .scenario import SUMMARIES, Scenario
 
 CONVENTIONS = (
-    "PHYSICS.md conventions: quat = [w, x, y, z] (scalar first), unit, rotating body "
+    "Conventions of the rbdyn_jax physics guide (docs/physics.md#conventions): "
+    "quat = [w, x, y, z] (scalar first), unit, rotating body "
     "components into the parent frame (O0 for rigid_body, the transport frame O1 for "
     "relative_rigid_body); omega in body components, rad/s (the rate relative to O1 for "
     "relative_rigid_body); inertia in body axes; times in s; angles in rad."
@@ -126,8 +127,8 @@ class _Runner:
             # block's program is then the same for every chunk size and device count, so
             # the results are bitwise identical across them (a lane-solver loop over the
             # whole share compiles differently for each share size and rounds differently).
-            # Fixed blocks also keep a share of 2048 on 2 XLA:CPU host devices from hanging
-            # in the XLA runtime, as one loop over it did (all threads asleep).
+            # Fixed blocks also avoid a hang in the XLA runtime (all threads asleep) that
+            # one loop over a large share (2048 on 2 XLA:CPU host devices) runs into.
             out = jax.lax.map(lambda b: _solve_block(sc, dists, key, b, lanes),
                               idx.reshape(-1, _PER_LANE * lanes))
             return jax.tree_util.tree_map(lambda x: x.reshape((-1,) + x.shape[2:]), out)
@@ -305,8 +306,8 @@ def run(
     - `n`: number of trajectories; `chunk`: trajectories solved and written at a time
       (memory ∝ chunk); `seed`: the random seed. Each device solves its share in blocks
       of 8 × `lanes`, so a chunk is padded to a multiple of 8 × `lanes` × devices (1024
-      at the defaults on two devices): a smaller chunk solves padding (chunk 256 measured
-      3.9× slower than 1024).
+      at the defaults on two devices): a smaller chunk solves padding, and is slower per
+      trajectory.
     - `devices`: how many of `jax.devices()` to shard each chunk over (default all).
     - `lanes`: lanes of each device's solver loop (the lane solver of `simulate_batch`; a
       lane takes the next trajectory as soon as its own has finished). Results are bitwise

@@ -1,4 +1,7 @@
-"""Torque models (PHYSICS.md §4–7): `eqx.Module`s whose parameters are pytree leaves.
+"""Torque models: `eqx.Module`s whose parameters are pytree leaves.
+
+See the physics guide: docs/physics.md#absolute-motion, docs/physics.md#relative-motion,
+docs/physics.md#restoring-moment and docs/physics.md#gravity-gradient.
 
 A torque is called as `torque(kin, inertia)` with the `Kinematics` record of `state.py`
 (time, body rates, attitudes, the parent frame's rates) and the 3×3 inertia tensor, and
@@ -84,7 +87,7 @@ class SumTorque(AbstractTorque):
 
 
 class NoTorque(AbstractTorque):
-    """Zero moment (Euler–Poinsot motion, PHYSICS.md §4)."""
+    """Zero moment (Euler–Poinsot motion, docs/physics.md#torque-free-motion)."""
 
     def __call__(self, kin, inertia):
         return jnp.zeros_like(kin.omega)
@@ -94,7 +97,8 @@ class NoTorque(AbstractTorque):
 
 
 class BodyTorque(AbstractTorque):
-    """A constant moment fixed in the body axes (e.g. the perturbing M1, M2, M3 of §6)."""
+    """A constant moment fixed in the body axes (e.g. the perturbing M1, M2, M3 of
+    docs/physics.md#equations-of-motion)."""
 
     moment: Float[Array, "3"]
 
@@ -123,7 +127,8 @@ class UniformGravity(AbstractTorque):
 
     `M = r_c × (−mg γ₀) = mg γ₀ × r_c` with γ₀ the body components of the inertial z0-axis
     and `r_c` the centre-of-mass offset from the fixed point, body components. For
-    `r_c = (0, 0, l)` this is the Lagrange top of PHYSICS.md §6 with `k = m g l`:
+    `r_c = (0, 0, l)` this is the Lagrange top of docs/physics.md#equations-of-motion with
+    `k = m g l`:
     `M = k sinθ (cos φ, −sin φ, 0)`. Potential `V = mg r_c · γ₀` (height of the centre of
     mass times the weight).
 
@@ -157,7 +162,8 @@ def _precession_angle(q):
 
 class PolynomialSinPsi(eqx.Module):
     """The restoring-moment coefficient `k(τ, ψ) = ε K(τ) sin ψ` with K a polynomial,
-    `K(τ) = Σ_i coeffs[i] τ^i` (PHYSICS.md §6). Its `coeffs` and `eps` are leaves."""
+    `K(τ) = Σ_i coeffs[i] τ^i` (docs/physics.md#first-approximation). Its `coeffs` and `eps`
+    are leaves."""
 
     coeffs: Float[Array, " n"]
     eps: Float[Array, ""]
@@ -174,15 +180,16 @@ class PolynomialSinPsi(eqx.Module):
 
 
 class RestoringMoment(AbstractTorque):
-    """Non-stationary restoring moment of PHYSICS.md §6 (seed 002):
+    """Non-stationary restoring moment (Zinkevich & Kozachenko (2008), eq. (1);
+    docs/physics.md#equations-of-motion):
 
         M = k(τ, ψ) sinθ (cos φ, −sin φ, 0) = k(τ, ψ) γ × e_z,   τ = ε t,
 
     with (ψ, θ, φ) the ZXZ angles of the body relative to its parent frame and γ the
     parent z-axis in body components. `k` is a number (a leaf, the heavy top's `m g l`), or
     any differentiable callable `k(tau, psi)` — an `eqx.Module` such as `PolynomialSinPsi`
-    keeps its coefficients as leaves. The constant perturbing moments of §6 are added as
-    `+ BodyTorque(M)`.
+    keeps its coefficients as leaves. The constant perturbing moments M1, M2, M3 are added
+    as `+ BodyTorque(M)`.
 
     `eps` (the slow-time scale ε of τ = ε t) defaults to `k.eps` when `k` has one (as
     `PolynomialSinPsi` does), else to 1.
@@ -214,7 +221,9 @@ class RestoringMoment(AbstractTorque):
 
 
 class GravityGradient(AbstractTorque):
-    """Gravity-gradient torque `M = ε γ × J γ` (PHYSICS.md §7, seed 004), ε = 3μ/R³.
+    """Gravity-gradient torque `M = ε γ × J γ`, ε = 3μ/R³.
+
+    Shinibaev et al. (2013), eq. (2); docs/physics.md#torque-and-integrals.
 
     γ is the body components of the parent frame's z-axis: the direction of the attracting
     centre — O0's z0 for `RigidBody`, the nadir z1 under a `CircularOrbit` frame. Potential
@@ -228,7 +237,7 @@ class GravityGradient(AbstractTorque):
 
     @classmethod
     def from_orbit_rate(cls, n: Float[ArrayLike, ""]) -> "GravityGradient":
-        """ε = 3 n² for a circular orbit of rate n (PHYSICS.md §7)."""
+        """ε = 3 n² for a circular orbit of rate n (docs/physics.md#circular-orbit)."""
         n = as_float_array(n, "n")
         return cls(eps=3.0 * n * n)
 
@@ -242,8 +251,9 @@ class GravityGradient(AbstractTorque):
 
 
 class BalancingTransport(AbstractTorque):
-    """The special moment of PHYSICS.md §5 that balances the transport inertia moment,
-    `M = J ε_e − J ω_e × ω_e`; under it the relative kinetic energy is conserved."""
+    """The special moment that balances the transport inertia moment,
+    `M = J ε_e − J ω_e × ω_e`; under it the relative kinetic energy is conserved
+    (Mukhametzyanov (2009), eq. (16); docs/physics.md#balancing-transport-moment)."""
 
     def __call__(self, kin, inertia):
         return -transport_moment(inertia, kin.omega_e, kin.eps_e)

@@ -1,4 +1,4 @@
-"""Test configuration: float64 and strict promotion, as STYLE.md §11 asks.
+"""Test configuration: float64 and strict promotion, so that silent bugs fail loudly.
 
 The library itself never flips `jax_enable_x64`; only tests, benchmarks and the CLI do.
 """

@@ -127,7 +127,7 @@ def vee(W):
 
 
 def zxz(q):
-    """(ψ, θ, φ) of a quaternion from scipy (PHYSICS.md §1: intrinsic "ZXZ")."""
+    """(ψ, θ, φ) of a quaternion from scipy (docs/physics.md#euler-angles: intrinsic "ZXZ")."""
     return scipy_rot(q).as_euler("ZXZ")
 
 
@@ -148,7 +148,8 @@ def np_angles(c, t):
     return c[:, 0] + c[:, 1] * t + c[:, 2] * t * t + c[:, 3] * np.sin(t)
 
 
-# The brief's frame: (ψ_e, θ_e, φ_e) = (0.3 t, 0.6 + 0.2 sin t, −0.5 t + 0.1 t²).
+# A frame with time-varying ω_e and ε_e:
+# (ψ_e, θ_e, φ_e) = (0.3 t, 0.6 + 0.2 sin t, −0.5 t + 0.1 t²).
 FRAME_C = np.array([[0.0, 0.3, 0.0, 0.0], [0.6, 0.0, 0.0, 0.2], [0.0, -0.5, 0.1, 0.0]])
 
 
@@ -158,14 +159,15 @@ def frame_rot(c, seq, t):
 
 
 def frame_omega1(c, seq, t, h=FD_H):
-    """ω_e¹ from central differences of scipy attitudes: R_eᵀ R_e' = [ω_e¹]× (PHYSICS.md §2)."""
+    """ω_e¹ from central differences of scipy attitudes: R_eᵀ R_e' = [ω_e¹]×
+    (docs/physics.md#direction-cosines)."""
     R = frame_rot(c, seq, t).as_matrix()
     dR = (frame_rot(c, seq, t + h).as_matrix() - frame_rot(c, seq, t - h).as_matrix()) / (2 * h)
     return vee(R.T @ dR)
 
 
 def zxz_omega(angles, rates):
-    """PHYSICS.md §2, literally: p = ψ' sinθ sinφ + θ' cosφ, …"""
+    """docs/physics.md#euler-angle-rates, literally: p = ψ' sinθ sinφ + θ' cosφ, …"""
     psi, th, ph = angles
     dpsi, dth, dph = rates
     return np.array([

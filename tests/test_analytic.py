@@ -1,18 +1,22 @@
-"""rbdyn_jax.analytic against independent references (PHYSICS.md §4, §6, §7).
+"""rbdyn_jax.analytic against independent references.
 
 References, none of which shares code with the module:
 
 - `scipy.special.ellipj / ellipk / ellipkinc` (Cephes) for the JAX special functions;
 - `scipy.integrate.solve_ivp` (DOP853, rtol = atol = 1e-12) of the equations of motion written
-  out below in NumPy: Euler's equations with quaternion kinematics (§4, §2), the Lagrange top
-  with ZXZ kinematics (§6, §2), the gravity-gradient equations with Poisson kinematics (§7);
-- first integrals (T, L², the integrals C1, C2 of §7) and exact identities.
+  out below in NumPy: Euler's equations with quaternion kinematics
+  (docs/physics.md#torque-free-motion), the Lagrange top with ZXZ kinematics
+  (docs/physics.md#equations-of-motion), the gravity-gradient equations with Poisson
+  kinematics (docs/physics.md#torque-and-integrals);
+- first integrals (T, L², the integrals C1, C2 of docs/physics.md#the-integrable-case) and
+  exact identities.
 
 Tolerances. Solver-vs-analytic comparisons over ≥ 20 periods see the solver's global error,
 which grows linearly in time: measured ≤ 1e-9 |ω0| for the elliptic case (≈ 5e-11 per period),
-so 1e-8. Identities and special functions are float64 rounding: 1e-13 (a few ulps of O(1)
-values after O(10) operations). The asymptotic references of §6 are tested by their
-convergence order in ε, the property that defines them.
+so 1e-8. Identities and special functions are float64 rounding: 1e-13 (a few ulps of O(1) values
+after O(10) operations). The asymptotic references of the restoring moment
+(docs/physics.md#averaging) are tested by their convergence order in ε, the property that
+defines them.
 """
 
 import math
@@ -44,7 +48,8 @@ N = 1001
 
 
 def euler_rhs(t, w, I1, I2, I3):
-    """Euler's equations A p' = (B − C) q r, ... (PHYSICS.md §4), body principal axes."""
+    """Euler's equations A p' = (B − C) q r, ... (docs/physics.md#eulers-equations), body
+    principal axes."""
     p, q, r = w
     return [(I2 - I3) * q * r / I1, (I3 - I1) * r * p / I2, (I1 - I2) * p * q / I3]
 
@@ -361,12 +366,13 @@ def test_torque_free_bad_input():
 
 
 # ---------------------------------------------------------------------------------------
-# §6: Lagrange top under k(τ, ψ) = ε K(τ) sin ψ
+# Lagrange top under k(τ, ψ) = ε K(τ) sin ψ (docs/physics.md#restoring-moment)
 # ---------------------------------------------------------------------------------------
 
-# Seed 002's assumptions: √(p² + q²) ≪ r (p, q = O(ε)), C r² = 1.5 ≫ k ≤ 1.3 ε, and n0/r0 =
-# (C − A)/A = 0.5 ≤ 1. K varies with τ (non-stationary) and stays positive on [0, 1], so ψ
-# moves from 1.0 to ≈ 1.8 rad over t = 1/ε, away from the fixed points 0 and π of sin ψ.
+# The assumptions of Zinkevich & Kozachenko (2008), eq. (2): √(p² + q²) ≪ r (p, q = O(ε)),
+# C r² = 1.5 ≫ k ≤ 1.3 ε, and n0/r0 = (C − A)/A = 0.5 ≤ 1. K varies with τ (non-stationary)
+# and stays positive on [0, 1], so ψ moves from 1.0 to ≈ 1.8 rad over t = 1/ε, away from the
+# fixed points 0 and π of sin ψ.
 TOP = dict(A=1.0, C=1.5, r0=1.0, psi0=1.0, theta0=0.8)
 PHI0 = 0.3
 
@@ -376,7 +382,8 @@ def K_of_tau(s):
 
 
 def lagrange_rhs(t, y, eps, M3):
-    """PHYSICS.md §6 with the inverse ZXZ kinematics of §2 (M1 = M2 = 0)."""
+    """docs/physics.md#equations-of-motion with the inverse ZXZ kinematics of
+    docs/physics.md#euler-angle-rates (M1 = M2 = 0)."""
     A, C = TOP["A"], TOP["C"]
     p, q, r, psi, th, phi = y
     k = eps * K_of_tau(eps * t) * np.sin(psi)
@@ -403,7 +410,7 @@ def initial_rates(eps, start):
 
 
 def top_errors(eps, start, M3_star):
-    M3 = M3_star * eps**2  # seed 002: M_i = ε² M_i*
+    M3 = M3_star * eps**2  # Zinkevich & Kozachenko (2008), eq. (3): M_i = ε² M_i*
     p0, q0 = initial_rates(eps, start)
     ts = np.linspace(0, 1 / eps, 2001)
     y0 = [p0, q0, TOP["r0"], TOP["psi0"], TOP["theta0"], PHI0]
@@ -500,12 +507,13 @@ def test_lagrange_jit_and_vmap_over_eps():
 
 
 # ---------------------------------------------------------------------------------------
-# §7: gravity gradient, integrable case A = B = m C
+# gravity gradient, integrable case A = B = m C (docs/physics.md#the-integrable-case)
 # ---------------------------------------------------------------------------------------
 
 
 def gg_rhs(t, y, J, eps):
-    """J ω' = Jω × ω + ε γ × Jγ, γ' = γ × ω (PHYSICS.md §7), in vector form."""
+    """J ω' = Jω × ω + ε γ × Jγ, γ' = γ × ω (docs/physics.md#torque-and-integrals), in
+    vector form."""
     w, g = y[:3], y[3:]
     dw = (np.cross(J * w, w) + eps * np.cross(g, J * g)) / J
     return np.concatenate([dw, np.cross(g, w)])
@@ -543,7 +551,7 @@ def test_gg_half_period_and_quartic_vs_solve_ivp(rng, A, C, eps):
     Y = sol.sol(np.linspace(0, 12 * half, 300))
     du = Y[1] * Y[3] - Y[0] * Y[4]
     np.testing.assert_allclose(du**2, np.polyval(coeffs, Y[5]), atol=1e-9)
-    # the first integrals of §7 are conserved by the solver
+    # the first integrals of the integrable case are conserved by the solver
     C1, C2, r, g2 = an.gg_integrable_case_integrals(A, C, eps, Y[:3].T, Y[3:].T)
     C10, C20, r0, _ = an.gg_integrable_case_integrals(A, C, eps, w0, g0)
     np.testing.assert_allclose(C1, C10, atol=1e-10)

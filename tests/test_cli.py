@@ -1,9 +1,16 @@
 """Smoke test of the `rbdyn` command: the main job runs and reports what it must."""
 
+import ast
+import pathlib
 import re
+import shutil
+import subprocess
+import sys
 
 import numpy as np
+import pytest
 
+import rbdyn_jax
 from rbdyn_jax import cli
 
 
@@ -22,6 +29,38 @@ def test_demo_simulates_the_default_body(capsys):
     energy = float(re.search(r"energy drift .*?:\s+([0-9.e+-]+)", out).group(1))
     momentum = float(re.search(r"momentum drift .*?:\s+([0-9.e+-]+)", out).group(1))
     assert energy < 1e-9 and momentum < 1e-9
+
+
+def test_version_is_the_package_version(capsys):
+    """`rbdyn --version` prints `rbdyn <version>` with the version the package reports."""
+    with pytest.raises(SystemExit) as exit_:
+        cli.main(["--version"])
+    assert exit_.value.code == 0
+    assert capsys.readouterr().out.strip() == f"rbdyn {rbdyn_jax.__version__}"
+
+
+def test_version_of_the_installed_command():
+    """The installed `rbdyn` script, in a fresh process, reports the same version."""
+    script = shutil.which("rbdyn", path=str(pathlib.Path(sys.executable).parent))
+    if script is None:
+        pytest.skip("the `rbdyn` script is not installed beside this Python")
+    run = subprocess.run([script, "--version"], capture_output=True, text=True, timeout=300,
+                         check=True)
+    assert run.stdout.strip() == f"rbdyn {rbdyn_jax.__version__}"
+
+
+def test_cli_imports_jax_only_inside_commands():
+    """`cli.py` imports nothing heavy at module level: JAX and the numerical stack are
+    imported inside the commands that compute, so `--version` and `--help` need none of
+    them from it (its version comes from the package metadata)."""
+    tree = ast.parse(pathlib.Path(cli.__file__).read_text())
+    top = set()
+    for node in tree.body:
+        if isinstance(node, ast.Import):
+            top.update(alias.name.split(".")[0] for alias in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            top.add("." if node.level else (node.module or "").split(".")[0])
+    assert top <= {"argparse", "os", "sys", "time"}, top
 
 
 def test_scenarios_lists_the_shipped_ones(capsys):

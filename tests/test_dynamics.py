@@ -1,8 +1,10 @@
-"""rbdyn_jax.dynamics against independent formulations (PHYSICS.md §4–5).
+"""rbdyn_jax.dynamics against independent formulations (docs/physics.md#absolute-motion,
+docs/physics.md#relative-motion).
 
-- the principal-axis scalar equations (000 eq. 12) written out by hand, rotated to a
-  general frame with scipy rotations (so J has products of inertia);
-- the three-term Coriolis moment of 000 eq. (2) vs the compact theorem, eq. (5);
+- the principal-axis scalar equations (Mukhametzyanov (2009), eq. (12)) written out by hand,
+  rotated to a general frame with scipy rotations (so J has products of inertia);
+- the three-term Coriolis moment of Mukhametzyanov (2009), eq. (2), vs the compact theorem,
+  eq. (5);
 - relative vs absolute motion: ε = ε_r + ε_e + ω_e × ω_r with ε from the absolute
   equations at ω = ω_r + ω_e;
 - the energy theorem dT/dt = ω·M, and Euler–Poinsot special cases.
@@ -33,7 +35,7 @@ def random_body(rng, n=None):
 
 
 def principal_euler(m, w, M):
-    """A p' = (B − C) q r + Mx and cyclic (PHYSICS.md §4), by hand."""
+    """A p' = (B − C) q r + Mx and cyclic (docs/physics.md#eulers-equations), by hand."""
     A, B, C = m[..., 0], m[..., 1], m[..., 2]
     p, q, r = w[..., 0], w[..., 1], w[..., 2]
     return np.stack(
@@ -42,7 +44,7 @@ def principal_euler(m, w, M):
 
 
 def principal_relative(m, w_r, w_e, eps_e, M):
-    """000 eq. (12) by hand, with planar moments A' = (B + C − A)/2, …"""
+    """Mukhametzyanov (2009), eq. (12), by hand, with planar moments A' = (B + C − A)/2, …"""
     A, B, C = m[..., 0], m[..., 1], m[..., 2]
     Ap, Bp, Cp = (B + C - A) / 2, (C + A - B) / 2, (A + B - C) / 2
     p, q, r = w_r[..., 0], w_r[..., 1], w_r[..., 2]
@@ -88,8 +90,8 @@ def test_euler_rhs_energy_and_momentum_theorems(rng):
 
 
 def test_euler_poinsot_special_cases():
-    """PHYSICS.md §4: spherical body keeps ω; symmetric body keeps r and (p, q) turns at
-    (C − A) r / A in the body."""
+    """docs/physics.md#torque-free-motion: spherical body keeps ω; symmetric body keeps r and
+    (p, q) turns at (C − A) r / A in the body."""
     w = jnp.array([0.3, -0.7, 1.9])
     np.testing.assert_allclose(dynamics.euler_rhs(2.5 * jnp.eye(3), w, jnp.zeros(3)), 0.0,
                                atol=TOL)
@@ -100,7 +102,8 @@ def test_euler_poinsot_special_cases():
 
 
 def test_coriolis_theorem_equals_three_term_form(rng):
-    """000 eq. (5): J ω_r × ω_e + J ω_e × ω_r − J (ω_e × ω_r) = 2 ω_r × J' ω_e."""
+    """Mukhametzyanov (2009), eq. (5): J ω_r × ω_e + J ω_e × ω_r − J (ω_e × ω_r) = 2 ω_r × J'
+    ω_e."""
     J, _, _ = random_body(rng, 50)
     w_r, w_e = rng.normal(size=(2, 50, 3))
     Jw_r, Jw_e = np.einsum("nij,nj->ni", J, w_r), np.einsum("nij,nj->ni", J, w_e)
@@ -125,7 +128,8 @@ def test_relative_rhs_matches_principal_form_eq12(rng):
 
 
 def test_relative_rhs_agrees_with_absolute_motion(rng):
-    """PHYSICS.md §5: ω = ω_r + ω_e, ε = ε_r + ε_e + ω_e × ω_r, with ε from eq. (1)."""
+    """docs/physics.md#transport-frame: ω = ω_r + ω_e, ε = ε_r + ε_e + ω_e × ω_r, with ε from
+    Mukhametzyanov (2009), eq. (1)."""
     J, _, _ = random_body(rng, 50)
     w_r, w_e, eps_e, M = rng.normal(size=(4, 50, 3))
     eps_r = np.asarray(dynamics.relative_rhs(J, w_r, w_e, eps_e, M))
@@ -134,7 +138,8 @@ def test_relative_rhs_agrees_with_absolute_motion(rng):
 
 
 def test_balanced_transport_conserves_relative_energy(rng):
-    """000 §4: with M = J ε_e − J ω_e × ω_e, dT_r/dt = ω_rᵀ J ε_r = 0 for any transport."""
+    """Mukhametzyanov (2009), §4: with M = J ε_e − J ω_e × ω_e, dT_r/dt = ω_rᵀ J ε_r = 0 for any
+    transport."""
     J, _, _ = random_body(rng, 50)
     w_r, w_e, eps_e = rng.normal(size=(3, 50, 3))
     M = -np.asarray(dynamics.transport_moment(J, w_e, eps_e))
@@ -215,7 +220,8 @@ def test_shapes_are_checked():
 
 
 def test_inertia_planar_is_the_one_used(rng):
-    """The Coriolis theorem uses J' of PHYSICS.md §3 (shared with rbdyn_jax.inertia)."""
+    """The Coriolis theorem uses J' of docs/physics.md#planar-inertia-tensor (shared with
+    rbdyn_jax.inertia)."""
     J, _, _ = random_body(rng)
     w_r, w_e = rng.normal(size=(2, 3))
     np.testing.assert_allclose(dynamics.coriolis_moment(J, w_r, w_e),

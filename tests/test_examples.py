@@ -1,11 +1,11 @@
-"""Smoke test of the example scripts (STYLE.md §15): each `examples/*.py` is imported by
-path and its `main()` run with tiny sizes under the strict promotion of `conftest.py`; it
-must write its PNG and return finite, physically sane figures.
+"""Smoke test of the example scripts: each `examples/*.py` is imported by path and its
+`main()` run with tiny sizes under the strict promotion of `conftest.py`; it must write its
+PNG and return finite, physically sane figures.
 
-The bounds are loose versions of what each example shows at full size (its module
-docstring and printout): solver-vs-reference errors ~100× the measured ones at these
-tolerances; the O(ε) and O(ε²) errors of the §6 averaged solutions, measured ≤ 0.8 ε and
-≤ 3 ε² at ε = 0.05, bounded by 1.5 ε and 6 ε².
+The bounds are loose versions of what each example shows at full size (its module docstring
+and printout): solver-vs-reference errors ~100× the measured ones at these tolerances; the
+O(ε) and O(ε²) errors of the averaged solutions of the restoring moment, measured ≤ 0.8 ε
+and ≤ 3 ε² at ε = 0.05, bounded by 1.5 ε and 6 ε².
 """
 
 import math

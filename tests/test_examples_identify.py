@@ -1,4 +1,4 @@
-"""Smoke tests of the identification examples (`examples/identify_*.py`, STYLE.md §15): each
+"""Smoke tests of the identification examples (`examples/identify_*.py`): each
 `main()` runs at a reduced size under the strict promotion of `conftest.py`, writes its PNG,
 and recovers its parameters: within 4 standard errors of the truth, with standard errors
 small against the parameters (the data determine them), converged.

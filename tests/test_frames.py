@@ -1,8 +1,11 @@
-"""Transport frames (`rbdyn_jax.frames`, PHYSICS.md §5, §7) against independent references.
+"""Transport frames (`rbdyn_jax.frames`) against independent references.
+
+See docs/physics.md#transport-frame and docs/physics.md#circular-orbit.
 
 References that cannot be wrong in the same way as the library: central finite differences
 of the frame's own attitude, `R_eᵀ R_e' = [ω_e¹]×`, scipy's `from_euler` / `from_rotvec`,
-and for a ZXZ frame the literal kinematic formula of PHYSICS.md §2 (000 eq. 14).
+and for a ZXZ frame the literal kinematic formula of docs/physics.md#euler-angle-rates
+(Mukhametzyanov (2009), eq. (14)).
 
 Finite differences use central steps h with truncation error ~h²·|f'''| and rounding
 ~1e-16/h (h = 1e-5 ⇒ both ≲ 1e-10).
@@ -73,7 +76,8 @@ def test_euler_angle_frame(seq, rng):
         assert_quat_equal(q, xyzw_to_wxyz(frame_rot(FRAME_C, seq, t).as_quat()), atol=TIGHT)
         # ω_e¹ against an independent FD of scipy's attitude
         np.testing.assert_allclose(w1, frame_omega1(FRAME_C, seq, t), atol=FD_TOL)
-    # A ZXZ frame also matches the literal §2 formula (000 eq. 14)
+    # A ZXZ frame also matches the literal formula: Mukhametzyanov (2009), eq. (14);
+    # docs/physics.md#euler-angle-frames
     if seq == "ZXZ":
         t = 1.1
         np.testing.assert_allclose(eval_frame(frame, t)[1],
@@ -116,8 +120,8 @@ def test_constant_rate_frame(rng):
 
 
 def test_circular_orbit_frame():
-    """PHYSICS.md §7 (LVLH): ω_e¹ = (0, −n, 0); the nadir z1 turns about the orbit normal
-    −y1 at rate n; the satellite r = −z1 moves along x1, and r × v = n (−y1)."""
+    """docs/physics.md#circular-orbit (LVLH): ω_e¹ = (0, −n, 0); the nadir z1 turns about the
+    orbit normal −y1 at rate n; the satellite r = −z1 moves along x1, and r × v = n (−y1)."""
     n = 0.63
     frame = rb.CircularOrbit(n)
     assert_quat_equal(eval_frame(frame, 0.0)[0], [1.0, 0.0, 0.0, 0.0], atol=TIGHT)

@@ -1,4 +1,4 @@
-"""rbdyn_jax.identify: observations, losses, `fit` and its uncertainty (PHYSICS.md §3–4).
+"""rbdyn_jax.identify: observations, losses, `fit` and its uncertainty.
 
 - recover a general inertia (products of inertia) from noisy synthetic ω and attitude
   records of 3 bodies under uniform gravity (a known torque), initial states free: error

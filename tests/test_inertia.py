@@ -1,4 +1,5 @@
-"""Tests of rbdyn_jax.inertia against independent NumPy/SciPy computations (PHYSICS.md §3).
+"""Tests of rbdyn_jax.inertia against independent NumPy/SciPy computations
+(docs/physics.md#inertia).
 
 Tolerances: identities that only reorder a few float64 roundings are checked at 1e-12 relative
 to the scale of the data; eigen-decompositions at 1e-12 (LAPACK is backward stable and the test
@@ -37,7 +38,8 @@ def random_cloud(rng, n=7, batch=()):
 
 
 def hand_inertia(masses, positions):
-    """J by the component sums of PHYSICS.md §3, one NumPy loop over points (independent)."""
+    """J by the component sums of docs/physics.md#inertia-tensor, one NumPy loop over points
+    (independent)."""
     J = np.zeros((3, 3))
     for m, (x, y, z) in zip(masses, positions, strict=True):
         J[0, 0] += m * (y**2 + z**2)
@@ -212,7 +214,9 @@ def test_triangle_violators_rejected(moments, rng):
     R = random_rotation_matrices(rng, 1)[0]
     J = R @ np.diag(moments) @ R.T
     assert not bool(inertia.is_physical(J))
-    with pytest.raises(eqx.EquinoxRuntimeError, match="`J_body` is not physical .*A \\+ B ≥ C"):
+    with pytest.raises(eqx.EquinoxRuntimeError,
+                       match="`J_body` is not physical .*A \\+ B ≥ C.*"
+                             "docs/physics\\.md#physical-consistency"):
         jax.block_until_ready(inertia.check_inertia(J, name="J_body"))
     with pytest.raises(eqx.EquinoxRuntimeError, match="`moments` is not physical"):
         jax.block_until_ready(inertia.from_principal(np.array(moments), R))

@@ -1,17 +1,19 @@
 """rbdyn_jax.simulate / simulate_batch (integrate.py) against independent references.
 
-- an independent NumPy formulation of Euler's equations (PHYSICS.md §4) and the quaternion
-  kinematics (§2), integrated by scipy's DOP853 at rtol = atol = 1e-12, for a general J
-  (products of inertia) under a constant body torque; convergence as rtol shrinks;
+- an independent NumPy formulation of Euler's equations (docs/physics.md#eulers-equations) and
+  the quaternion kinematics (docs/physics.md#quaternion-kinematics), integrated by scipy's
+  DOP853 at rtol = atol = 1e-12, for a general J (products of inertia) under a constant body
+  torque; convergence as rtol shrinks;
 - `simulate_batch` equals a Python loop of `simulate`, over initial conditions, over whole
   models (`model_axes=0`) and over the inertia only (a prefix `model_axes`);
 - failure isolation in a batch (one non-finite initial state, one trajectory that runs out
   of steps) and the `throw=` switch;
 - no retracing when only values change (a trace-counting torque);
-- gradients of a loss on a heavy-top-like body (restoring moment k(τ, ψ) of §6 with
-  `PolynomialSinPsi`, plus a body torque) w.r.t. log-Cholesky inertia parameters and the
-  restoring-moment parameters, against central finite differences, for two adjoints; the
-  gradient of a batched loss equals the sum of per-trajectory gradients;
+- gradients of a loss on a heavy-top-like body (restoring moment k(τ, ψ) of
+  docs/physics.md#equations-of-motion with `PolynomialSinPsi`, plus a body torque) w.r.t.
+  log-Cholesky inertia parameters and the restoring-moment parameters, against central finite
+  differences, for two adjoints; the gradient of a batched loss equals the sum of per-trajectory
+  gradients;
 - input errors naming the argument.
 
 Compilation dominates the run time, so the compiled solves are shared: one model structure
@@ -80,7 +82,8 @@ def max_abs_diff(a, b):
 
 
 def numpy_rhs(J, M):
-    """J ω' = J ω × ω + M (PHYSICS.md §4); q' = ½ q ⊗ (0, ω) by hand (§2)."""
+    """J ω' = J ω × ω + M (docs/physics.md#eulers-equations); q' = ½ q ⊗ (0, ω) by hand
+    (docs/physics.md#quaternion-kinematics)."""
 
     def rhs(t, y):
         w, q = y[:3], y[3:]
@@ -162,7 +165,7 @@ def test_simulate_returns_trajectory(gen_solves):
 
 def test_simulate_matches_scipy(gen_solves, scipy_ref):
     # Global error of an adaptive solve ≈ rtol × (error growth over 10 time units); measured
-    # 8.4e-11 at rtol 1e-10. 100 × rtol is the STYLE.md bound for solver-vs-reference.
+    # 8.4e-11 at rtol 1e-10. 100 × rtol is the project's bound for solver-vs-reference.
     rtol = 1e-10
     assert ref_error(gen_solves[rtol], scipy_ref) <= 100 * rtol
 
@@ -414,10 +417,10 @@ def test_the_shared_field_trace_keeps_its_check_mode(first):
 # ---------------------------------------------------------------------------------------
 # 6–7. Gradients.
 #
-# A heavy-top-like body (PHYSICS.md §6): fast spin about the axis of largest moment, tilted
-# θ0 = 0.6 (far from the ZXZ singularity, where ψ is well defined), restoring coefficient
-# k(τ, ψ) = ε_k (c0 + c1 τ) sin ψ with τ = ε_τ t, plus a small body torque; inertia through
-# log-Cholesky parameters, so every perturbed J is physical.
+# A heavy-top-like body (docs/physics.md#restoring-moment): fast spin about the axis of largest
+# moment, tilted θ0 = 0.6 (far from the ZXZ singularity, where ψ is well defined), restoring
+# coefficient k(τ, ψ) = ε_k (c0 + c1 τ) sin ψ with τ = ε_τ t, plus a small body torque; inertia
+# through log-Cholesky parameters, so every perturbed J is physical.
 
 J_TOP = np.array([[2.0, -0.1, 0.05], [-0.1, 2.1, -0.08], [0.05, -0.08, 3.5]])
 M_TOP = np.array([0.01, -0.02, 0.015])

@@ -1,13 +1,15 @@
-"""Models and solves against independent references (PHYSICS.md §1–7).
+"""Models and solves against independent references (the physics guide, docs/physics.md).
 
 The torques and frames the models use are tested on their own in test_torques.py and
 test_frames.py. References that cannot be wrong in the same way as the library:
 
 - the kinematics record a torque sees (relative ω, ω_e, ε_e, γ, attitudes) recomputed with
   scipy attitudes and hand derivatives of the frame angles;
-- relative motion (§5): the same physical motion solved in absolute terms by `RigidBody`;
-- first integrals of §5–7 and the closed forms of the pitch libration of §7 (linear frequency,
-  and the exact pendulum period through the complete elliptic integral K).
+- relative motion (docs/physics.md#relative-motion): the same physical motion solved in
+  absolute terms by `RigidBody`;
+- first integrals of relative motion, the restoring moment and the gravity gradient, and the
+  closed forms of the pitch libration (docs/physics.md#pitch-libration: linear frequency, and
+  the exact pendulum period through the complete elliptic integral K).
 
 Solver tolerances. Unless said otherwise solves run Tsit5 at rtol = atol = 1e-10 on O(1)
 states over O(10) time units. Local error control keeps each step's error ≲ 1e-10 and the
@@ -89,9 +91,10 @@ def invariant(name, model, traj):
 
 
 def gravity(eps=0.0, weight=0.0, com=(0.0, 0.0, 0.0)):
-    """GravityGradient + UniformGravity: one torque *structure* for the absolute solves of
-    §6–7, so that RigidBody / EulerAngleRigidBody / PoissonRigidBody each compile once; a
-    zero `eps` or `weight` switches a part off (its moment and potential vanish)."""
+    """GravityGradient + UniformGravity: one torque *structure* for the absolute solves of the
+    heavy top and the gravity gradient, so that RigidBody / EulerAngleRigidBody /
+    PoissonRigidBody each compile once; a zero `eps` or `weight` switches a part off (its moment
+    and potential vanish)."""
     return rb.GravityGradient(eps) + rb.UniformGravity(weight, jnp.asarray(com))
 
 
@@ -120,7 +123,7 @@ def test_relative_kinematics_record(rel_setup):
 
 
 # ------------------------------------------------------------------------------------------
-# 2. Relative motion reproduces the absolute motion (PHYSICS.md §5)
+# 2. Relative motion reproduces the absolute motion (docs/physics.md#relative-motion)
 # ------------------------------------------------------------------------------------------
 
 REL_T = 8.0
@@ -166,9 +169,10 @@ def _absolute_reference(rng, frame_rot_fn, frame_w1_fn, make_rel, t0=0.0):
 
 
 def test_relative_under_euler_angle_frame_reproduces_absolute_motion(rng):
-    """000 eq. (11) in a frame with time-varying ω_e and ε_e (ZXZ angles of the brief) and a
-    general J: ω_r(t) = ω(t) − R_rᵀ ω_e¹(t) and q_r(t) = q_e(t)* ⊗ q(t) with (ω, q) from
-    Euler's absolute equations, at every output time, to 1e-8 (~100 × rtol)."""
+    """Mukhametzyanov (2009), eq. (11), in a frame with time-varying ω_e and ε_e (the ZXZ angles
+    of `helpers.FRAME_C`) and a general J: ω_r(t) = ω(t) − R_rᵀ ω_e¹(t) and
+    q_r(t) = q_e(t)* ⊗ q(t) with (ω, q) from Euler's absolute equations, at every output time,
+    to 1e-8 (~100 × rtol)."""
     frame = rb.EulerAngleFrame(PolyAngles(jnp.asarray(FRAME_C)), seq="ZXZ")
     errs = _absolute_reference(
         rng, lambda t: frame_rot(FRAME_C, "ZXZ", t), lambda t: frame_omega1(FRAME_C, "ZXZ", t),
@@ -201,13 +205,14 @@ def test_relative_under_constant_rate_frame_reproduces_absolute_motion(rng):
 
 
 # ------------------------------------------------------------------------------------------
-# 3. §5 special case: balanced transport conserves the relative kinetic energy
+# 3. Balanced transport conserves the relative kinetic energy
+#    (docs/physics.md#balancing-transport-moment)
 # ------------------------------------------------------------------------------------------
 
 
 def test_balanced_transport_conserves_relative_kinetic_energy(rng):
-    """000 §4: M = J ε_e − J ω_e × ω_e ⇒ T_r = ½ ω_rᵀ J ω_r constant under any transport,
-    and |ω_r| ∈ [sqrt(2T_r/C), sqrt(2T_r/A)] (000 eq. 18).
+    """Mukhametzyanov (2009), §4: M = J ε_e − J ω_e × ω_e ⇒ T_r = ½ ω_rᵀ J ω_r constant under
+    any transport, and |ω_r| ∈ [sqrt(2T_r/C), sqrt(2T_r/A)] (eq. (18)).
 
     Drift bound: each accepted Tsit5 step changes T_r by at most its local error, held at
     ~rtol·|y| = 1e-10 for O(1) states; a few thousand steps over t ∈ [0, 200] accumulate at
@@ -225,7 +230,7 @@ def test_balanced_transport_conserves_relative_kinetic_energy(rng):
     Tr = np.asarray(invariant("relative_kinetic_energy", model, traj))
     drift = rel_drift(Tr)
     steps = int(traj.stats["num_accepted_steps"])
-    print(f"§5 balanced transport: T_r relative drift {drift:.2e} over t ∈ [0, 200], "
+    print(f"balanced transport: T_r relative drift {drift:.2e} over t ∈ [0, 200], "
           f"{steps} steps")
     assert drift <= steps * RTOL
     np.testing.assert_allclose(Tr[0], 0.5 * w_r0 @ J @ w_r0, rtol=TIGHT)
@@ -245,9 +250,10 @@ def test_balanced_transport_conserves_relative_kinetic_energy(rng):
 
 
 def test_heavy_top_first_integrals_and_precession(rng):
-    """Lagrange top (PHYSICS.md §6): J = diag(A, A, C), com on the axis. Energy, the area
-    integral L_z = (J ω)·γ and the spin r are first integrals; a fast top released with
-    ψ' = θ' = 0 precesses on average at ψ' ≈ k/(C r) (k = m g l), in the positive sense.
+    """Lagrange top (docs/physics.md#equations-of-motion): J = diag(A, A, C), com on the axis.
+    Energy, the area integral L_z = (J ω)·γ and the spin r are first integrals; a fast top
+    released with ψ' = θ' = 0 precesses on average at ψ' ≈ k/(C r) (k = m g l), in the positive
+    sense.
 
     Bounds: the integrals drift ≤ 1e-8 (~100 × rtol over ~1000 steps, see the module
     docstring; a sign error in the torque or its potential gives O(1)); the precession rate is
@@ -276,7 +282,7 @@ def test_heavy_top_first_integrals_and_precession(rng):
 
 
 # ------------------------------------------------------------------------------------------
-# 5. §7: Newtonian field, and the three state forms agree
+# 5. Newtonian field (docs/physics.md#gravity-gradient), and the three state forms agree
 # ------------------------------------------------------------------------------------------
 
 GG_T = 20.0
@@ -287,16 +293,17 @@ def _poisson_state(w, q):
 
 
 def test_gravity_gradient_first_integrals_poisson_form(rng):
-    """PHYSICS.md §7, general J with products of inertia: energy ½ωᵀJω + ½εγᵀJγ, area
-    (Jω)·γ and |γ| = 1 are conserved. |γ| is renormalised on output, so its conservation is
-    read from `stats["norm_drift"]`, the deviation the renormalisation removed."""
+    """docs/physics.md#torque-and-integrals, general J with products of inertia: energy ½ωᵀJω +
+    ½εγᵀJγ, area (Jω)·γ and |γ| = 1 are conserved. |γ| is renormalised on output, so its
+    conservation is read from `stats["norm_drift"]`, the deviation the renormalisation
+    removed."""
     J = general_inertia(rng, [1.1, 1.8, 2.5])
     model = rb.PoissonRigidBody(J, gravity(eps=2.0))
     traj = solve(model, _poisson_state(rng.normal(size=3), random_quat(rng)), GG_T)
     drifts = [rel_drift(invariant("energy", model, traj)),
               rel_drift(invariant("area_integral", model, traj)),
               float(traj.stats["norm_drift"])]
-    print("§7 Poisson gravity gradient drifts (E, area, |γ|):", drifts,
+    print("Poisson gravity gradient drifts (E, area, |γ|):", drifts,
           traj.stats["num_accepted_steps"], "steps")
     assert max(drifts) <= SOLVE_TOL  # ~100 × rtol, as for the heavy top
     # the torque is doing something: the kinetic energy alone is not conserved
@@ -304,7 +311,8 @@ def test_gravity_gradient_first_integrals_poisson_form(rng):
 
 
 def test_gravity_gradient_integrable_case(rng):
-    """A = B = m C (004): r, |γ|², C1 = p² + q² + ε n γ''², C2 = γp + γ'q + r(n+1)γ''."""
+    """A = B = m C (Shinibaev et al. (2013), eq. (14); docs/physics.md#the-integrable-case):
+    r, |γ|², C1 = p² + q² + ε n γ''², C2 = γp + γ'q + r(n+1)γ''."""
     A, C = 2.0, 3.0
     model = rb.PoissonRigidBody(jnp.diag(jnp.array([A, A, C])), gravity(eps=1.5))
     traj = solve(model, _poisson_state(np.array([0.7, -0.4, 1.1]), random_quat(rng)), GG_T)
@@ -316,7 +324,7 @@ def test_gravity_gradient_integrable_case(rng):
     np.testing.assert_allclose(C2, g[:, 0] * w[:, 0] + g[:, 1] * w[:, 1]
                                + w[:, 2] * (n + 1) * g[:, 2], atol=TIGHT)
     drifts = [rel_drift(x) for x in (r, C1, C2)] + [float(traj.stats["norm_drift"])]
-    print("§7 integrable case drifts (r, C1, C2, |γ|):", drifts,
+    print("integrable case drifts (r, C1, C2, |γ|):", drifts,
           traj.stats["num_accepted_steps"], "steps")
     assert max(drifts) <= SOLVE_TOL
     assert np.ptp(g[:, 2]) > 0.05  # the axis nutates: C1, C2 are not trivially constant
@@ -354,7 +362,7 @@ def test_euler_and_poisson_forms_match_quaternion_form(case, rng):
 
 
 # ------------------------------------------------------------------------------------------
-# 6. Pitch libration on a circular orbit (§5 with §7)
+# 6. Pitch libration on a circular orbit (docs/physics.md#pitch-libration)
 # ------------------------------------------------------------------------------------------
 
 ORBIT_N = 0.7
@@ -394,7 +402,7 @@ def _period_from_zero_crossings(ts, x):
 
 @pytest.mark.parametrize("pitch0", [0.01, 0.3])
 def test_pitch_libration_period(pitch0):
-    """PHYSICS.md §7: I_y θ'' = −3 n² (I_x − I_z) sinθ cosθ. Linear frequency
+    """docs/physics.md#pitch-libration: I_y θ'' = −3 n² (I_x − I_z) sinθ cosθ. Linear frequency
     ω0 = n sqrt(3 (I_x − I_z)/I_y); in u = 2θ this is the pendulum u'' = −ω0² sin u, whose
     exact period is 4 K(sin²(θ0)) / ω0 (K the complete elliptic integral, parameter m).
 
@@ -438,8 +446,9 @@ def test_pitch_unstable_when_ix_below_iz():
 
 
 def test_circular_orbit_jacobi_integral(rng):
-    """General tumbling in the orbital frame (§5 with §7, general J with products of inertia):
-    the frame turns uniformly and the field is stationary in it, so the Jacobi integral
+    """General tumbling in the orbital frame (docs/physics.md#circular-orbit, general J with
+    products of inertia): the frame turns uniformly and the field is stationary in it, so the
+    Jacobi integral
 
         H = ½ ω_rᵀ J ω_r − ½ ω_eᵀ J ω_e + ½ ε γᵀ J γ,   ω_e = R_rᵀ (0, −n, 0),  γ = R_rᵀ e_z,
 
@@ -473,7 +482,8 @@ MODEL_CLASSES = [rb.RigidBody, rb.RelativeRigidBody, rb.EulerAngleRigidBody, rb.
 
 @pytest.mark.parametrize("cls", MODEL_CLASSES)
 def test_non_physical_or_asymmetric_inertia_is_an_error(cls):
-    with pytest.raises(eqx.EquinoxRuntimeError, match="`inertia` is not physical"):
+    with pytest.raises(eqx.EquinoxRuntimeError,
+                       match="`inertia` is not physical.*docs/physics\\.md#physical-consistency"):
         cls(jnp.diag(jnp.array([1.0, 1.0, 3.0])))  # 1 + 1 < 3
     with pytest.raises(eqx.EquinoxRuntimeError, match="`inertia` is not symmetric"):
         cls(jnp.array([[2.0, 0.3, 0.0], [0.0, 2.0, 0.0], [0.0, 0.0, 2.0]]))
@@ -584,11 +594,11 @@ def _fit_case(cls):
 @pytest.mark.parametrize("cls", MODEL_CLASSES)
 def test_with_log_cholesky_is_the_constructed_model_without_host_callbacks(cls):
     """`with_log_cholesky(model, θ)` must be the model the constructor builds from
-    `from_log_cholesky(θ)` with the model's other fields: the same leaves exactly, so the
-    same vector field and gradients. Its checks are skipped because they hold by
-    construction (PHYSICS.md §3): the constructor accepts every θ of a wide box (log-diagonal
-    and off-diagonal entries in [−3, 3]). And skipping them is the point: the gradient
-    program of a loss built with it holds no host callback (JAX's persistent cache can
+    `from_log_cholesky(θ)` with the model's other fields: the same leaves exactly, so the same
+    vector field and gradients. Its checks are skipped because they hold by construction
+    (docs/physics.md#log-cholesky-parametrisation): the constructor accepts every θ of a wide
+    box (log-diagonal and off-diagonal entries in [−3, 3]). And skipping them is the point: the
+    gradient program of a loss built with it holds no host callback (JAX's persistent cache can
     store it), where the constructor's run-time checks of a traced θ are callbacks."""
     model, y = _fit_case(cls)
     thetas = jnp.asarray(np.random.default_rng(5).uniform(-3.0, 3.0, size=(20, 6)))

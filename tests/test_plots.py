@@ -1,8 +1,9 @@
 """`rbdyn_jax._plots.plot_sweep` on small sweep stores built here with zarr directly.
 
 The store mimics the layout of `rbdyn_jax.sweep`: torque-free rotations (J ω' = Jω × ω with the
-quaternion kinematics q' = ½ q ⊗ (0, ω), PHYSICS.md §2 and §4) solved with scipy, one failed
-trajectory whose summaries are 1e6 outliers and whose rates turn to NaN, and one not run yet.
+quaternion kinematics q' = ½ q ⊗ (0, ω), docs/physics.md#quaternion-kinematics) solved with
+scipy, one failed trajectory whose summaries are 1e6 outliers and whose rates turn to NaN, and
+one not run yet.
 """
 
 import functools

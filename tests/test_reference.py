@@ -1,4 +1,4 @@
-"""The simulator against the analytic references of `rbdyn_jax.analytic` (PHYSICS.md §4, §6, §7).
+"""The simulator against the analytic references of `rbdyn_jax.analytic`.
 
 `analytic` is closed form / quadrature (proved against scipy's solve_ivp and special
 functions in test_analytic.py); here the diffrax solves of the library's own models must
@@ -17,7 +17,7 @@ RTOL = ATOL = 1e-10
 
 
 # ------------------------------------------------------------------------------------------
-# §4: torque-free body vs Jacobi elliptic functions, ≥ 20 periods
+# Torque-free body vs Jacobi elliptic functions, ≥ 20 periods (docs/physics.md#torque-free-motion)
 # ------------------------------------------------------------------------------------------
 
 # (principal moments in any order, ω0 in those principal axes): both sides of the
@@ -63,7 +63,8 @@ def test_torque_free_matches_elliptic_solution(moments, omega0):
 
 
 def test_torque_free_symmetric_attitude():
-    """Axisymmetric body: ω and the attitude vs the closed form (PHYSICS.md §4)."""
+    """Axisymmetric body: ω and the attitude vs the closed form
+    (docs/physics.md#torque-free-motion)."""
     A, Cm = 2.0, 3.5
     omega0 = jnp.array([0.3, -0.4, 1.5])
     q0 = jnp.asarray(Rotation.from_rotvec([0.2, 0.5, -0.1]).as_quat(scalar_first=True))
@@ -77,11 +78,13 @@ def test_torque_free_symmetric_attitude():
 
 
 # ------------------------------------------------------------------------------------------
-# §6: Lagrange top under k(τ, ψ) = ε K(τ) sin ψ vs the first approximation
+# Lagrange top under k(τ, ψ) = ε K(τ) sin ψ vs the first approximation
+# (docs/physics.md#first-approximation)
 # ------------------------------------------------------------------------------------------
 
-# Seed 002's assumptions: √(p² + q²) ≪ r (p, q start at 0 and stay O(ε)), C r² = 1.5 ≫ k,
-# K(τ) > 0 on [0, 1] so ψ moves from 1.0 to ≈ 1.8 rad, away from the fixed points of sin ψ.
+# The assumptions of Zinkevich & Kozachenko (2008), eq. (2): √(p² + q²) ≪ r (p, q start at 0 and
+# stay O(ε)), C r² = 1.5 ≫ k, K(τ) > 0 on [0, 1] so ψ moves from 1.0 to ≈ 1.8 rad, away from the
+# fixed points of sin ψ.
 TOP = dict(A=1.0, C=1.5, r0=1.0, psi0=1.0, theta0=0.8)
 K_COEFFS = (1.0, 0.8, -0.5)  # K(τ) = 1 + 0.8 τ − 0.5 τ²
 
@@ -91,7 +94,7 @@ def K_of_tau(s):
 
 
 def top_errors(eps, form):
-    M3 = eps**2  # constant perturbing moment M3 = ε² M3*, M3* = 1 (seed 002)
+    M3 = eps**2  # constant perturbing moment M3 = ε² M3*, M3* = 1 (their eq. (3))
     torque = rb.RestoringMoment(rb.PolynomialSinPsi(jnp.array(K_COEFFS), eps)) + rb.BodyTorque(
         jnp.array([0.0, 0.0, M3]))
     J = jnp.diag(jnp.array([TOP["A"], TOP["A"], TOP["C"]]))
@@ -116,7 +119,8 @@ def top_errors(eps, form):
 
 @pytest.mark.parametrize("form", ["euler", "quaternion"])
 def test_lagrange_top_first_approximation_error_is_order_eps(form):
-    """Over t ∈ [0, 1/ε] the averaged solution is O(ε) accurate (PHYSICS.md §6): halving
+    """Over t ∈ [0, 1/ε] the averaged solution is O(ε) accurate
+    (docs/physics.md#first-approximation): halving
     ε halves the error (test_analytic measures ratios 1.98–2.06 against solve_ivp); the
     solver error (~1e-8) is far below the O(ε) ≈ 1e-2 being measured."""
     psi02, theta02 = top_errors(0.02, form)
@@ -127,7 +131,8 @@ def test_lagrange_top_first_approximation_error_is_order_eps(form):
 
 
 # ------------------------------------------------------------------------------------------
-# §7: integrable gravity-gradient case, nutation half period vs the quadrature
+# Integrable gravity-gradient case, nutation half period vs the quadrature
+# (docs/physics.md#nutation-quadrature)
 # ------------------------------------------------------------------------------------------
 
 
@@ -147,7 +152,8 @@ def test_gg_nutation_half_period_matches_quadrature(omega0, gamma0):
     model = rb.PoissonRigidBody(jnp.diag(jnp.array([A, A, Cm])), rb.GravityGradient(eps))
     traj = rb.simulate(model, rb.PoissonState(jnp.asarray(omega0), jnp.asarray(gamma0)), ts,
                        rtol=RTOL, atol=ATOL)
-    # Turning points of γ'' are the zeros of dγ''/dt = q γ − p γ' (Poisson, PHYSICS.md §2),
+    # Turning points of γ'' are the zeros of dγ''/dt = q γ − p γ' (Poisson,
+    # docs/physics.md#poisson-equations),
     # located by linear interpolation between output times (spacing h = 8 half / 4000: the
     # interpolation error is O(h²) ≈ 1e-6 relative; the solver's ~1e-9 is negligible).
     w, g = np.asarray(traj.ys.omega), np.asarray(traj.ys.gamma)

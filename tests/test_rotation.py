@@ -1,7 +1,8 @@
-"""rbdyn_jax.rotation against independent references (PHYSICS.md §1–2).
+"""rbdyn_jax.rotation against independent references (docs/physics.md#conventions,
+docs/physics.md#kinematics).
 
 References: `scipy.spatial.transform.Rotation` / `Slerp` (an independent implementation of
-the same conventions), the literal formulas of PHYSICS.md §2, and central finite
+the same conventions), the literal formulas of docs/physics.md#kinematics, and central finite
 differences of explicit rotation paths built with scipy.
 """
 
@@ -178,7 +179,8 @@ def test_euler_round_trip_in_scipy_ranges(seq, rng):
 
 
 def test_intrinsic_is_reversed_extrinsic(rng):
-    """PHYSICS.md §1/Pars §7.14: moving-axis rotations = fixed-axis ones in reverse order."""
+    """Pars (1971), §7.14 (docs/physics.md#euler-angles): moving-axis rotations = fixed-axis
+    ones in reverse order."""
     angles = rng.uniform(-np.pi, np.pi, (20, 3))
     for seq in INTRINSIC:
         q_int = rot.euler_to_quat(angles, seq)
@@ -187,7 +189,8 @@ def test_intrinsic_is_reversed_extrinsic(rng):
 
 
 def test_classical_zxz_matrix():
-    """The seeds' angles: R = Rz(ψ) Rx(θ) Rz(φ) written out by hand (PHYSICS.md §1)."""
+    """The classical angles: R = Rz(ψ) Rx(θ) Rz(φ) written out by hand
+    (docs/physics.md#euler-angles)."""
     psi, theta, phi = 0.7, 1.1, -2.3
 
     def Rz(a):
@@ -358,7 +361,9 @@ def test_euler_rates_match_rotation_path(seq, rng):
 
 
 def test_zxz_literal_formulas(rng):
-    """PHYSICS.md §2 (003; 000 eq. 13; 002 eq. 1; 004 eqs. 1, 4) written out literally."""
+    """docs/physics.md#euler-angle-rates written out literally (Lecture notes (2016),
+    Def. 1.2; Mukhametzyanov (2009), eq. (13); Zinkevich & Kozachenko (2008), eq. (1);
+    Shinibaev et al. (2013), eqs. (1), (4))."""
     psi, theta, phi = rng.uniform(-3, 3, 20), rng.uniform(0.05, 3.0, 20), rng.uniform(-3, 3, 20)
     dpsi, dtheta, dphi = rng.normal(size=(3, 20))
     angles = np.stack([psi, theta, phi], -1)
@@ -376,7 +381,8 @@ def test_zxz_literal_formulas(rng):
     # 1/sinθ ≤ 20 amplifies rounding: 1e-11.
     np.testing.assert_allclose(rates, expected, atol=1e-11)
 
-    # 004 eq. 4: body components of the parent z-axis, and ψ' = (pγ + qγ')/(1 − γ''²)
+    # Shinibaev et al. (2013), eq. (4): body components of the parent z-axis, and
+    # ψ' = (pγ + qγ')/(1 − γ''²)
     gamma = np.einsum("nji,j->ni", np.array(rot.euler_to_dcm(angles, "ZXZ")), [0, 0, 1.0])
     np.testing.assert_allclose(
         gamma, np.stack([np.sin(theta) * np.sin(phi), np.sin(theta) * np.cos(phi),
@@ -400,7 +406,7 @@ def test_zyz_pars_formula(rng):
 @pytest.mark.parametrize("seq", SEQS)
 def test_gimbal_lock_distance_is_the_singularity_of_the_rate_map(seq, rng):
     """|det ∂ω/∂(rates)| = sin(distance): the distance vanishes exactly where the map
-    loses rank (Pars §7.16 'paradox')."""
+    loses rank (the 'paradox' of Pars (1971), §7.16)."""
     angles = rng.uniform(-np.pi, np.pi, (30, 3))
     jac = jax.vmap(jax.jacobian(lambda a, r: rot.euler_rates_to_omega(a, r, seq), argnums=1))(
         angles, np.zeros_like(angles)
@@ -496,7 +502,8 @@ def _finite_grad(f, x):
 
 
 def test_grads_at_singular_points():
-    """Rotation angle 0 and π, θ at and near 0: gradients finite (STYLE.md §8)."""
+    """Rotation angle 0 and π, θ at and near 0: gradients finite (double `where` and Taylor
+    series in the singular branches)."""
     # exp map at 0: dq/dv = [0; ½ I]
     np.testing.assert_allclose(jax.jacobian(rot.quat_from_rotvec)(jnp.zeros(3)),
                                np.vstack([np.zeros(3), 0.5 * np.eye(3)]), atol=TIGHT)
@@ -561,7 +568,8 @@ def test_zero_quaternion_is_a_runtime_error():
 
 
 def test_dtype_is_preserved():
-    """float32 in, float32 out: the library never forces float64 (DESIGN.md decisions)."""
+    """float32 in, float32 out: the library never forces float64 (it leaves JAX's global
+    switch to the caller)."""
     q = jnp.array([1.0, 0.0, 0.0, 0.0], dtype=jnp.float32)
     assert rot.quat_to_dcm(q).dtype == jnp.float32
     assert rot.quat_to_euler(q, "ZXZ").dtype == jnp.float32

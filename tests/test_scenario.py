@@ -60,7 +60,7 @@ def minimal(kind: str = "rigid_body", torques=(), frame=None) -> dict:
         (lambda d: d["model"]["inertia"].update(principal="heavy"), "model.inertia.principal",
          "list of shape [3]"),
         (lambda d: d["model"]["inertia"].update(principal=[1.0, 1.0, 3.0]),
-         "model.inertia.principal", "physical inertia"),
+         "model.inertia.principal", "A + B ≥ C, docs/physics.md#physical-consistency"),
         (lambda d: d["model"]["inertia"].update(principal=[1.0, 2.0]),
          "model.inertia.principal", "shape [3]"),
         (lambda d: d["solver"].update(rtol=-1e-8), "solver.rtol", "positive"),

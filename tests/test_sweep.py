@@ -211,8 +211,8 @@ def test_run_argument_errors(tmp_path):
 @pytest.mark.parametrize(
     "name, summary, bound",
     [
-        ("rotating_platform", "relative_energy_drift", 1e-7),  # §5: T_r integral, rtol 1e-9
-        ("gg_axisymmetric", "energy_drift", 1e-7),  # §7: T + V, rtol 1e-9
+        ("rotating_platform", "relative_energy_drift", 1e-7),  # T_r integral, rtol 1e-9
+        ("gg_axisymmetric", "energy_drift", 1e-7),  # T + V, rtol 1e-9
     ],
 )
 def test_shipped_scenario_first_integrals(tmp_path, name, summary, bound):
@@ -220,7 +220,8 @@ def test_shipped_scenario_first_integrals(tmp_path, name, summary, bound):
     stats = sweep.summarize(out)
     assert stats["status"] == {"successful": 16}
     assert stats["summaries"][summary]["max"] < bound
-    if name == "rotating_platform":  # |ω_r| between sqrt(2T_r/C) and sqrt(2T_r/A) (000 eq. 18)
+    if name == "rotating_platform":  # |ω_r| between sqrt(2T_r/C) and sqrt(2T_r/A)
+        # (Mukhametzyanov (2009), eq. (18))
         ds = xr.open_zarr(out)
         w = ds.omega.values
         J = ds.inertia.values

@@ -1,8 +1,8 @@
-"""Torques (`rbdyn_jax.torques`) against the hand formulas of PHYSICS.md §4–7.
+"""Torques (`rbdyn_jax.torques`) against the hand formulas of the physics guide.
 
 References that cannot be wrong in the same way as the library:
 
-- torques: the hand formulas of PHYSICS.md §4–7 in NumPy, with attitudes, Euler angles and
+- torques: the hand formulas of docs/physics.md in NumPy, with attitudes, Euler angles and
   axis directions from `scipy.spatial.transform.Rotation`, on the kinematics record of a
   relative model (`helpers.relative_setup`, the record itself checked in test_models.py);
 - parameter gradients: central finite differences of every parameter leaf and of J;
@@ -67,8 +67,8 @@ def test_uniform_gravity(rel_setup, rng):
 
 
 def test_uniform_gravity_is_the_lagrange_top_moment(rng):
-    """PHYSICS.md §6: com = (0, 0, l) ⇒ M = k sinθ (cos φ, −sin φ, 0), k = m g l, with
-    (ψ, θ, φ) the ZXZ angles of the body from scipy."""
+    """docs/physics.md#equations-of-motion: com = (0, 0, l) ⇒ M = k sinθ (cos φ, −sin φ, 0), k =
+    m g l, with (ψ, θ, φ) the ZXZ angles of the body from scipy."""
     mg, l = 1.7, 0.4
     model = rb.RigidBody(jnp.diag(jnp.array([1.0, 1.0, 1.5])),
                          rb.UniformGravity(mg, jnp.array([0.0, 0.0, l])))
@@ -82,8 +82,9 @@ def test_uniform_gravity_is_the_lagrange_top_moment(rng):
 
 
 def test_restoring_moment_constant_and_polynomial_sin_psi(rel_setup):
-    """PHYSICS.md §6: M = k(τ, ψ) sinθ (cos φ, −sin φ, 0) with (ψ, θ, φ) the ZXZ angles of
-    the body relative to its parent frame, and k = ε K(τ) sin ψ, τ = ε t."""
+    """docs/physics.md#equations-of-motion: M = k(τ, ψ) sinθ (cos φ, −sin φ, 0) with
+    (ψ, θ, φ) the ZXZ angles of the body relative to its parent frame, and
+    k = ε K(τ) sin ψ, τ = ε t."""
     model, kin, ref = rel_setup
     J = jnp.asarray(ref["J"])
     psi, th, ph = zxz(ref["q_r"])
@@ -98,7 +99,8 @@ def test_restoring_moment_constant_and_polynomial_sin_psi(rel_setup):
 
 
 def test_gravity_gradient(rel_setup):
-    """PHYSICS.md §7: M = ε γ × J γ, γ = parent z-axis in body components; ε = 3 n²."""
+    """docs/physics.md#torque-and-integrals: M = ε γ × J γ, γ = parent z-axis in body
+    components; ε = 3 n²."""
     model, kin, ref = rel_setup
     J = ref["J"]
     g = ref["gamma"]
@@ -110,7 +112,8 @@ def test_gravity_gradient(rel_setup):
 
 
 def test_balancing_transport(rel_setup):
-    """PHYSICS.md §5: M = J ε_e − J ω_e × ω_e, with ω_e, ε_e of the frame (hand formula)."""
+    """docs/physics.md#balancing-transport-moment: M = J ε_e − J ω_e × ω_e, with ω_e, ε_e
+    of the frame (hand formula)."""
     model, kin, ref = rel_setup
     J, w_e, e_e = ref["J"], ref["w_e"], ref["e_e"]
     np.testing.assert_allclose(rb.BalancingTransport()(kin, jnp.asarray(J)),
@@ -183,7 +186,7 @@ def test_torque_parameter_gradients_match_finite_differences(rel_setup, rng):
 
 @pytest.mark.parametrize("name", ["uniform_gravity", "restoring_moment", "gravity_gradient"])
 def test_potential_rate_is_minus_power(name, rng):
-    """−dV/dt = ω·M for a conservative torque along any motion (PHYSICS.md §4, §6, §7).
+    """−dV/dt = ω·M for a conservative torque along any motion.
 
     (a) V along an explicit rotation path q(s) = q0 ⊗ exp(ω s) built with scipy, central FD;
     (b) `jax.jvp` of V along the hand kinematics q' = ½ q ⊗ (0, ω), exact to rounding.

@@ -1,13 +1,13 @@
 """An on-disk cache of traced solves, beside JAX's persistent compilation cache.
 
-JAX's persistent cache stores compiled XLA programs, but a new process must still trace
-the Python function to find which program it needs, and for a diffrax solve the trace is
-most of a warm first call (`simulate`, 2026-11-23: trace 0.47 s of 0.72 s, cache lookup
-0.08 s). When JAX's cache is configured (`jax_compilation_cache_dir`), the solves of
-`integrate.py` are therefore also exported (`jax.export`: the traced program as StableHLO,
-with JAX's serialization) into `<cache dir>/rbdyn_jax-traces/`, and a later process with the
-same inputs loads that instead of tracing: the same program, the same results (tested
-bitwise), its compilation then served by JAX's cache as before.
+JAX's persistent cache stores compiled XLA programs, but a new process must still trace the
+Python function to find which program it needs, and for a diffrax solve the trace is most of a
+warm first call (far more than the cache lookup). When JAX's cache is configured
+(`jax_compilation_cache_dir`), the solves of `rbdyn_jax.integrate` are therefore also exported
+(`jax.export`: the traced program as StableHLO, with JAX's serialization) into
+`<cache dir>/rbdyn_jax-traces/`, and a later process with the same inputs loads that instead of
+tracing: the same program, the same results (tested bitwise), its compilation then served by
+JAX's cache as before.
 
 The danger of such a cache is serving a stale program: a trace depends on Python code and
 on every static value the code reads, which JAX's cache never sees. So an entry's key is
@@ -225,7 +225,7 @@ def _memo_key(name, treedef, leaves):
     """`key(name, args)` looked up by value in this process's memo, whose keys are the
     JAX settings, the pytree structure (equinox's static fields compared by `==`), the
     static values with their types, and the arrays' shapes and dtypes: a dict lookup
-    instead of the full description (~150 µs a call, measured)."""
+    instead of the full description, which is too slow to build on every call."""
     memo = (name, _settings(), treedef, tuple(
         _aval(x) if eqx.is_array(x)
         else (type(x), repr(x)) if isinstance(x, (float, complex))  # 0.0 == -0.0
