@@ -483,7 +483,9 @@ def fit_command(args) -> int:
     return 0
 
 
-def main(argv: list[str] | None = None) -> int:
+def build_parser() -> argparse.ArgumentParser:
+    """The `rbdyn` command's argument parser: every subcommand and option (the CLI
+    reference of the documentation is generated from it)."""
     parser = argparse.ArgumentParser(
         prog="rbdyn", description="Rotational dynamics of rigid bodies in JAX."
     )
@@ -525,6 +527,11 @@ def main(argv: list[str] | None = None) -> int:
     p_demo = sub.add_parser("demo", help="summarise and simulate the shipped default body")
     p_demo.add_argument("--steps", type=int, default=5, help="output steps (default 5)")
     p_demo.add_argument("--duration", type=float, default=100.0, help="seconds (default 100)")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
     args = parser.parse_args(argv)
     if args.command == "sweep":
         for name in ("n", "chunk", "lanes", "devices"):

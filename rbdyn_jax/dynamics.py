@@ -115,6 +115,7 @@ def euler_rhs(J: MatrixLike, omega: VectorLike, moment: VectorLike) -> Vector:
     For a diagonal `J = diag(A, B, C)` this is `A p' = (B − C) q r + Mx` and cyclic.
 
     **Arguments:**
+
     - `J`: `(*batch, 3, 3)` inertia tensor, symmetric positive definite (only its lower
       triangle is read; the models check symmetry and definiteness).
     - `omega`: `(*batch, 3)` absolute angular velocity, body components.
@@ -172,6 +173,7 @@ def relative_rhs(
     with ε_r the time derivative of the body components of ω_r.
 
     **Arguments:**
+
     - `J`: `(*batch, 3, 3)` inertia tensor.
     - `omega_r`: body rate relative to the transport frame O1, body components.
     - `omega_e`, `eps_e`: O1's absolute angular velocity and acceleration, body components

@@ -95,6 +95,7 @@ class Observations(eqx.Module):
     """Observed records of K trajectories, n samples each (checked eagerly, in NumPy).
 
     **Arguments:**
+
     - `ts`: `(n,)` times shared by every trajectory, or `(K, n)` per trajectory. Over the
       unmasked samples of each trajectory they must be finite and strictly increasing
       (`ValueError` otherwise). Times of masked samples are ignored and replaced (interior:
@@ -405,6 +406,7 @@ class FitResult(eqx.Module):
     """The outcome of `fit`.
 
     **Fields:**
+
     - `model`: the fitted model; `y0`: fitted initial states (`State`, leading K axis).
     - `loss`: final ½ Σ r²; `loss_history`: `(steps + 1,)` loss before each step and at the
       end; `inertia_history`: `(steps + 1, 3, 3)` the inertia at each iterate (all physical).
@@ -463,6 +465,7 @@ def fit(
     """Fit the free parameters of `model` (and the initial states) to `data`.
 
     **Arguments:**
+
     - `model`: a `RigidBody` (absolute motion, docs/physics.md#eulers-equations) giving
       the structure and the initial guess (its inertia must be strictly physical, J' ≻ 0).
     - `data`: `Observations` of K trajectories.

@@ -248,10 +248,10 @@ def with_log_cholesky(model: AbstractRigidBody, theta: Float[ArrayLike, "*batch 
     theta))`, checks the inertia at run time with `eqx.error_if`, a host callback in your
     program, and JAX's persistent compilation cache never stores a program that holds one:
     a later process compiles it again, where with this function it loads it from the
-    cache (`benchmarks/compile.py` measures it; the performance page,
-    docs/performance.md).
+    cache (docs/performance.md).
 
     **Arguments:**
+
     - `model`: any rigid-body model; every field but the inertia is kept.
     - `theta`: the 6 log-Cholesky parameters, `(log L00, log L11, log L22, L10, L20, L21)`;
       a concrete one must give a finite inertia. A leading batch gives a batched inertia (for

@@ -545,7 +545,8 @@ class Scenario:
 
     `dists` is the pytree of distributions (key path → distribution module); the structure
     (model kind, torque and frame kinds, `static` settings by key path, summaries) is
-    static. See `rbdyn_jax/scenarios/*.toml` and the README for the format; `TORQUES`,
+    static. The file format is documented in docs/scenarios.md (the shipped examples are
+    `rbdyn_jax/scenarios/*.toml`); `TORQUES`,
     `FRAMES`, `DISTRIBUTIONS` and `SUMMARIES` list the accepted kinds.
     """
 

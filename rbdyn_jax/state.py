@@ -14,6 +14,7 @@ class State(eqx.Module):
     """State of the quaternion forms of the equations (docs/physics.md#quaternion-kinematics).
 
     **Fields:**
+
     - `omega`: `(*batch, 3)` body angular velocity in body components — absolute for
       `RigidBody`, relative to the transport frame O1 (ω_r) for `RelativeRigidBody`.
     - `quat`: `(*batch, 4)` attitude of the body relative to its parent frame (O0 for
@@ -46,6 +47,7 @@ class Kinematics(eqx.Module):
     """Everything a torque may depend on, at one instant (all vectors in body components).
 
     **Fields:**
+
     - `t`: time.
     - `omega`: absolute angular velocity ω = ω_r + ω_e.
     - `omega_r`: angular velocity relative to the parent frame (= `omega` in absolute models).

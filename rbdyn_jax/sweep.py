@@ -302,6 +302,7 @@ def run(
     """Run `n` trajectories of `scenario` and stream them to the zarr store `out`.
 
     **Arguments:**
+
     - `scenario`: a `Scenario`, a shipped scenario name or a TOML path.
     - `n`: number of trajectories; `chunk`: trajectories solved and written at a time
       (memory ∝ chunk); `seed`: the random seed. Each device solves its share in blocks

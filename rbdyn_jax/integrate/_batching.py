@@ -54,6 +54,7 @@ class Lanes(AbstractBatching):
     slowest trajectory. The default wherever it can run the solve.
 
     **Arguments:**
+
     - `lanes`: lanes per device; `None` chooses from the batch size and the device count.
     - `devices`: how many local devices share the batch; `None`, all of the default
       backend (on CPU one, unless XLA was started with several, `configure_xla`).

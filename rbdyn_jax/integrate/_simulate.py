@@ -93,6 +93,7 @@ def simulate(
     or tolerances reuse the compiled solve.
 
     **Arguments:**
+
     - `model`: a rigid-body model (`RigidBody`, `RelativeRigidBody`, …).
     - `y0`: its initial state (`State(omega, quat)` for the quaternion models); its
       quaternion (γ in the Poisson form) is normalised first.
@@ -136,6 +137,7 @@ def simulate_batch(
     optionally, of models.
 
     **Arguments:** as `simulate`, and
+
     - `y0s`: initial states with a leading batch axis on every leaf.
     - `model_axes`: `None` (default) shares `model` across the batch; `0` maps every array
       leaf of `model` along its leading axis (build such a model with

@@ -44,6 +44,7 @@ class Trajectory(eqx.Module):
     """A solved trajectory.
 
     **Fields:**
+
     - `ts`: `(n,)` output times.
     - `ys`: the state at `ts`, with a leading time axis on every leaf (a `State` for the
       quaternion models). Quaternions (and γ in the Poisson form) are renormalised.
