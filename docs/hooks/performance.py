@@ -1,0 +1,228 @@
+"""MkDocs hook: the tables of the performance page, rendered from the committed results.
+
+`docs/performance/*.json` are the files the benchmark scripts wrote (`--out`), copied as
+they are, and `environment.json` describes the machine and the run. A marker line
+`<!-- perf-table: NAME -->` in a page is replaced by the table NAME of `TABLES` below. The
+build fails if a result is missing, or if the results were not all measured with the same
+jax, diffrax and equinox as `environment.json` says.
+
+To update the page: run the commands it lists, copy the JSON files here, update
+`environment.json`, and rebuild.
+"""
+
+from __future__ import annotations
+
+import json
+import pathlib
+import re
+
+from mkdocs.exceptions import PluginError
+
+RESULTS = pathlib.Path(__file__).resolve().parents[1] / "performance"
+_MARKER = re.compile(r"^<!-- perf-table: ([\w.]+) -->$", re.MULTILINE)
+
+
+def _load(name: str) -> dict:
+    path = RESULTS / f"{name}.json"
+    if not path.is_file():
+        raise PluginError(f"performance: {path} is missing.")
+    return json.loads(path.read_text())
+
+
+def _table(head: list[str], rows: list[list], align: str | None = None) -> str:
+    """A Markdown table; `align` one character per column, "l" or "r" (default: the first
+    column left, the others right)."""
+    align = align or "l" + "r" * (len(head) - 1)
+    rule = ["---" if a == "l" else "---:" for a in align]
+    lines = [head, rule] + [[str(c) for c in r] for r in rows]
+    return "\n".join("| " + " | ".join(line) + " |" for line in lines)
+
+
+def _n(x: float) -> str:
+    """A rate or count: thousands separated by a thin space."""
+    return f"{x:,.0f}".replace(",", "\u2009")
+
+
+def _e(x: float) -> str:
+    return f"{x:.1e}"
+
+
+def _environment() -> str:
+    env = _load("environment")
+    versions = ", ".join(f"{pkg} {v}" for pkg, v in env["versions"].items())
+    return "\n".join([f"- **Date of the run:** {env['date']}",
+                      f"- **CPU:** {env['cpu']}, {env['cores']} cores",
+                      f"- **Operating system:** {env['os']}",
+                      f"- **Versions:** {versions}"])
+
+
+_MODELS = {"torque_free": "torque-free", "heavy_top": "heavy top",
+           "gravity_gradient": "gravity gradient"}
+
+
+def _throughput() -> str:
+    """One column per (model, N), one row per method: narrow enough for the page."""
+    d = _load("throughput")
+    cols = d["rows"]
+    lanes = d["meta"]["lanes"]
+
+    def rate(key):
+        return [_n(r[key]["traj_per_s"]) if key in r else "—" for r in cols]
+
+    def ratio(key):
+        return [f"{r['lanes']['traj_per_s'] / r[key]['traj_per_s']:.2f}" for r in cols]
+
+    rows = [
+        ["default", *rate("default")],
+        [f"`Lanes({lanes})`", *rate("lanes")],
+        ["`Vmap()`", *rate("plain")],
+        ["numba", *rate("numba")],
+        ["numba, same accuracy", *rate("numba_equal")],
+        ["its tolerance", *[f"{r['numba_equal']['tol']:.1e}" for r in cols]],
+        ["scipy", *[f"{r['scipy']['traj_per_s']:.1f}" for r in cols]],
+        ["lanes ÷ numba", *ratio("numba")],
+        ["lanes ÷ numba, same accuracy", *ratio("numba_equal")],
+        ["median error, lanes", *[_e(r["lanes"]["median_error"]) for r in cols]],
+        ["median error, numba", *[_e(r["numba"]["median_error"]) for r in cols]],
+    ]
+    head = [""] + [f"{_MODELS[r['model']]}<br>N = {_n(r['batch'])}" for r in cols]
+    return _table(head, rows)
+
+
+def _work_precision() -> str:
+    """One row per tolerance, one column per method; a cell holds µs per trajectory and the
+    largest error."""
+    d = _load("work_precision")
+    methods = list(dict.fromkeys(r["method"] for r in d["rows"]))
+    tols = sorted({r["tol"] for r in d["rows"]}, reverse=True)
+    cell = {(r["method"], r["tol"]): r for r in d["rows"]}
+    rows = []
+    for tol in tols:
+        row = [f"{tol:.0e}"]
+        for m in methods:
+            r = cell.get((m, tol))
+            row.append("—" if r is None else f"{r['us_per_traj']:.0f} µs<br>{_e(r['max_error'])}")
+        rows.append(row)
+    return _table(["rtol = atol"] + methods, rows)
+
+
+def _gradients() -> str:
+    d = _load("gradients")
+    rows = []
+    for r in d["rows"]:
+        if "error" in r:
+            rows.append([r["method"], "failed: " + r["error"], "", "", ""])
+            continue
+        rows.append([r["method"], f"{1e3 * r['time_s']:.2f}", f"{r['x_default_forward']:.2f}",
+                     f"{r['first_call_s']:.2f}", _e(r["rel_error"])])
+    return _table(["method", "time (ms)", "× forward loss", "first call (s)", "relative error"],
+                  rows)
+
+
+def _gradient_steps() -> str:
+    d = _load("gradient_steps")
+    rows = [[r["method"], f"{r['us_per_step']:.2f}", f"{r['x_forward_step']:.2f}",
+             f"{r['median_us_per_step']:.2f}"] for r in d["rows"]]
+    return _table(["step", "µs per step", "× forward step", "median µs per step"], rows)
+
+
+_CASES = {
+    "simulate": "`simulate`",
+    "default": "`simulate_batch`",
+    "batch": "the same, `Vmap()`",
+    "lanes": "the same, `Lanes(64)`",
+    "grad": "`grad`, `Vmap()`",
+    "jacfwd_lanes": "`jacfwd`, `Lanes(16)`",
+    "grad_lanes": "`grad`, `Lanes(16)`",
+    "grad_lanes_ctor": "the same, checked model",
+    "grad_lanes_ctor_nan": "the same, `EQX_ON_ERROR=nan`",
+    "bare_diffrax": "bare diffrax",
+}
+
+
+def _compile() -> str:
+    d = _load("compile")
+    rows = []
+    for r in d["rows"]:
+        rel = f"{r['vs_bare']:.2f}" if r.get("vs_bare") else "—"
+        rows.append([_CASES.get(r["case"], r["case"]), f"{r['no_cache_s']:.2f}", rel,
+                     f"{r['warm_s']:.2f}", f"{r['speedup_warm']:.1f}",
+                     str(len(set(r["callback_programs"]))), str(r["trace_hits"])])
+    imports = [r["import_s"] for r in d["rows"]]
+    builds = [r["build_s"] for r in d["rows"]]
+    writes = [r["cold_s"] - r["no_cache_s"] for r in d["rows"]]
+    return (_table(["case", "no cache", "÷ bare", "warm", "speed-up", "refused", "traces"],
+                   rows)
+            + "\n\nWith an empty cache directory the first call took "
+            f"{min(writes):.2f}–{max(writes):.2f} s longer than without a cache (writing "
+            "the entries). Before the first call, `import jax` and `import rbdyn_jax` took "
+            f"{min(imports):.2f}–{max(imports):.2f} s, and building the inputs and the model "
+            f"{min(builds):.2f}–{max(builds):.2f} s.")
+
+
+def _sweep_scale() -> str:
+    """One row per configuration the three parts ran (a configuration shared by two parts
+    ran once)."""
+    d = _load("sweep_scale")
+    runs = {}
+    for part in ("chunks", "devices", "memory"):
+        for r in d[part]["rows"]:
+            runs[(r["n"], r["chunk"], r["devices"])] = r
+    rows = [[_n(r["n"]), _n(r["chunk"]), r["devices"], f"{r['first_chunk_s']:.2f}",
+             f"{r['rest_s']:.2f}", _n(r["steady_traj_per_s"]), f"{r['peak_rss_mib']:.0f}"]
+            for _, r in sorted(runs.items())]
+    base = [r["base_rss_mib"] for r in runs.values()]
+    return (_table(["N", "chunk", "devices", "first chunk (s)", "the rest (s)", "steady traj/s",
+                    "peak RSS (MiB)"], rows)
+            + f"\n\nRSS after importing rbdyn_jax and starting JAX: {min(base):.0f}–"
+            f"{max(base):.0f} MiB. Stores of 1 and {d['devices']['rows'][-1]['devices']} devices "
+            "bitwise identical: " + ("yes." if d["devices"]["identical"] else "**no**."))
+
+
+def _identify() -> str:
+    d = _load("identify")
+    rows = [[r["method"], f"{r['wall_s']:.2f}",
+             f"{r['residual_evals']} / {r['jacobian_evals']}", _e(r["max_abs_err_J"]),
+             f"{r['max_err_in_stderr']:.2f}", f"{r['time_ratio_scipy_over_this']:.1f}"]
+            for r in d["rows"]]
+    return _table(["method", "wall (s)", "evaluations", "max \\|ΔJ\\|", "÷ std. error",
+                   "scipy ÷ this"], rows)
+
+
+TABLES = {
+    "environment": _environment,
+    "throughput": _throughput,
+    "work_precision": _work_precision,
+    "gradients": _gradients,
+    "gradient_steps": _gradient_steps,
+    "compile": _compile,
+    "sweep_scale": _sweep_scale,
+    "identify": _identify,
+}
+
+
+def _check_versions() -> None:
+    """Every result measured with the versions `environment.json` lists."""
+    versions = _load("environment")["versions"]
+    for path in sorted(RESULTS.glob("*.json")):
+        if path.stem == "environment":
+            continue
+        meta = json.loads(path.read_text()).get("meta", {})
+        for pkg in ("jax", "diffrax", "equinox"):
+            if pkg in meta and meta[pkg] != versions.get(pkg):
+                raise PluginError(f"performance: {path.name} was measured with {pkg} "
+                                  f"{meta[pkg]}, environment.json says {versions.get(pkg)}.")
+
+
+def on_page_markdown(markdown: str, page, config, files) -> str:
+    if not _MARKER.search(markdown):
+        return markdown
+    _check_versions()
+
+    def table(match):
+        name = match.group(1)
+        if name not in TABLES:
+            raise PluginError(f"{page.file.src_uri}: no performance table named {name!r}.")
+        return TABLES[name]()
+
+    return _MARKER.sub(table, markdown)
