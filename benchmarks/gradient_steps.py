@@ -31,7 +31,7 @@ relative difference is printed and saved.
 Setting: `gradients.py`'s body (J with products of inertia) and ω0 ~ N(0, 1) per axis
 (`default_rng(0)`) on `--lanes` lanes (default 16, as `gradients.py`), identity attitude,
 Tsit5, float64, steps of 0.005 in the unit time of a 20 s solve (the cost of a step does
-not depend on its size). XLA as the README advises (`rb.configure_xla()`: its while loops
+not depend on its size). XLA as docs/performance.md advises (`rb.configure_xla()`: its while loops
 compiled whole), one device: the steps of one device's loop, each loop compiled with
 `rb.COMPILER_OPTIONS` as rbdyn_jax compiles its own.
 

@@ -30,7 +30,7 @@ against g_ref = `jax.grad` (`Vmap`, RecursiveCheckpointAdjoint) of the loss solv
 rtol = atol = 1e-12; for the forward rows, |L − L_ref| / |L_ref| of the loss value. A
 method that fails has its error message in the table instead of numbers.
 
-XLA: the script starts it with `rb.configure_xla(host_devices=2)`, as the README advises:
+XLA: the script starts it with `rb.configure_xla(host_devices=2)`, as docs/performance.md advises:
 its while loops compiled whole, and two host devices (unless XLA_FLAGS sets a count), so the
 lane solver splits its batch over both cores; the vmapped `diffeqsolve` runs on one.
 

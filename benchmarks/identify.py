@@ -346,7 +346,7 @@ def main(trajectories=3, samples=50, seed=0, repeats=3, steps=30, scipy_method="
           f"|J_rbdyn − J_scipy| {checks['max_abs_J_rbdyn_minus_scipy']:.1e} "
           f"({checks['max_J_rbdyn_minus_scipy_in_stderr']:.2f} stderr)")
 
-    meta = {"machine": platform.platform(), "cpus": jax.device_count(), "jax": jax.__version__,
+    meta = {"machine": platform.platform(), "devices": jax.device_count(), "jax": jax.__version__,
             "backend": jax.default_backend(), "scipy": version("scipy"), "trajectories": K,
             "samples": n, "t_end": T_END, "seed": seed, "repeats": repeats,
             "sigma_omega": SIGMA_W, "sigma_quat": SIGMA_Q, "rtol": TOL, "atol": TOL,

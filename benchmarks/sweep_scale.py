@@ -3,7 +3,7 @@
 Setting: the shipped scenario `torque_free_flip` (or `--scenario NAME`), seed 0, float64,
 CPU only (`JAX_PLATFORMS=cpu`), each configuration in a fresh subprocess whose XLA host
 device count is set with `XLA_FLAGS=--xla_force_host_platform_device_count=D` (default
-D = os.cpu_count(), all cores as host devices) and whose XLA otherwise starts as the README
+D = os.cpu_count(), all cores as host devices) and whose XLA otherwise starts as docs/performance.md
 advises (`rb.configure_xla()`, while loops compiled whole). Per run, from the `progress`
 callback of `sweep.run`: the wall time of the first chunk (it includes the compilation) and of the
 rest, trajectories/s over the chunks after the first (steady state; a padded last chunk
@@ -56,7 +56,7 @@ def worker(cfg):
     t_proc = time.perf_counter()
     import rbdyn_jax
 
-    rbdyn_jax.configure_xla()  # as the README advises (the device count is the parent's)
+    rbdyn_jax.configure_xla()  # as docs/performance.md advises (the device count is the parent's)
     import jax
 
     jax.config.update("jax_enable_x64", True)

@@ -19,7 +19,7 @@ equations independently):
 rbdyn_jax uses Tsit5 (its default), numba and scipy RK45 use Dormand–Prince 5(4) with the
 same tolerances; the error columns show what each delivers. XLA runs a while loop on one
 core, so the script starts XLA with one host device per core and its while loops compiled
-whole (`rb.configure_xla(host_devices=<cores>)`, as the README advises; a count already in
+whole (`rb.configure_xla(host_devices=<cores>)`, as docs/performance.md advises; a count already in
 XLA_FLAGS is kept) and the lane solver splits the batch over them; numba uses its default
 thread count (the cores). The scipy loop is timed on at most `--scipy-max` trajectories and
 the plain vmapped solve on batches up to `--plain-max` (its lockstep cost grows with the

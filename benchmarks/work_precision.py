@@ -15,7 +15,7 @@ rotated back to the body axes. Error: max over trajectories and output times of 
 method (tolerances are runtime arrays: changing them does not recompile). Steps: mean
 accepted + rejected steps per trajectory.
 
-XLA: the script starts it with `rb.configure_xla(host_devices=2)`, as the README advises:
+XLA: the script starts it with `rb.configure_xla(host_devices=2)`, as docs/performance.md advises:
 its while loops compiled whole, and two host devices (unless XLA_FLAGS sets a count), so the
 lane solver splits its batch over both cores (`devices` default: all). The vmapped
 `diffeqsolve` runs on one device; numba runs `prange` over its default thread count (the

@@ -115,20 +115,20 @@ def main(t_end: float = 30.0, n_out: int = 3001, out_dir: str = "results/example
     for r in (u_lo, u_hi):
         ax.axhline(r, color="k", linestyle="--", linewidth=0.6)
     ax.plot([], [], "k--", linewidth=0.6,
-            label="roots of the quartic (Shinibaev et al. 2013, eq. 19)")
+            label="roots of the quartic (eq. 19)")
     ax.set_xlabel("t")
     ax.set_ylabel("γ''")
     span = u_hi - u_lo
     ax.set_ylim(u_lo - 0.45 * span, u_hi + 0.08 * span)
     ax.set_title("nutation of the axis of symmetry")
-    ax.legend(fontsize=8, loc="lower center", ncol=2)
+    ax.legend(fontsize=8, loc="lower center", ncol=1)
     ax = axes[1]
     if gaps.size:
         ax.plot(np.arange(1, gaps.size + 1), gaps / half - 1.0, "o-", color="C3", markersize=4)
     ax.axhline(0.0, color="k", linewidth=0.6)
     ax.set_xlabel("half period number")
     ax.set_ylabel("Δt / (T/2)_quadrature − 1")
-    ax.set_title(f"T/2 = {half:.6f} by quadrature")
+    ax.set_title(f"T/2 = {half:.6f} by quadrature", pad=16)  # clear of the axis' offset
     ax = axes[2]
     for k, (name, x) in enumerate(zip(names, integrals)):
         ax.semilogy(

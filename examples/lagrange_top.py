@@ -111,7 +111,7 @@ def main(eps: float = 0.02, n_out: int = 2001, out_dir: str = "results/examples"
     ax.plot(t, first[1], **style_1)
     ax.plot(t, second[1], **style_2)
     ax.set_ylabel("θ [rad]")
-    ax.set_title("nutation θ: released at rest, θ swings between θ0 and θ0 + 2a")
+    ax.set_title("nutation θ: from rest, between θ0 and θ0 + 2a")
     ax.legend(fontsize=8)
     ax = axes[1, 0]
     ax.plot(t, r, color="C0", linewidth=1.0, label="simulated")

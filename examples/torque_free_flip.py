@@ -76,7 +76,8 @@ def main(t_end: float = 120.0, n_out: int = 2401, out_dir: str = "results/exampl
     ax2.plot([], [], "k.", label="Jacobi elliptic")
     ax2.set_xlabel("t")
     ax2.legend(fontsize=8, loc="lower right")
-    ax2.set_title(f"{flips} flips; max error {summary['max_error_vs_elliptic']:.1e}")
+    plural = "s" if flips != 1 else ""
+    ax2.set_title(f"{flips} flip{plural}; max error {summary['max_error_vs_elliptic']:.1e}")
     fig.tight_layout()
     out = pathlib.Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
