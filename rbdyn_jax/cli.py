@@ -24,18 +24,7 @@ import os
 import sys
 import time
 
-
-def _version() -> str:
-    """The installed version, from the package metadata (which needs no JAX), or from
-    `rbdyn_jax/_version.py` in a source tree that is not installed."""
-    from importlib import metadata
-
-    try:
-        return metadata.version("rbdyn_jax")
-    except metadata.PackageNotFoundError:
-        from ._version import __version__
-
-        return __version__
+from ._version import __version__
 
 
 def _default_body():
@@ -489,7 +478,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="rbdyn", description="Rotational dynamics of rigid bodies in JAX."
     )
-    parser.add_argument("--version", action="version", version=f"rbdyn {_version()}")
+    parser.add_argument("--version", action="version", version=f"rbdyn {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
     p_sweep = sub.add_parser("sweep", help="Monte Carlo sweep of a scenario, streamed to zarr")
     p_sweep.add_argument("scenario", help="scenario TOML file or shipped name (rbdyn scenarios)")

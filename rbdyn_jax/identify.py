@@ -43,7 +43,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, PyTree
 from . import rotation
 from ._xla import filter_jit
 from .inertia import from_log_cholesky, to_log_cholesky
-from .integrate import RESULTS, simulate
+from .integrate import RESULTS, make_controller, simulate
 from .models import RigidBody
 from .state import State
 
@@ -227,19 +227,7 @@ class Observations(eqx.Module):
 # ---------------------------------------------------------------------------------------
 # Residuals and loss.
 
-_RTOL = _ATOL = 1e-10  # identify's default tolerances: solve errors far below the noise
-
-
-def _controller(stepsize_controller, rtol, atol):
-    """`stepsize_controller`, or `diffrax.PIDController(rtol, atol)` with identify's default
-    for a tolerance not given."""
-    if stepsize_controller is None:
-        return diffrax.PIDController(rtol=_RTOL if rtol is None else rtol,
-                                     atol=_ATOL if atol is None else atol)
-    if rtol is not None or atol is not None:
-        raise ValueError("Give the tolerances either as `rtol`/`atol` or inside "
-                         "`stepsize_controller`, not both.")
-    return stepsize_controller
+_TOL = 1e-10  # identify's default rtol and atol: solve errors far below the noise
 
 
 def _simulate_all(model, y0s: State, data: Observations, solver, stepsize_controller,
@@ -273,7 +261,7 @@ def residuals(
     `solver`, `stepsize_controller`, `max_steps`, `adjoint` are passed to `simulate`;
     `rtol`, `atol` are shorthand for `stepsize_controller=diffrax.PIDController(rtol, atol)`,
     each defaulting to 1e-10 (giving both a controller and a tolerance is a `ValueError`)."""
-    controller = _controller(stepsize_controller, rtol, atol)
+    controller = make_controller(stepsize_controller, rtol, atol, default_tol=_TOL)
     traj = _simulate_all(model, y0s, data, solver, controller, max_steps, adjoint)
     ok = (traj.result == RESULTS.successful)[:, None]
     parts = []
@@ -509,7 +497,8 @@ def fit(
     if scale is not None and not isinstance(scale, (TraceScale, MomentScale)):
         raise ValueError("`scale` must be None, identify.TraceScale(value) or "
                          f"identify.MomentScale(axis, value), got {scale!r}.")
-    controller = _controller(stepsize_controller, rtol, atol)
+    controller = make_controller(stepsize_controller, rtol, atol, default_tol=_TOL,
+                                 dtype=data.ts.dtype)
     if horizons is not None:
         return _staged_fit(model, data, horizons, params=params, torque_where=torque_where,
                            y0=y0, scale=scale, optimizer=optimizer, steps=steps, tol=tol,
@@ -548,9 +537,8 @@ def fit(
     if "torque" in params and not jax.tree_util.tree_leaves(torque_dyn):
         raise ValueError("`params` names 'torque' but the model's torque has no array leaves.")
 
-    dtype = data.ts.dtype
-    cfg = _Config(solver=solver, stepsize_controller=_tolerances_as_arrays(controller, dtype),
-                  tol=jnp.asarray(tol, dtype), max_steps=int(max_steps), steps=int(steps),
+    cfg = _Config(solver=solver, stepsize_controller=controller,
+                  tol=jnp.asarray(tol, data.ts.dtype), max_steps=int(max_steps), steps=int(steps),
                   scale=scale, optimizer=optimizer, torque_static=torque_static)
     out = _run(free, fixed, q0_guess, model, data, cfg)
 
@@ -630,20 +618,6 @@ def _staged_fit(model, data: Observations, horizons, **kwargs) -> FitResult:
     notes = (*res.notes, f"Staged horizons {tuple(float(x) for x in h)}: each stage started "
              "from the previous fit; the result is the last (full-record) stage's.")
     return dataclasses.replace(res, notes=notes)
-
-
-def _tolerances_as_arrays(controller, dtype):
-    """`controller`, a `PIDController`'s tolerances checked and made arrays: the compiled fit
-    takes them as inputs, so a new value reuses it."""
-    if not isinstance(controller, diffrax.PIDController):
-        return controller
-    tols = []
-    for name in ("rtol", "atol"):
-        tol = getattr(controller, name)
-        if np.ndim(tol) != 0 or not float(tol) > 0:
-            raise ValueError(f"`{name}` must be a positive scalar, got {tol!r}.")
-        tols.append(jnp.asarray(tol, dtype))
-    return eqx.tree_at(lambda c: (c.rtol, c.atol), controller, tuple(tols))
 
 
 class _Config(eqx.Module):

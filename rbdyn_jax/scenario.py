@@ -30,8 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import inertia as _inertia
-from . import invariants, rotation
+from . import inertia as _inertia, invariants, rotation
 from ._vector import parse_seq
 from .frames import CircularOrbit, ConstantRate, EulerAngleFrame, HarmonicAngles, Inertial
 from .integrate import RESULTS, Trajectory

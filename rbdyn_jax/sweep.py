@@ -7,10 +7,11 @@ The scenario (model, distributions, output times, solver settings, summaries; TO
 its key path), so a trajectory's sample does not depend on the chunking, the devices or the
 other random quantities. The solves run through one compiled program: each device takes its
 part of a chunk with `jax.shard_map` (no collectives inside the solver loop) and runs it
-through the lane solver of `simulate_batch(..., lanes=lanes)`, in fixed blocks of
-8 × `lanes` trajectories: `lanes` trajectories step together, and a lane whose trajectory
-has finished takes the next one of its block at once. Because the block shape is fixed and
-every parameter enters as a runtime argument (nothing constant-folded), the results are
+through the lane solver (`simulate_batch(..., batching=Lanes(lanes, devices=1))`), in
+fixed blocks of 8 × `lanes` trajectories: `lanes` trajectories step together, and a lane
+whose trajectory has finished takes the next one of its block at once. Because the block
+shape is fixed and every drawn quantity enters as a runtime argument (the output times and
+tolerances, the same for every trajectory, are constants of the program), the results are
 **bitwise identical for any chunk size and any number of devices** at a given `lanes`.
 Each finished chunk is written to a zarr store (format 2 with consolidated metadata:
 `xarray.open_zarr(path)` reads it) and dropped, so memory does not grow with `n`.
@@ -36,8 +37,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.sharding import NamedSharding
-from jax.sharding import PartitionSpec as P
+from jax.sharding import NamedSharding, PartitionSpec as P
 
 from ._checks import checks_as_nan
 from ._xla import jit

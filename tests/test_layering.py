@@ -156,3 +156,12 @@ def test_checker_sees_a_violation(tmp_path):
     assert package_imports(bad) == {"integrate", "sweep", "__init__", "dynamics"}
     assert private_names_imported(bad) == {"dynamics._matvec"}
     assert imports_diffrax(bad)
+
+
+@pytest.mark.parametrize("init", ["__init__.py", "integrate/__init__.py"])
+def test_reexports_are_grouped_by_module(init):
+    """One `from .x import (a as a, b as b)` per module (ruff's combine-as-imports), not a
+    statement per name."""
+    sources = [(node.level, node.module) for node in ast.parse((PACKAGE / init).read_text()).body
+               if isinstance(node, ast.ImportFrom)]
+    assert len(sources) == len(set(sources)), sorted(sources)

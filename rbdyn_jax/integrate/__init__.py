@@ -26,26 +26,21 @@ COMPILER_OPTIONS)`. `configure_xla()`, called before JAX computes anything, sets
 process-wide flags for faster solves on CPU.
 """
 
-from .._xla import COMPILER_OPTIONS as COMPILER_OPTIONS
-from .._xla import configure_xla as configure_xla
-from ._batching import AbstractBatching as AbstractBatching
-from ._batching import Lanes as Lanes
-from ._batching import Vmap as Vmap
+from .._xla import COMPILER_OPTIONS as COMPILER_OPTIONS, configure_xla as configure_xla
+from ._batching import AbstractBatching as AbstractBatching, Lanes as Lanes, Vmap as Vmap
 from ._field import MODE_DEPENDENT_JITS as MODE_DEPENDENT_JITS
-from ._simulate import simulate as simulate
-from ._simulate import simulate_batch as simulate_batch
+from ._simulate import (
+    make_controller as make_controller,
+    simulate as simulate,
+    simulate_batch as simulate_batch,
+)
 from ._solution import (
     RESULTS as RESULTS,
-)
-from ._solution import (
     Trajectory as Trajectory,
-)
-from ._solution import (
     result_code as result_code,
-)
-from ._solution import (
     result_names as result_names,
 )
 
 __all__ = ["COMPILER_OPTIONS", "RESULTS", "AbstractBatching", "Lanes", "Trajectory", "Vmap",
-           "configure_xla", "result_code", "result_names", "simulate", "simulate_batch"]
+           "configure_xla", "make_controller", "result_code", "result_names", "simulate",
+           "simulate_batch"]

@@ -19,8 +19,7 @@ differentiation (a second derivative) differentiates the program chosen so far.
 
 import jax
 from jax.extend import core
-from jax.interpreters import ad, batching, mlir
-from jax.interpreters import partial_eval as pe
+from jax.interpreters import ad, batching, mlir, partial_eval as pe
 
 cheapest_p = core.Primitive("rbdyn_cheapest")
 cheapest_p.multiple_results = True

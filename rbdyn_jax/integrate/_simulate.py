@@ -16,7 +16,7 @@ from ._compile import cacheable, compiled, thrown
 from ._diffeqsolve import solve
 from ._solution import Trajectory
 
-DEFAULT_RTOL = DEFAULT_ATOL = 1e-8
+DEFAULT_TOL = 1e-8  # rtol and atol of the default PIDController
 
 
 def _tolerance(tol, name, dtype):
@@ -27,19 +27,31 @@ def _tolerance(tol, name, dtype):
         tol = eqx.error_if(tol, ~(tol > 0), f"`{name}` must be positive.")
         return jnp.asarray(tol, dtype)
     if not float(tol) > 0:
-        raise ValueError(f"`{name}` must be a positive number, got {tol!r}.")
+        raise ValueError(f"`{name}` must be a positive scalar, got {tol!r}.")
     with jax.ensure_compile_time_eval():  # concrete, also inside a caller's trace
         return jnp.asarray(tol, dtype)
 
 
-def _controller(stepsize_controller, rtol, atol, dtype):
-    """The step-size controller of a solve: `stepsize_controller`, or a
-    `diffrax.PIDController(rtol, atol)`. A PID controller's tolerances become arrays, so
-    that new values reuse the compiled solve (and may be traced)."""
+def make_controller(
+    stepsize_controller: diffrax.AbstractStepSizeController | None = None,
+    rtol: float | None = None,
+    atol: float | None = None,
+    *,
+    default_tol: float = DEFAULT_TOL,
+    dtype=None,
+) -> diffrax.AbstractStepSizeController:
+    """The step-size controller a solve runs with: `stepsize_controller`, or
+    `diffrax.PIDController(rtol, atol)` (a tolerance not given is `default_tol`); giving
+    both is a `ValueError`. A PID controller's tolerances are checked (positive scalars) and
+    made arrays of `dtype` (JAX's default float for `None`), so that a compiled program
+    taking the controller reuses itself for new values, which may also be traced.
+
+    `simulate` and `simulate_batch` call it on their arguments; call it yourself to hold a
+    controller in your own compiled function (as `identify.fit` does)."""
     if stepsize_controller is None:
         stepsize_controller = diffrax.PIDController(
-            rtol=DEFAULT_RTOL if rtol is None else rtol,
-            atol=DEFAULT_ATOL if atol is None else atol)
+            rtol=default_tol if rtol is None else rtol,
+            atol=default_tol if atol is None else atol)
     elif rtol is not None or atol is not None:
         raise ValueError("Give the tolerances either as `rtol`/`atol` or inside "
                          "`stepsize_controller`, not both.")
@@ -47,6 +59,7 @@ def _controller(stepsize_controller, rtol, atol, dtype):
         raise ValueError("`stepsize_controller` must be a diffrax step-size controller, got "
                          f"{type(stepsize_controller).__name__}.")
     if isinstance(stepsize_controller, diffrax.PIDController):
+        dtype = jnp.result_type(float) if dtype is None else dtype
         tols = (_tolerance(stepsize_controller.rtol, "rtol", dtype),
                 _tolerance(stepsize_controller.atol, "atol", dtype))
         stepsize_controller = eqx.tree_at(lambda c: (c.rtol, c.atol), stepsize_controller,
@@ -66,7 +79,7 @@ def _prepare(model, ts, stepsize_controller, rtol, atol, max_steps):
             raise ValueError("`ts` must be finite and strictly increasing.")
     if not isinstance(max_steps, numbers.Integral) or isinstance(max_steps, bool) or max_steps < 1:
         raise ValueError(f"`max_steps` must be a positive int, got {max_steps!r}.")
-    controller = _controller(stepsize_controller, rtol, atol, ts.dtype)
+    controller = make_controller(stepsize_controller, rtol, atol, dtype=ts.dtype)
     return ts, controller, int(max_steps)
 
 
