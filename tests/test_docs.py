@@ -55,8 +55,8 @@ def public_names() -> dict[str, list[str]]:
 
 
 def _build(out: pathlib.Path) -> tuple[int, str]:
-    # The figures hook runs the examples with the test suite's small settings (cached).
-    env = {"RBDYN_DOCS_FIGURES": "fast", **os.environ, "NO_MKDOCS_2_WARNING": "1"}
+    # The figures hook runs the examples as a reader does (cached while their sources stand).
+    env = {**os.environ, "NO_MKDOCS_2_WARNING": "1"}
     proc = subprocess.run([sys.executable, "-m", "mkdocs", "build", "--strict", "-d", str(out)],
                           cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
     return proc.returncode, proc.stdout + proc.stderr

@@ -2,9 +2,10 @@
 
 Nothing generated is committed. At each build:
 
-- every example script `examples/<name>.py` is run, when its cached output is missing or
-  older than the script, this hook or any source file of `rbdyn_jax`, with `--out-dir` into
-  `results/docs/figures/<mode>/<name>/` (under the git-ignored `results/`); its PNG is added
+- every example script `examples/<name>.py` is run as a reader runs it, when its cached
+  output is missing or older than the script, this hook or any source file of `rbdyn_jax`,
+  with `--out-dir` into `results/docs/figures/<name>/` (under the git-ignored `results/`),
+  and its PNG is added
   to the site as `tutorials/figures/<name>.png` and what it printed is kept beside it;
 - the work–precision plot of the performance page is drawn from the committed result
   `docs/performance/work_precision.json` by `benchmarks/work_precision.py`'s own `plot`,
@@ -15,16 +16,7 @@ Pages reference the figures by those paths (`figures/<name>.png` from a tutorial
 `<!-- example-output: <name> -->` in a page is replaced by what the example printed, as a
 code block (its output paths shown as the script's default, `results/examples`).
 
-`RBDYN_DOCS_FIGURES` selects the settings the examples run with:
-
-- `full` (default): each script as a reader runs it, `python examples/<name>.py --out-dir DIR`;
-- `fast`: each script's `main()` with the small settings of the test suite
-  (`tests/test_examples.py`, `tests/test_examples_identify.py`): smaller figures of the
-  same kind, for the docs build of the test suite.
-
-The two modes keep separate caches. An example's time is mostly importing and compiling, the
-same in both modes, so `fast` saves little time; it is there for smaller figures of the same
-code paths the tests run. The scripts share JAX's persistent compilation cache in
+The scripts share JAX's persistent compilation cache in
 `results/docs/jax-cache/` (unless `JAX_COMPILATION_CACHE_DIR` is set), so a rerun after an
 edit recompiles only what changed.
 
@@ -37,7 +29,6 @@ succeeded.
 from __future__ import annotations
 
 import concurrent.futures
-import json
 import logging
 import os
 import pathlib
@@ -57,29 +48,11 @@ EXAMPLES_DIR = ROOT / "examples"
 LIBRARY_DIR = ROOT / "rbdyn_jax"
 CACHE = ROOT / "results" / "docs" / "figures"
 JAX_CACHE = ROOT / "results" / "docs" / "jax-cache"
-HOOK = pathlib.Path(__file__).resolve()  # its fast settings: a change reruns the examples
+HOOK = pathlib.Path(__file__).resolve()  # a change to this hook reruns the examples
 DEFAULT_OUT = "results/examples"  # the examples' own default --out-dir, shown in printouts
 
-# Each example and the keyword arguments of its `main()` in the test suite (fast mode).
-EXAMPLES = {
-    "torque_free_flip": dict(t_end=12.0, n_out=121),
-    "lagrange_top": dict(eps=0.05, n_out=201),
-    "gg_integrable": dict(t_end=8.0, n_out=401),
-    "satellite_pitch": dict(orbits=1.5, n_out=301),
-    "rotating_platform": dict(t_end=10.0, n_out=201),
-    "identify_inertia": dict(n_samples=30, t_end=4.0, steps=12),
-    "identify_restoring_moment": dict(n_samples=61, steps=6),
-}
-
-# Fast mode calls `main(**kwargs, out_dir=...)` of the script loaded by path, as the tests do.
-_RUN_MAIN = """\
-import importlib.util, json, sys
-path, kwargs = sys.argv[1], json.loads(sys.argv[2])
-spec = importlib.util.spec_from_file_location("example", path)
-module = importlib.util.module_from_spec(spec)
-spec.loader.exec_module(module)
-module.main(**kwargs)
-"""
+EXAMPLES = ("torque_free_flip", "lagrange_top", "gg_integrable", "satellite_pitch",
+            "rotating_platform", "identify_inertia", "identify_restoring_moment")
 
 # The performance page's plot: `plot(rows, path)` of benchmarks/work_precision.py.
 PERF_JSON = ROOT / "docs" / "performance" / "work_precision.json"
@@ -93,13 +66,6 @@ work_precision.plot(json.loads(pathlib.Path(sys.argv[2]).read_text())["rows"], s
 
 _OUTPUT_MARKER = re.compile(r"^<!-- example-output: (\w+) -->$", re.MULTILINE)
 _FOLDERS: dict[str, pathlib.Path] = {}  # example -> its cache folder in this build
-
-
-def _mode() -> str:
-    mode = os.environ.get("RBDYN_DOCS_FIGURES", "full")
-    if mode not in ("full", "fast"):
-        raise PluginError(f"RBDYN_DOCS_FIGURES must be 'full' or 'fast', got {mode!r}.")
-    return mode
 
 
 def _library_mtime() -> float:
@@ -152,23 +118,13 @@ def _run(name: str, command: list[str], dest: pathlib.Path, expected: list[str])
     return wall
 
 
-def _example_job(name: str, mode: str) -> tuple[list[str], pathlib.Path, list[str]]:
-    script = EXAMPLES_DIR / f"{name}.py"
-    if mode == "full":
-        command = [sys.executable, str(script), "--out-dir", "{out}"]
-    else:
-        kwargs = json.dumps({**EXAMPLES[name], "out_dir": "{out}"})
-        command = [sys.executable, "-c", _RUN_MAIN, str(script), kwargs]
-    return command, CACHE / mode / name, [f"{name}.png"]
-
-
 def on_files(files: Files, config) -> Files:
-    mode = _mode()
     library = _library_mtime()
     jobs = {}  # name -> (command, dest, expected files)
     for name in EXAMPLES:
-        command, dest, expected = _example_job(name, mode)
-        script = EXAMPLES_DIR / f"{name}.py"
+        script, dest = EXAMPLES_DIR / f"{name}.py", CACHE / name
+        command = [sys.executable, str(script), "--out-dir", "{out}"]
+        expected = [f"{name}.png"]
         if _stale([dest / f for f in expected + ["output.txt"]], [script, HOOK], library):
             jobs[name] = (command, dest, expected)
     perf_dest = CACHE / "performance"
@@ -179,8 +135,8 @@ def on_files(files: Files, config) -> Files:
 
     if jobs:
         workers = int(os.environ.get("RBDYN_DOCS_JOBS", os.cpu_count() or 1))
-        log.info(f"figures: running {len(jobs)} script(s) ({mode} settings, {workers} at a "
-                 f"time): {', '.join(jobs)}")
+        log.info(f"figures: running {len(jobs)} script(s), {workers} at a time: "
+                 f"{', '.join(jobs)}")
         t0 = time.perf_counter()
         with concurrent.futures.ThreadPoolExecutor(max_workers=workers) as pool:
             # the identification examples take longest: start them first
@@ -201,8 +157,8 @@ def on_files(files: Files, config) -> Files:
         files.append(File.generated(config, uri, abs_src_path=str(path)))
 
     for name in EXAMPLES:
-        add(f"tutorials/figures/{name}.png", CACHE / mode / name / f"{name}.png")
-        _FOLDERS[name] = CACHE / mode / name
+        add(f"tutorials/figures/{name}.png", CACHE / name / f"{name}.png")
+        _FOLDERS[name] = CACHE / name
     add("performance/work_precision.png", perf_dest / "work_precision.png")
     return files
 
