@@ -234,3 +234,25 @@ def test_home_page_snippet_runs(tmp_path, monkeypatch):
     for block in _python_blocks(page):
         exec(compile(block, str(page), "exec"), namespace)
     assert namespace["traj"].result == rbdyn_jax.RESULTS.successful
+
+
+def test_docstring_lists_are_set_off_from_their_label():
+    """Markdown starts a list only after a blank line: a docstring whose `- item` follows a
+    text line directly (`**Arguments:**` then `- x`) renders as one paragraph of hyphens."""
+    import ast
+    import re
+
+    item = re.compile(r"\s*(?:[-*+]|\d+\.) ")
+    bad = []
+    for path in (ROOT / "rbdyn_jax").rglob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if not isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef)):
+                continue
+            lines = (ast.get_docstring(node) or "").split("\n")
+            code = False
+            for prev, line in zip(lines, lines[1:]):
+                code ^= prev.lstrip().startswith("```")
+                if (not code and item.match(line) and prev.strip()
+                        and not item.match(prev) and not prev.startswith(" ")):
+                    bad.append(f"{path.relative_to(ROOT)}: {getattr(node, 'name', '')}")
+    assert not bad, bad

@@ -2,9 +2,6 @@
 
 What griffe's static analysis does not do for rbdyn_jax's docstrings and classes:
 
-- **Lists after a label.** The docstrings are equinox-style Markdown, where a list may start
-  on the line after its label (`**Arguments:**` then `- ...`). Python-Markdown starts a
-  list only after a blank line, so one is inserted before such a list.
 - **References to the site's pages.** A plain `docs/physics.md#anchor` in a docstring
   (readable in the source) becomes a link to that section, titled by its heading; a
   `docs/<page>.md` a link to the page. A page or anchor the site lacks makes a broken
@@ -30,30 +27,9 @@ import griffe
 _MODULE = {"equinox.Module", "equinox._module.Module"}
 _FIELD = {"equinox.field", "equinox._module.field"}
 _NOT_FIELDS = ("equinox.AbstractVar", "equinox.AbstractClassVar", "typing.ClassVar")
-_ITEM = re.compile(r"(?:[-*+]|\d+\.) ")
 # `docs/page.md#anchor` as plain text (not the target of a Markdown link)
 _PAGE = re.compile(r"(?<!\]\()(?<![/\w])docs/(?P<page>[\w/-]+\.md)(?:#(?P<anchor>[\w-]+))?")
 _DOCS = pathlib.Path(__file__).resolve().parents[1]
-
-
-def separate_lists(text: str) -> str:
-    """`text` with a blank line before every list that directly follows a paragraph line
-    (outside fenced code)."""
-    out: list[str] = []
-    in_list = in_code = False
-    for line in text.split("\n"):
-        if line.lstrip().startswith(("```", "~~~")):
-            in_code = not in_code
-        elif in_code:
-            pass
-        elif not line.strip():
-            in_list = False
-        elif _ITEM.match(line):  # an item at column 0
-            if out and out[-1].strip() and not in_list:
-                out.append("")
-            in_list = True
-        out.append(line)
-    return "\n".join(out)
 
 
 @functools.cache
@@ -195,7 +171,7 @@ def _walk(obj: griffe.Object, seen: set[str]) -> None:
         return
     seen.add(obj.path)
     if obj.docstring is not None:
-        obj.docstring.value = link_guide(separate_lists(obj.docstring.value))
+        obj.docstring.value = link_guide(obj.docstring.value)
     if isinstance(obj, griffe.Class):
         _set_init(obj)
     for member in list(obj.members.values()):

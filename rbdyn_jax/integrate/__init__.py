@@ -6,6 +6,7 @@ strategy (`Lanes`, the lane solver, or `Vmap`, `diffeqsolve` vmapped; the defaul
 faster one that can run the solve). Both are compiled once per model *structure*.
 
 The modules, one idea each:
+
 - `_solution`: what a solve returns (`Trajectory`, `RESULTS`);
 - `_field`: the vector-field plumbing every solve shares (unit time, guarded field, start
   checks, the finished `Trajectory`);

@@ -13,6 +13,7 @@ The danger of such a cache is serving a stale program: a trace depends on Python
 on every static value the code reads, which JAX's cache never sees. So an entry's key is
 built from a complete description of the call, and a call it cannot describe exactly is
 never cached (it is traced, as without this module):
+
 - the versions of JAX and of every library the solve's code comes from (diffrax, equinox,
   lineax, optimistix, jaxtyping, numpy), a digest of rbdyn_jax's own source files, the JAX
   settings that change a trace (float64, matmul precision, dtype promotion), the platform
