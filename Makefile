@@ -11,7 +11,7 @@ setup: $(STAMP)
 
 $(STAMP): pyproject.toml requirements.lock
 	$(PYTHON) -m venv $(VENV)
-	$(PY) -m pip install --quiet -c requirements.lock -e ".[test,bench,docs]"
+	$(PY) -m pip install --quiet -c requirements.lock -e ".[test,bench,docs,dask]"
 	touch $(STAMP)
 
 # The main job: a Monte Carlo sweep of the shipped default scenario, then its plots.

@@ -11,7 +11,6 @@ Figures are built as `matplotlib.figure.Figure` on an Agg canvas, never through 
 global backend is switched and no figure is left open in pyplot's registry.
 """
 
-import json
 import math
 import pathlib
 
@@ -59,12 +58,12 @@ def _energy_ellipsoid(inertia: np.ndarray, energy: float, n_u: int = 25, n_v: in
     return np.einsum("ij,j,jvu->ivu", axes, np.sqrt(2.0 * energy / moments), sphere)
 
 
-def _status_names(attr) -> dict[int, str]:
-    """The `status_codes` attribute (a JSON string or a mapping, code → name) keyed by int code."""
-    if attr is None:
+def _status_names(attrs) -> dict[int, str]:
+    """`{code: name}` from the CF attributes `flag_values` and `flag_meanings` of `status`."""
+    if "flag_values" not in attrs or "flag_meanings" not in attrs:
         return {}
-    mapping = json.loads(attr) if isinstance(attr, str) else dict(attr)
-    return {int(code): str(name) for code, name in mapping.items()}
+    return dict(zip((int(c) for c in np.ravel(attrs["flag_values"])),
+                    str(attrs["flag_meanings"]).split()))
 
 
 def _omega(relative: bool, component: str = "") -> str:
@@ -181,8 +180,8 @@ def plot_sweep(path, out_dir=None, *, n_sample: int = 8) -> list[pathlib.Path]:
 
     **Returns:** the paths written, in this order where present:
 
-    - `summaries.png`: a histogram per summary of the `summaries` attribute, over the successful
-      trajectories with a finite value, each with its count, mean and standard deviation;
+    - `summaries.png`: a histogram per summary named in the `summaries` attribute, over the
+      successful trajectories with a finite value, each with its count, mean and standard deviation;
       skipped when the dataset has no summaries.
     - `trajectories.png`: ω_x, ω_y, ω_z (rad/s) and the nutation angle θ (deg) against time.
     - `polhodes.png`: ω(t) in 3-D on the ellipsoid ωᵀ J ω = ω(0)ᵀ J ω(0)
@@ -191,7 +190,7 @@ def plot_sweep(path, out_dir=None, *, n_sample: int = 8) -> list[pathlib.Path]:
       (docs/physics.md#balancing-transport-moment: conserved only when the transport moment
       is balanced).
     - `status.png`: the number of trajectories per status code that occurs (and for 0, always),
-      named from `status_codes`.
+      named from the `flag_meanings` of `status`.
 
     When no trajectory succeeded only `status.png` is written.
 
@@ -223,7 +222,7 @@ def plot_sweep(path, out_dir=None, *, n_sample: int = 8) -> list[pathlib.Path]:
         relative = ds.attrs.get("model_kind") == "relative_rigid_body"
 
         if len(ok):
-            names = ds.attrs.get("summaries") or []
+            names = str(ds.attrs.get("summaries", "")).split()
             names = [n for n in ([names] if isinstance(names, str) else names) if n in ds.data_vars]
             if names:
                 rows, cols = _grid(len(names), 3)
@@ -263,7 +262,7 @@ def plot_sweep(path, out_dir=None, *, n_sample: int = 8) -> list[pathlib.Path]:
 
         status = np.asarray(ds["status"].values)
         status = status[np.isfinite(status)].astype(int)
-        names = _status_names(ds.attrs.get("status_codes"))
+        names = _status_names(ds["status"].attrs)
         n_codes = len(set(status.tolist()) | {0})
         title = prefix + f"status of {status.size} trajectories"
         fig = _new_figure(title, (7, max(3, 1.5 + 0.45 * n_codes)))

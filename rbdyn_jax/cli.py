@@ -1,8 +1,11 @@
 """The `rbdyn` command: the only layer that prints (the library below it returns values).
 
-- `rbdyn sweep SCENARIO --n N --out PATH [--chunk C] [--seed S] [--devices D] [--resume]`:
-  a Monte Carlo sweep of a scenario (a TOML file or a shipped name, `rbdyn scenarios`)
-  streamed to a zarr store, with a progress bar and a summary table (`rbdyn_jax.sweep`).
+- `rbdyn sweep SCENARIO --n N --out PATH [--chunk C] [--seed S] [--devices D]
+  [--resume | --overwrite] [--scheduler ADDRESS | --workers K]`: a Monte Carlo sweep of a
+  scenario (a TOML file or a shipped name, `rbdyn scenarios`) streamed to a zarr store, in
+  this process or as tasks on a Dask cluster, with a progress bar and a summary table
+  (`rbdyn_jax.sweep`). Exits 3 if some trajectories failed, 4 if all did.
+- `rbdyn export STORE OUT.nc [--overwrite]`: a sweep store as a netCDF-4 file.
 - `rbdyn plot PATH [--out DIR]`: PNGs of a sweep (summary histograms, sample
   trajectories, polhodes on their energy ellipsoids, status counts).
 - `rbdyn fit DATA --model SCENARIO [--free inertia,k] [--out PATH]`: identify the
@@ -146,18 +149,71 @@ def print_summary(stats: dict) -> None:
         print(_table(rows, ["summary (successful)"] + cols))
 
 
-def _compilation_cache(jax) -> None:
-    """JAX's persistent compilation cache in `$RBDYN_JAX_CACHE_DIR` (default
-    `~/.cache/rbdyn_jax/xla`; empty: off), so a repeated sweep skips XLA compilation."""
-    path = os.environ.get("RBDYN_JAX_CACHE_DIR",
+def _cache_dir() -> str:
+    """`$RBDYN_JAX_CACHE_DIR`, default `~/.cache/rbdyn_jax/xla`; empty: no cache."""
+    return os.environ.get("RBDYN_JAX_CACHE_DIR",
                           os.path.join(os.path.expanduser("~"), ".cache", "rbdyn_jax", "xla"))
+
+
+def _compilation_cache(jax) -> None:
+    """JAX's persistent compilation cache in `_cache_dir()`, so a repeated sweep skips XLA
+    compilation."""
+    path = _cache_dir()
     if path:
         jax.config.update("jax_compilation_cache_dir", path)
         jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
 
 
+EXIT_SOME_FAILED = 3  # `rbdyn sweep`: some trajectories failed (the rest are written)
+EXIT_ALL_FAILED = 4  # `rbdyn sweep`: every trajectory failed
+
+
+def _hints(status: dict[str, int], scenario) -> list[str]:
+    """What to change for each kind of failure in a sweep's status counts."""
+    hints = {
+        "max_steps_reached": f"raise [solver] max_steps (now {scenario.max_steps}) in the "
+                             "scenario, or loosen [solver] rtol/atol",
+        "nonfinite_state": "a drawn sample or the state became non-finite: narrow the "
+                           "scenario's distributions (a lognormal's sigma, say) or shorten "
+                           "[time] t1",
+        "dt_min_reached": "the step size reached its minimum: loosen [solver] rtol/atol",
+    }
+    return [f"{count} {name}: " + hints.get(name, "see the status codes in the sweep "
+                                                  "guide (rbdyn_jax.sweep.status_meanings())")
+            for name, count in status.items() if name not in ("successful", "not_run")]
+
+
+def _cluster(args):
+    """A Dask client: on the cluster at `--scheduler`, or on a new `LocalCluster` of
+    `--workers` processes (one thread each: a task's solve uses the worker's XLA devices,
+    `--devices` of them, default cores // workers). None: solve in this process."""
+    if args.scheduler is None and args.workers is None:
+        return None, None
+    try:
+        from distributed import Client, LocalCluster
+    except ImportError:
+        raise SystemExit("rbdyn sweep: --scheduler/--workers need Dask: "
+                         "pip install 'rbdyn_jax[dask]'") from None
+    if args.scheduler is not None:
+        return Client(args.scheduler), None
+    # The workers inherit this process's environment: XLA's flags and the compilation cache.
+    cache = _cache_dir()
+    if cache:
+        os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", cache)
+        os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "1.0")
+    cluster = LocalCluster(n_workers=args.workers, threads_per_worker=1, processes=True,
+                           dashboard_address=None)
+    return Client(cluster), cluster
+
+
 def sweep_command(args) -> int:
-    _configure_xla(args.devices if args.devices is not None else (os.cpu_count() or 1))
+    dask = args.scheduler is not None or args.workers is not None
+    if args.workers is not None and args.devices is None:
+        args.devices = max(1, (os.cpu_count() or 1) // args.workers)
+    # In-process: one XLA CPU device per core; with --workers the devices of each worker
+    # (its environment comes from this process); with --scheduler the workers' own.
+    _configure_xla(args.devices if args.devices is not None or dask
+                   else (os.cpu_count() or 1))
     import jax
 
     jax.config.update("jax_enable_x64", True)
@@ -172,12 +228,19 @@ def sweep_command(args) -> int:
     except ScenarioError as e:
         print(f"rbdyn sweep: invalid scenario: {e}", file=sys.stderr)
         return 2
-    devices = jax.devices()
-    n_dev = args.devices if args.devices is not None else len(devices)
+    client, cluster = _cluster(args)
     print(f"rbdyn sweep: {scenario.name} — {scenario.description}")
-    print(f"  {args.n} trajectories in chunks of {args.chunk} on {n_dev} "
-          f"{devices[0].platform} device(s), {args.lanes} lanes per solver loop, "
-          f"seed {args.seed}, → {args.out}")
+    if client is None:
+        devices = jax.devices()
+        n_dev = args.devices if args.devices is not None else len(devices)
+        where = f"on {n_dev} {devices[0].platform} device(s)"
+    else:
+        n_dev = args.devices
+        workers = len(client.scheduler_info()["workers"])
+        where = (f"as Dask tasks on {workers} worker(s) at {client.scheduler.address}, "
+                 f"{'all' if n_dev is None else n_dev} device(s) each")
+    print(f"  {args.n} trajectories in chunks of {args.chunk} {where}, {args.lanes} lanes "
+          f"per solver loop, seed {args.seed}, → {args.out}")
     bar = tqdm(total=args.n, unit="traj", unit_scale=True, dynamic_ncols=True,
                desc="solving (first chunk compiles)", file=sys.stderr)
 
@@ -192,16 +255,41 @@ def sweep_command(args) -> int:
     try:
         path = sweep.run(scenario, args.n, args.out, chunk=args.chunk, seed=args.seed,
                          devices=n_dev, lanes=args.lanes, resume=args.resume,
-                         progress=progress)
-    except ValueError as e:
+                         overwrite=args.overwrite, client=client, progress=progress)
+    except (ValueError, FileExistsError) as e:
         bar.close()
         print(f"rbdyn sweep: {e}", file=sys.stderr)
         return 2
+    finally:
+        if client is not None:
+            client.close()
+        if cluster is not None:
+            cluster.close()
     bar.close()
     elapsed = time.perf_counter() - t0
-    print_summary(sweep.summarize(path))
+    stats = sweep.summarize(path)
+    print_summary(stats)
     print(f"\nwrote {path} in {elapsed:.1f} s (open with xarray.open_zarr({str(path)!r}));"
           f" plots: rbdyn plot {path}")
+    failed = stats["n"] - stats["status"].get("successful", 0)
+    if failed:
+        print(f"\nrbdyn sweep: {failed} of {stats['n']} trajectories failed (their data are "
+              "NaN; everything solved is written):", file=sys.stderr)
+        for hint in _hints(stats["status"], scenario):
+            print(f"  {hint}", file=sys.stderr)
+        return EXIT_ALL_FAILED if failed == stats["n"] else EXIT_SOME_FAILED
+    return 0
+
+
+def export_command(args) -> int:
+    from . import sweep
+
+    try:
+        path = sweep.to_netcdf(args.store, args.out, overwrite=args.overwrite)
+    except (ValueError, FileExistsError) as e:
+        print(f"rbdyn export: {e}", file=sys.stderr)
+        return 2
+    print(f"wrote {path} (open with xarray.open_dataset({str(path)!r}))")
     return 0
 
 
@@ -488,11 +576,27 @@ def build_parser() -> argparse.ArgumentParser:
                          help="trajectories solved and written at a time (default 1024)")
     p_sweep.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p_sweep.add_argument("--devices", type=int, default=None,
-                         help="devices to shard over (default all; on CPU, one per core)")
+                         help="devices to shard over (default all; on CPU, one per core); "
+                              "with --workers/--scheduler, per worker")
     p_sweep.add_argument("--lanes", type=int, default=64,
                          help="lanes per device in the solver loop (default 64)")
-    p_sweep.add_argument("--resume", action="store_true",
-                         help="finish an interrupted run in --out")
+    store = p_sweep.add_mutually_exclusive_group()
+    store.add_argument("--resume", action="store_true",
+                       help="finish an interrupted run in --out")
+    store.add_argument("--overwrite", action="store_true",
+                       help="replace a sweep store already at --out (and its plots folder)")
+    engine = p_sweep.add_mutually_exclusive_group()
+    engine.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                        help="run the chunks as tasks on the Dask cluster at ADDRESS "
+                             "(tcp://HOST:8786); the store must be on a filesystem its "
+                             "workers see")
+    engine.add_argument("--workers", type=int, default=None, metavar="K",
+                        help="run the chunks as tasks on a new Dask LocalCluster of K "
+                             "worker processes on this machine")
+    p_export = sub.add_parser("export", help="write a sweep store to a netCDF file")
+    p_export.add_argument("store", help="a store written by rbdyn sweep")
+    p_export.add_argument("out", help="the netCDF-4 file to write (e.g. sweep.nc)")
+    p_export.add_argument("--overwrite", action="store_true", help="replace an existing file")
     p_plot = sub.add_parser("plot", help="PNGs of a sweep store")
     p_plot.add_argument("path", help="a store written by rbdyn sweep")
     p_plot.add_argument("--out", default=None, help="folder for the PNGs (default PATH_plots)")
@@ -523,7 +627,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     if args.command == "sweep":
-        for name in ("n", "chunk", "lanes", "devices"):
+        for name in ("n", "chunk", "lanes", "devices", "workers"):
             v = getattr(args, name)
             if v is not None and v < 1:
                 parser.error(f"--{name} must be ≥ 1")
@@ -532,6 +636,8 @@ def main(argv: list[str] | None = None) -> int:
         return sweep_command(args)
     if args.command == "plot":
         return plot_command(args)
+    if args.command == "export":
+        return export_command(args)
     if args.command == "fit":
         if args.steps < 1:
             parser.error("--steps must be ≥ 1")

@@ -22,7 +22,7 @@ import pathlib
 import tomllib
 import zlib
 from collections.abc import Callable, Mapping
-from typing import Any
+from typing import Any, NamedTuple
 
 import diffrax
 import equinox as eqx
@@ -512,23 +512,35 @@ def _relative_drift(x):
     return jnp.max(jnp.abs(x - x[0])) / jnp.abs(x[0])
 
 
-SUMMARIES: dict[str, tuple[str, Callable]] = {
-    "max_nutation": ("largest angle between body z and parent z over the output times, rad",
-                     lambda m, tr: jnp.max(_nutation(tr.ys.quat))),
-    "final_nutation": ("angle between body z and parent z at the last output time, rad",
-                       lambda m, tr: _nutation(tr.ys.quat[-1])),
-    "energy_drift": ("max |E − E0| / |E0| over the output times (conservative models)",
-                     lambda m, tr: _relative_drift(invariants.energy(m, tr))),
-    "relative_energy_drift": ("max |T_r − T_r0| / T_r0, relative kinetic energy "
-                              "(docs/physics.md#balancing-transport-moment)",
-                              lambda m, tr: _relative_drift(
-                                  invariants.relative_kinetic_energy(m, tr))),
-    "first_flip_time": ("first sign change of ω along the intermediate principal axis, s",
-                        lambda m, tr: _first_flip(tr.ts, tr.ys.omega, m.inertia)),
-    "min_abs_omega": ("smallest |ω| (|ω_r| in relative models) over the output times, rad/s",
-                      lambda m, tr: jnp.min(jnp.linalg.norm(tr.ys.omega, axis=-1))),
-    "max_abs_omega": ("largest |ω| (|ω_r| in relative models) over the output times, rad/s",
-                      lambda m, tr: jnp.max(jnp.linalg.norm(tr.ys.omega, axis=-1))),
+class Summary(NamedTuple):
+    """A per-trajectory summary a scenario may keep: what it is, its units (UDUNITS, as the
+    store's `units` attribute) and the function of `(model, trajectory)` computing it."""
+
+    description: str
+    units: str
+    fn: Callable
+
+
+SUMMARIES: dict[str, Summary] = {
+    "max_nutation": Summary("largest angle between body z and parent z over the output times",
+                            "rad", lambda m, tr: jnp.max(_nutation(tr.ys.quat))),
+    "final_nutation": Summary("angle between body z and parent z at the last output time",
+                              "rad", lambda m, tr: _nutation(tr.ys.quat[-1])),
+    "energy_drift": Summary("max |E - E0| / |E0| over the output times (conservative models)",
+                            "1", lambda m, tr: _relative_drift(invariants.energy(m, tr))),
+    "relative_energy_drift": Summary(
+        "max |T_r - T_r0| / T_r0 of the relative kinetic energy "
+        "(docs/physics.md#balancing-transport-moment)", "1",
+        lambda m, tr: _relative_drift(invariants.relative_kinetic_energy(m, tr))),
+    "first_flip_time": Summary(
+        "first sign change of omega along the intermediate principal axis (NaN: none)", "s",
+        lambda m, tr: _first_flip(tr.ts, tr.ys.omega, m.inertia)),
+    "min_abs_omega": Summary("smallest |omega| (|omega_r| in relative models) over the "
+                             "output times", "rad/s",
+                             lambda m, tr: jnp.min(jnp.linalg.norm(tr.ys.omega, axis=-1))),
+    "max_abs_omega": Summary("largest |omega| (|omega_r| in relative models) over the "
+                             "output times", "rad/s",
+                             lambda m, tr: jnp.max(jnp.linalg.norm(tr.ys.omega, axis=-1))),
 }
 SOLVERS = ("Tsit5", "Dopri5", "Dopri8")
 
@@ -735,7 +747,7 @@ class Scenario:
         traj = Trajectory(ts=ts, ys=ys, stats={}, result=RESULTS.successful)
         for name in self.summaries:
             try:
-                jax.eval_shape(lambda m, tr, f=SUMMARIES[name][1]: f(m, tr), model, traj)
+                jax.eval_shape(lambda m, tr, f=SUMMARIES[name].fn: f(m, tr), model, traj)
             except (ValueError, NotImplementedError, AttributeError) as e:
                 raise ScenarioError(f"`outputs.summaries`: {name!r} is not defined for this "
                                     f"model: {e}") from None
@@ -762,6 +774,7 @@ __all__ = [
     "Normal",
     "Param",
     "Scenario",
+    "Summary",
     "ScenarioError",
     "Uniform",
     "UniformSO3",

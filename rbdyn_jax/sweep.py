@@ -1,26 +1,34 @@
-"""Monte Carlo sweeps of a scenario: chunked runs sharded over devices, streaming to disk,
-resume.
+"""Monte Carlo sweeps of a scenario: chunks solved in this process or as tasks on a Dask
+cluster, each written straight into a zarr store; resume; summaries; netCDF export.
 
 The scenario (model, distributions, output times, solver settings, summaries; TOML) is
 `rbdyn_jax.scenario.Scenario`. `run(scenario, n, out)` draws trajectory `i` from
 `fold_in(key(seed), i)` (and every random quantity from a further `fold_in` with a hash of
-its key path), so a trajectory's sample does not depend on the chunking, the devices or the
-other random quantities. The solves run through one compiled program: each device takes its
-part of a chunk with `jax.shard_map` (no collectives inside the solver loop) and runs it
-through the lane solver (`simulate_batch(..., batching=Lanes(lanes, devices=1))`), in
-fixed blocks of 8 × `lanes` trajectories: `lanes` trajectories step together, and a lane
-whose trajectory has finished takes the next one of its block at once. Because the block
-shape is fixed and every drawn quantity enters as a runtime argument (the output times and
-tolerances, the same for every trajectory, are constants of the program), the results are
-**bitwise identical for any chunk size and any number of devices** at a given `lanes`.
-Each finished chunk is written to a zarr store (format 2 with consolidated metadata:
-`xarray.open_zarr(path)` reads it) and dropped, so memory does not grow with `n`.
+its key path), so a trajectory's sample does not depend on the chunking, the devices, the
+workers or the other random quantities. A chunk is solved by one compiled program: each
+device takes its part with `jax.shard_map` (no collectives inside the solver loop) and
+runs it through the lane solver (`simulate_batch(..., batching=Lanes(lanes, devices=1))`)
+in fixed blocks of 8 × `lanes` trajectories: `lanes` trajectories step together, and a
+lane whose trajectory has finished takes the next one of its block at once. Because the
+block shape is fixed and every drawn quantity enters as a runtime argument (the output
+times and tolerances, the same for every trajectory, are constants of the program), the
+results are **bitwise identical for any chunk size, any number of devices and any number
+of Dask workers** at a given `lanes`.
 
-The store holds, with dims `trajectory × time × axis|quat_component`: `omega`, `quat`,
-`inertia` (`trajectory × row × col`), `status` (a `RESULTS` code per trajectory; −1 = not
-run yet), `num_steps`, and one variable per summary. `status` is written last in a chunk,
-so a run that is killed keeps every finished chunk and `run(..., resume=True)` solves
-exactly the trajectories still marked −1.
+In this process (the default) the chunks are solved one after the other. With
+`client=dask.distributed.Client(...)` every chunk is a task (`solve_chunk`): a worker
+solves it and writes its own region of the store, so nothing but two counts per chunk
+passes through the scheduler; a chunk lost with its worker is run again by Dask.
+
+The store is zarr (format 2, consolidated metadata; `xarray.open_zarr(path)` reads it),
+with dimensions `trajectory × time × axis|quat_component` and CF-style metadata (`units`,
+`long_name`, `description` on every variable, labelled coordinates, `status` meanings as
+`flag_values`/`flag_meanings`): `omega`, `quat`, `inertia` (`trajectory × row × col`),
+`status` (a `RESULTS` code per trajectory; −1 = not run yet), `num_steps`, and one
+variable per summary. `status` is written last in a chunk, so a run that is killed keeps
+every finished chunk and `run(..., resume=True)` solves exactly the trajectories still
+marked −1. An existing store is replaced only with `overwrite=True`. `to_netcdf` exports a
+store to a netCDF-4 file.
 """
 
 from __future__ import annotations
@@ -31,7 +39,9 @@ import os
 import pathlib
 import shutil
 import time
-from collections.abc import Callable, Iterator
+import uuid
+import warnings
+from collections.abc import Callable
 from typing import Any
 
 import jax
@@ -89,7 +99,7 @@ def _solve_block(scenario: Scenario, dists, key, idx, lanes):
     status = jnp.where(ok, result_code(traj.result), result_code(RESULTS.nonfinite_state))
 
     def summaries(m, tr):
-        return {name: SUMMARIES[name][1](m, tr) for name in scenario.summaries}
+        return {name: SUMMARIES[name].fn(m, tr) for name in scenario.summaries}
 
     summ = jax.vmap(summaries)(models, traj)
     good = status == 0
@@ -152,10 +162,6 @@ class _Runner:
             (self.size,), NamedSharding(self.mesh, P("batch")), lambda i: full[i])
         with checks_as_nan(jitted=MODE_DEPENDENT_JITS):  # traced on the first call only
             out = self.fn(arr, self.scenario.dists, key)
-        if jax.process_count() > 1:  # multi-host: every process gets the whole chunk
-            from jax.experimental import multihost_utils
-
-            out = multihost_utils.process_allgather(out, tiled=True)
         return {k: np.asarray(v)[:n] for k, v in out.items()}
 
 
@@ -177,19 +183,42 @@ def _runner(sc: Scenario, lanes: int, devices: tuple, chunk: int) -> _Runner:
 # The store
 # ----------------------------------------------------------------------------------------
 
-_DIMS = {
-    "omega": ("trajectory", "time", "axis"),
-    "quat": ("trajectory", "time", "quat_component"),
-    "inertia": ("trajectory", "row", "col"),
-    "status": ("trajectory",),
-    "num_steps": ("trajectory",),
+# name: (dims, units, long_name, description); the summaries add theirs from SUMMARIES.
+_VARIABLES = {
+    "omega": (("trajectory", "time", "axis"), "rad/s", "body angular velocity",
+              "angular velocity in body axes (relative to the transport frame O1 for "
+              "relative_rigid_body); NaN where the trajectory failed"),
+    "quat": (("trajectory", "time", "quat_component"), "1", "attitude quaternion",
+             "unit quaternion [w, x, y, z] rotating body components into the parent frame; "
+             "NaN where the trajectory failed"),
+    "inertia": (("trajectory", "row", "col"), "kg m2", "inertia tensor",
+                "the sampled inertia tensor in body axes"),
+    "status": (("trajectory",), "1", "solver status",
+               "result of the solve: 0 successful, -1 not run yet, otherwise the failure "
+               "named by flag_meanings"),
+    "num_steps": (("trajectory",), "1", "solver steps",
+                  "steps the solver took (accepted and rejected)"),
 }
+_COORDS = {
+    "time": ("s", "time", "output time"),
+    "trajectory": ("1", "trajectory index",
+                   "index i of the trajectory, drawn from fold_in(key(seed), i)"),
+}
+_LABELS = {
+    "axis": (["x", "y", "z"], "body axis", "component along a body axis"),
+    "quat_component": (["w", "x", "y", "z"], "quaternion component",
+                       "component of the quaternion, scalar first"),
+    "row": (["x", "y", "z"], "inertia tensor row", "row of the inertia tensor (body axis)"),
+    "col": (["x", "y", "z"], "inertia tensor column",
+            "column of the inertia tensor (body axis)"),
+}
+_NOT_RUN = -1
 
 
-def _status_codes() -> dict[str, str]:
-    codes = {"-1": "not_run"}
-    codes.update({str(c): name for c, name in result_names().items()})
-    return codes
+def status_meanings() -> dict[int, str]:
+    """`{code: name}` of every value of a store's `status` (−1 `not_run`, then the
+    `RESULTS` codes); the store carries them as `flag_values` / `flag_meanings`."""
+    return {_NOT_RUN: "not_run", **result_names()}
 
 
 def _create_store(path: pathlib.Path, sc: Scenario, n: int, chunk: int, seed: int, lanes: int):
@@ -198,32 +227,46 @@ def _create_store(path: pathlib.Path, sc: Scenario, n: int, chunk: int, seed: in
     from ._version import __version__
 
     g = zarr.open_group(str(path), mode="w", zarr_format=2)
-    T = sc.n_times
-    shapes = {"omega": (n, T, 3), "quat": (n, T, 4), "inertia": (n, 3, 3), "status": (n,),
-              "num_steps": (n,)}
+    shapes = {"omega": (n, sc.n_times, 3), "quat": (n, sc.n_times, 4), "inertia": (n, 3, 3),
+              "status": (n,), "num_steps": (n,)}
     dtypes = {"status": "int32", "num_steps": "int64"}
-    for name in [*shapes, *sc.summaries]:
+    meanings = status_meanings()
+    for name in [*_VARIABLES, *sc.summaries]:
+        if name in _VARIABLES:
+            dims, units, long_name, description = _VARIABLES[name]
+        else:
+            summary = SUMMARIES[name]
+            dims, units, long_name, description = (("trajectory",), summary.units, name,
+                                                   summary.description)
         shape = shapes.get(name, (n,))
-        dims = _DIMS.get(name, ("trajectory",))
-        fill = None if name in ("status", "num_steps") else np.nan
-        a = g.create_array(name, shape=shape, chunks=(min(chunk, n),) + shape[1:],
-                           dtype=dtypes.get(name, "float64"), fill_value=fill)
-        attrs = {"_ARRAY_DIMENSIONS": list(dims)}
-        if name in SUMMARIES:
-            attrs["description"] = SUMMARIES[name][0]
-        a.attrs.update(attrs)
-    for start in range(0, n, 1 << 20):  # status −1 = not run (written, not a fill value)
-        g["status"][start:start + (1 << 20)] = -1
-    for name, values, dims in (("time", sc.ts, ["time"]),
-                               ("trajectory", np.arange(n, dtype=np.int64), ["trajectory"])):
+        dtype = dtypes.get(name, "float64")
+        a = g.create_array(name, shape=shape, chunks=(min(chunk, n),) + shape[1:], dtype=dtype,
+                           fill_value=None if dtype != "float64" else np.nan)
+        a.attrs.update({"_ARRAY_DIMENSIONS": list(dims), "units": units,
+                        "long_name": long_name, "description": description})
+    g["status"].attrs.update({"flag_values": list(meanings),
+                              "flag_meanings": " ".join(meanings.values())})
+    for start in range(0, n, 1 << 20):  # −1 = not run: written, not a fill value
+        g["status"][start:start + (1 << 20)] = _NOT_RUN
+    coords = {"time": sc.ts, "trajectory": np.arange(n, dtype=np.int64),
+              **{k: np.asarray(v[0]) for k, v in _LABELS.items()}}
+    for name, values in coords.items():
         a = g.create_array(name, shape=values.shape, chunks=(min(len(values), 1 << 20),),
                            dtype=values.dtype, fill_value=None)
         a[:] = values
-        a.attrs["_ARRAY_DIMENSIONS"] = dims
-    g["omega"].attrs["description"] = "body angular velocity (relative to O1 in relative models)"
-    g["quat"].attrs["description"] = "attitude quaternion [w, x, y, z], body → parent"
+        if name in _COORDS:
+            units, long_name, description = _COORDS[name]
+            attrs = {"units": units}
+        else:
+            _, long_name, description = _LABELS[name]
+            attrs = {}
+        a.attrs.update({"_ARRAY_DIMENSIONS": [name], "long_name": long_name,
+                        "description": description, **attrs})
+    # Attribute values are strings and numbers only, so that netCDF can hold them too.
     g.attrs.update({
         "title": f"rbdyn_jax Monte Carlo sweep: {sc.name}",
+        "Conventions": "CF-1.11",
+        "source": f"rbdyn_jax {__version__} (jax {jax.__version__})",
         "scenario_name": sc.name,
         "scenario": json.dumps(sc.source),
         "model_kind": sc.kind,
@@ -231,36 +274,72 @@ def _create_store(path: pathlib.Path, sc: Scenario, n: int, chunk: int, seed: in
         "n_trajectories": n,
         "chunk": chunk,
         "lanes": lanes,
-        "summaries": list(sc.summaries),
-        "status_codes": json.dumps(_status_codes()),
-        "conventions": CONVENTIONS,
+        "summaries": " ".join(sc.summaries),
+        "rbdyn_jax_conventions": CONVENTIONS,
         "rbdyn_jax_version": __version__,
         "jax_version": jax.__version__,
-        "complete": False,
+        "complete": 0,
     })
     zarr.consolidate_metadata(str(path))
     return g
 
 
-def _open_store(path: pathlib.Path, sc: Scenario, n: int, seed: int, lanes: int):
+def _check_resumable(path: pathlib.Path, sc: Scenario, n: int, seed: int, lanes: int):
     import zarr
 
-    g = zarr.open_group(str(path), mode="r+", zarr_format=2)
+    g = zarr.open_group(str(path), mode="r", zarr_format=2)
     want = {"scenario": json.dumps(sc.source), "n_trajectories": n, "seed": seed,
             "lanes": lanes}
     for k, v in want.items():
         if g.attrs.get(k) != v:
             raise ValueError(f"cannot resume {path}: its {k} is {g.attrs.get(k)!r}, this run's "
                              f"is {v!r}; use a new --out or drop --resume.")
-    return g
 
 
-def _write_chunk(g, start: int, out: dict[str, np.ndarray]):
-    stop = start + len(out["status"])
-    for name, values in out.items():
-        if name != "status":
-            g[name][start:stop] = values
-    g["status"][start:stop] = out["status"]  # last: marks the chunk done
+def _is_store(path: pathlib.Path) -> bool:
+    return (path / ".zgroup").is_file() and (path / "status").is_dir()
+
+
+def plots_dir(store: str | pathlib.Path) -> pathlib.Path:
+    """The default folder of a store's plots (`rbdyn plot`): `<store>_plots` beside it."""
+    store = pathlib.Path(store)
+    return store.with_name(store.name + "_plots")
+
+
+def _prepare_store(path: pathlib.Path, sc: Scenario, n, chunk, seed, lanes, resume,
+                   overwrite) -> None:
+    """Check a store to resume, or build a new one beside `path` and rename it into place,
+    so a store at `path` is always initialised (every status −1) and a kill at any moment
+    leaves something `resume` can finish. An existing store is replaced only when asked."""
+    if resume and overwrite:
+        raise ValueError("give at most one of `resume` and `overwrite`.")
+    if _is_store(path):
+        if resume:
+            _check_resumable(path, sc, n, seed, lanes)
+            return
+        if not overwrite:
+            raise FileExistsError(
+                f"{path} already holds a sweep store: pass --overwrite (overwrite=True) to "
+                f"replace it and its plots, or --resume (resume=True) to finish it.")
+    elif path.exists() and (not path.is_dir() or any(path.iterdir())):
+        raise ValueError(f"{path} exists and is not a sweep store; choose another --out.")
+    tmp = path.with_name(path.name + ".partial")
+    shutil.rmtree(tmp, ignore_errors=True)
+    _create_store(tmp, sc, n, chunk, seed, lanes)
+    if overwrite:
+        shutil.rmtree(plots_dir(path), ignore_errors=True)
+    shutil.rmtree(path, ignore_errors=True)
+    os.replace(tmp, path)
+
+
+def _write(g, idx: np.ndarray, out: dict[str, np.ndarray]) -> None:
+    """Write the solved trajectories `idx` (ascending) into the store, one write per
+    contiguous run (a partly finished chunk has several); `status` last, which marks them
+    done."""
+    runs = np.split(np.arange(idx.size), np.nonzero(np.diff(idx) != 1)[0] + 1)
+    for name in [*(k for k in out if k != "status"), "status"]:
+        for r in runs:
+            g[name][int(idx[r[0]]):int(idx[r[-1]]) + 1] = out[name][r[0]:r[-1] + 1]
 
 
 # ----------------------------------------------------------------------------------------
@@ -279,12 +358,65 @@ class Progress:
     solved_now: int
 
 
-def _todo_chunks(status: np.ndarray, chunk: int) -> Iterator[tuple[int, np.ndarray]]:
-    """(start, indices) of the chunks that still hold unrun trajectories."""
-    for start in range(0, len(status), chunk):
-        idx = np.nonzero(status[start:start + chunk] < 0)[0]
-        if idx.size:
-            yield start, start + idx
+def _scan(g, chunk: int, block: int = 1 << 22) -> tuple[int, int, list[tuple[int, ...]]]:
+    """(done, failed, `(start, stop, done, failed)` of every store chunk still holding an
+    unrun trajectory), reading `status` a block of whole chunks at a time."""
+    n = g["status"].shape[0]
+    block = chunk * max(1, block // chunk)
+    done = failed = 0
+    todo = []
+    for b in range(0, n, block):
+        status = g["status"][b:b + block]
+        done += int(np.sum(status >= 0))
+        failed += int(np.sum(status > 0))
+        for start in range(0, status.size, chunk):
+            s = status[start:start + chunk]
+            if np.any(s < 0):
+                todo.append((b + start, b + start + s.size, int(np.sum(s >= 0)),
+                             int(np.sum(s > 0))))
+    return done, failed, todo
+
+
+def _solve_region(g, runner: _Runner, key, start: int, stop: int) -> tuple[int, int]:
+    """Solve and write the trajectories of `start:stop` still marked not run; the region's
+    counts of done and of failed trajectories afterwards."""
+    status = g["status"][start:stop]
+    idx = start + np.nonzero(status < 0)[0]
+    if idx.size:
+        res = runner(idx, key)
+        _write(g, idx, res)
+        status[idx - start] = res["status"]
+    return int(np.sum(status >= 0)), int(np.sum(status > 0))
+
+
+def solve_chunk(store: str, source: dict, name: str, start: int, stop: int, *, seed: int,
+                lanes: int, chunk: int, devices: int | None = None) -> tuple[int, int]:
+    """Solve the trajectories `start:stop` of a sweep still marked not run, and write them
+    into its `store` (`status` last): the task `run(..., client=...)` sends to a Dask worker
+    for each store chunk.
+
+    It runs in float64 (it sets `jax_enable_x64` in its process) on the first `devices` of
+    the process's `jax.local_devices()` (default all). The scenario travels as its `source`
+    dict and is rebuilt here, after float64 is on; the compiled solver is kept for the
+    process's next chunk. A task run again (its worker lost after it wrote) finds its
+    trajectories done and solves nothing; one lost before it wrote `status` solves them
+    again into the same region, with the same bits.
+
+    **Returns:** `(done, failed)`: how many trajectories of `start:stop` are done and how
+    many of them failed, once it has finished (the same for a task run again).
+    """
+    import zarr
+
+    jax.config.update("jax_enable_x64", True)
+    sc = Scenario.from_dict(source, default_name=name)
+    local = jax.local_devices()
+    devices = len(local) if devices is None else devices
+    if not 1 <= devices <= len(local):
+        raise ValueError(f"`devices` must be in 1..{len(local)} on this worker, "
+                         f"got {devices!r}.")
+    runner = _runner(sc, lanes, tuple(local[:devices]), chunk)
+    g = zarr.open_group(store, mode="r+", zarr_format=2)
+    return _solve_region(g, runner, jax.random.key(seed), start, stop)
 
 
 def run(
@@ -297,6 +429,8 @@ def run(
     devices: int | None = None,
     lanes: int = 64,
     resume: bool = False,
+    overwrite: bool = False,
+    client=None,
     progress: Callable[[Progress], None] | None = None,
 ) -> pathlib.Path:
     """Run `n` trajectories of `scenario` and stream them to the zarr store `out`.
@@ -304,20 +438,31 @@ def run(
     **Arguments:**
 
     - `scenario`: a `Scenario`, a shipped scenario name or a TOML path.
-    - `n`: number of trajectories; `chunk`: trajectories solved and written at a time
-      (memory ∝ chunk); `seed`: the random seed. Each device solves its share in blocks
-      of 8 × `lanes`, so a chunk is padded to a multiple of 8 × `lanes` × devices (1024
-      at the defaults on two devices): a smaller chunk solves padding, and is slower per
-      trajectory.
-    - `devices`: how many of `jax.devices()` to shard each chunk over (default all).
+    - `n`: number of trajectories; `chunk`: trajectories solved and written at a time, and
+      the store's chunk along `trajectory` (memory ∝ chunk); `seed`: the random seed. Each
+      device solves its share in blocks of 8 × `lanes`, so a chunk is padded to a multiple
+      of 8 × `lanes` × devices (1024 at the defaults on two devices): a smaller chunk
+      solves padding, and is slower per trajectory.
+    - `devices`: how many devices to shard each chunk over (default all): of this process's
+      `jax.devices()`, or with `client` of each worker's.
     - `lanes`: lanes of each device's solver loop (the lane solver of `simulate_batch`; a
       lane takes the next trajectory as soon as its own has finished). Results are bitwise
-      identical for any `chunk` and `devices` at the same `lanes`.
+      identical for any `chunk`, `devices` and `client` at the same `lanes`.
     - `resume`: continue an interrupted run in `out` (same scenario, n, seed, lanes),
       solving only the trajectories not yet written.
+    - `overwrite`: replace a sweep store already at `out`, and its plots folder
+      (`plots_dir(out)`). Without `resume` or `overwrite` an existing store is refused.
+    - `client`: a `dask.distributed.Client`: each chunk is then a task (`solve_chunk`) that
+      a worker solves and writes into the store itself, which must be on a filesystem
+      every worker sees. A chunk lost with its worker is rerun by Dask. Default: solve in
+      this process.
     - `progress`: called with a `Progress` after every chunk.
 
     **Returns:** the path of the store; open it with `open_dataset(path)`.
+
+    **Raises:** `FileExistsError` if `out` holds a sweep store and neither `resume` nor
+    `overwrite` is set (the store is left untouched); `ValueError` for invalid arguments,
+    a non-store at `out`, or a store `resume` cannot continue.
     """
     sc = scenario if isinstance(scenario, Scenario) else Scenario.load(scenario)
     for name, v in (("n", n), ("chunk", chunk), ("lanes", lanes)):
@@ -325,109 +470,177 @@ def run(
             raise ValueError(f"`{name}` must be a positive integer, got {v!r}.")
     if isinstance(seed, bool) or not isinstance(seed, int | np.integer) or seed < 0:
         raise ValueError(f"`seed` must be a non-negative integer, got {seed!r}.")
-    if not jax.config.jax_enable_x64:
-        raise ValueError("sweeps run in float64: call "
-                         "`jax.config.update('jax_enable_x64', True)` first.")
+    if client is None:
+        if not jax.config.jax_enable_x64:
+            raise ValueError("sweeps run in float64: call "
+                             "`jax.config.update('jax_enable_x64', True)` first.")
+        all_devices = jax.devices()
+        devices = len(all_devices) if devices is None else devices
+        if isinstance(devices, bool) or not 1 <= devices <= len(all_devices):
+            raise ValueError(f"`devices` must be in 1..{len(all_devices)} (jax.devices()), "
+                             f"got {devices!r}.")
+    elif devices is not None and (isinstance(devices, bool) or devices < 1):
+        raise ValueError(f"`devices` must be a positive integer, got {devices!r}.")
     import zarr
 
-    all_devices = jax.devices()
-    devices = len(all_devices) if devices is None else devices
-    if isinstance(devices, bool) or not 1 <= devices <= len(all_devices):
-        raise ValueError(f"`devices` must be in 1..{len(all_devices)} (jax.devices()), "
-                         f"got {devices!r}.")
-    path = pathlib.Path(out)
-    # Multi-host (after `jax.distributed.initialize()`): every process runs this function
-    # on the same arguments, the chunks are sharded over all hosts' devices, and process 0
-    # alone writes the store (a filesystem all hosts see).
-    writer = jax.process_index() == 0
-    if writer:
-        _prepare_store(path, sc, n, chunk, seed, lanes, resume)
-    _barrier("rbdyn_jax.sweep: store ready")
-    g = zarr.open_group(str(path), mode="r+" if writer else "r", zarr_format=2)
-
-    runner = _runner(sc, lanes, tuple(all_devices[:devices]), chunk)
-    key = jax.random.key(seed)
-    status = g["status"][:]
-    done = int(np.sum(status >= 0))
-    failed = int(np.sum(status > 0))
+    path = pathlib.Path(out).absolute()
+    _prepare_store(path, sc, n, chunk, seed, lanes, resume, overwrite)
+    g = zarr.open_group(str(path), mode="r+", zarr_format=2)
+    done, failed, todo = _scan(g, chunk)
     t_start = time.perf_counter()
-    for _, idx in _todo_chunks(status, chunk):
-        res = runner(idx, key)
-        if writer:  # one write per contiguous run (a partly finished chunk has several)
-            runs = np.split(np.arange(idx.size), np.nonzero(np.diff(idx) != 1)[0] + 1)
-            for r in runs:
-                _write_chunk(g, int(idx[r[0]]), {k: v[r[0]:r[-1] + 1] for k, v in res.items()})
-        done += idx.size
-        failed += int(np.sum(res["status"] != 0))
-        if progress is not None:
-            progress(Progress(done, n, failed, time.perf_counter() - t_start, idx.size))
-    if writer:
-        g.attrs["complete"] = True
-        zarr.consolidate_metadata(str(path))
-    _barrier("rbdyn_jax.sweep: done")
+
+    def report(region: tuple[int, ...], counts: tuple[int, int]) -> None:
+        """A region finished: the trajectories it solved are its done count now less then
+        (a rerun task that found them written counts them once)."""
+        nonlocal done, failed
+        solved = counts[0] - region[2]
+        done += solved
+        failed += counts[1] - region[3]
+        if progress is not None and solved:
+            progress(Progress(done, n, failed, time.perf_counter() - t_start, solved))
+
+    if client is None:
+        runner = _runner(sc, lanes, tuple(all_devices[:devices]), chunk)
+        key = jax.random.key(seed)
+        for region in todo:
+            report(region, _solve_region(g, runner, key, *region[:2]))
+    else:
+        _run_on_dask(client, todo, report, str(path), sc, seed=seed, lanes=lanes, chunk=chunk,
+                     devices=devices)
+    g.attrs["complete"] = 1
+    zarr.consolidate_metadata(str(path))
     return path
 
 
-def _barrier(name: str) -> None:
-    if jax.process_count() > 1:
-        from jax.experimental import multihost_utils
+def _run_on_dask(client, todo, report, store, sc, **kw) -> None:
+    """Each chunk a task writing its own region; progress as the tasks complete."""
+    from distributed import as_completed
 
-        multihost_utils.sync_global_devices(name)
-
-
-def _prepare_store(path: pathlib.Path, sc: Scenario, n, chunk, seed, lanes, resume) -> None:
-    """Check a store to resume, or build a new one beside `path` and rename it into place,
-    so a store at `path` is always initialised (every status −1) and a kill at any moment
-    leaves something `resume` can finish."""
-    if resume and (path / ".zgroup").exists():
-        _open_store(path, sc, n, seed, lanes)
-        return
-    if path.exists() and not (path / ".zgroup").exists() and any(path.iterdir()):
-        raise ValueError(f"{path} exists and is not a sweep store; choose another --out.")
-    tmp = path.with_name(path.name + ".partial")
-    shutil.rmtree(tmp, ignore_errors=True)
-    _create_store(tmp, sc, n, chunk, seed, lanes)
-    shutil.rmtree(path, ignore_errors=True)
-    os.replace(tmp, path)
+    token = uuid.uuid4().hex[:8]
+    futures = {client.submit(solve_chunk, store, sc.source, sc.name, *region[:2], **kw,
+                             key=f"rbdyn_jax-sweep-{token}-{region[0]}", pure=False): region
+               for region in todo}
+    try:
+        for future in as_completed(futures):
+            report(futures[future], future.result())
+            future.release()
+    finally:
+        client.cancel(futures)
 
 
-def open_dataset(path: str | pathlib.Path):
-    """The sweep store at `path` as an `xarray.Dataset` (lazy; nothing is loaded)."""
+# ----------------------------------------------------------------------------------------
+# Reading
+# ----------------------------------------------------------------------------------------
+
+
+def open_dataset(path: str | pathlib.Path, **kwargs):
+    """The sweep store at `path` as an `xarray.Dataset` (lazy: Dask arrays, nothing is
+    loaded); `kwargs` go to `xarray.open_zarr` (e.g. `chunks`)."""
     import xarray as xr
 
-    return xr.open_zarr(str(path))
+    return xr.open_zarr(str(path), **kwargs)
 
 
-def summarize(path: str | pathlib.Path, quantiles=(0.05, 0.5, 0.95)) -> dict:
+_EXACT_ROWS = 1 << 25  # quantiles exact (in memory, 8 bytes a row) up to this many values
+
+
+def summarize(path: str | pathlib.Path, quantiles=(0.05, 0.5, 0.95), *,
+              rows: int = 1 << 20) -> dict:
     """Counts per status and, for every summary, count/mean/std/min/quantiles/max over the
-    successful trajectories (finite values). Reads only the `(trajectory,)` columns (8 bytes
-    per trajectory per summary), never the trajectories themselves."""
-    import zarr
+    successful trajectories (finite values).
 
-    g = zarr.open_group(str(path), mode="r")
-    status = g["status"][:]
-    codes = json.loads(g.attrs["status_codes"])
-    counts = {codes.get(str(c), str(c)): int(k) for c, k in zip(*np.unique(status,
-                                                                          return_counts=True))}
-    stats = {}
+    The store is read through `xarray.open_zarr` and Dask, `rows` trajectories at a time
+    (rounded to whole store chunks), reading only the `(trajectory,)` columns: a store of
+    any size is summarised without loading it whole, on the active Dask scheduler (a
+    `distributed.Client` if one is set up). Quantiles are exact while a summary has at
+    most 2²⁵ successful values (they are then gathered, 8 bytes each); beyond, they are
+    Dask's approximation merged from per-block quantiles (`dask.array.percentile`).
+
+    **Returns:** `{"n", "status": {name: count}, "summaries": {name: {count, mean, std,
+    min, qNN…, max}}, "scenario", "complete"}`.
+    """
+    import dask
+    import dask.array as da
+
+    ds = open_dataset(path, chunks={})
+    stored = ds.status.chunks[0][0]
+    ds = ds.chunk({"trajectory": stored * max(1, rows // stored)})
+    status = ds.status.data
+    meanings = dict(zip(ds.status.attrs["flag_values"], ds.status.attrs["flag_meanings"].split()))
+    names = ds.attrs["summaries"].split()
     ok = status == 0
-    for name in g.attrs["summaries"]:
-        x = g[name][:][ok]
-        x = x[np.isfinite(x)]
-        row = {"count": int(x.size)}
-        if x.size:
-            row.update(mean=float(x.mean()), std=float(x.std(ddof=1)) if x.size > 1 else 0.0,
-                       min=float(x.min()), max=float(x.max()))
-            row.update({f"q{round(100 * q):02d}": float(v)
-                        for q, v in zip(quantiles, np.quantile(x, quantiles))})
+    lazy = {"status": [da.sum(status == c) for c in meanings]}
+    good = {}
+    for name in names:
+        x = ds[name].data
+        good[name] = ok & da.isfinite(x)
+        xs = da.where(good[name], x, np.nan)
+        lazy[name] = [da.sum(good[name]), da.nanmean(xs), da.nanstd(xs, ddof=1),
+                      da.nanmin(xs), da.nanmax(xs)]
+    with np.errstate(invalid="ignore", divide="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN columns: handled below
+        (computed,) = dask.compute(lazy)
+    counts = {meanings[c]: int(k) for c, k in zip(meanings, computed["status"]) if k}
+    stats = {}
+    for name in names:
+        count, mean, std, lo, hi = computed[name]
+        row = {"count": int(count)}
+        if count:
+            x = ds[name].data[good[name]]
+            if count <= _EXACT_ROWS:
+                qs = np.quantile(x.compute(), quantiles)
+            else:
+                qs = da.percentile(x.compute_chunk_sizes(), 100 * np.asarray(quantiles)).compute()
+            row.update(mean=float(mean), std=float(std) if count > 1 else 0.0,
+                       min=float(lo), max=float(hi))
+            row.update({f"q{round(100 * q):02d}": float(v) for q, v in zip(quantiles, qs)})
         stats[name] = row
     return {"n": int(status.size), "status": counts, "summaries": stats,
-            "scenario": g.attrs["scenario_name"], "complete": bool(g.attrs["complete"])}
+            "scenario": ds.attrs["scenario_name"], "complete": bool(ds.attrs["complete"])}
+
+
+def to_netcdf(store: str | pathlib.Path, path: str | pathlib.Path, *,
+              overwrite: bool = False) -> pathlib.Path:
+    """Write the sweep `store` to the netCDF-4 file `path` (engine netCDF4, zlib-compressed),
+    streamed chunk by chunk through Dask; `xarray.open_dataset(path)` reads it back equal to
+    `open_dataset(store)`, attributes included.
+
+    The file is written beside `path` and renamed into place, so a failed export leaves no
+    broken file. An existing `path` is refused unless `overwrite`.
+
+    **Returns:** `path`. **Raises:** `FileExistsError` if `path` exists and not
+    `overwrite`; `ValueError` if `store` is not a sweep store.
+    """
+    path = pathlib.Path(path)
+    if not _is_store(pathlib.Path(store)):
+        raise ValueError(f"{store} is not a sweep store.")
+    if path.exists() and not overwrite:
+        raise FileExistsError(f"{path} exists: pass --overwrite (overwrite=True) to replace it.")
+    ds = open_dataset(store, chunks={})
+    for v in ds.variables.values():
+        keep = {k: v.encoding[k] for k in ("dtype", "_FillValue") if k in v.encoding}
+        if v.dtype.kind in "fiu" and v.ndim:
+            keep.update(zlib=True, complevel=4)
+        v.encoding = keep
+    # CF: flag_values has the type of its variable.
+    status = ds.variables["status"]
+    status.attrs["flag_values"] = np.asarray(status.attrs["flag_values"], status.dtype)
+    tmp = path.with_name(path.name + ".partial")
+    try:
+        ds.to_netcdf(tmp, engine="netcdf4", format="NETCDF4")
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return path
 
 
 __all__ = [
     "Progress",
     "open_dataset",
+    "plots_dir",
     "run",
+    "solve_chunk",
+    "status_meanings",
     "summarize",
+    "to_netcdf",
 ]

@@ -7,7 +7,6 @@ one not run yet.
 """
 
 import functools
-import json
 import sys
 
 import numpy as np
@@ -109,13 +108,14 @@ def write_store(path, status, *, model_kind="rigid_body", summaries=True):
     put("quat", quat, ["trajectory", "time", "quat_component"])
     put("inertia", inertia, ["trajectory", "row", "col"])
     put("status", status, ["trajectory"])
+    g["status"].attrs.update({"flag_values": [int(c) for c in STATUS_CODES],
+                              "flag_meanings": " ".join(STATUS_CODES.values())})
     put("num_steps", np.full(N, 100, dtype=np.int64), ["trajectory"])
     for name, v in values.items():
         put(name, v, ["trajectory"])
     g.attrs.update(
         {
-            "summaries": SUMMARIES if summaries else [],
-            "status_codes": json.dumps(STATUS_CODES),
+            "summaries": " ".join(SUMMARIES) if summaries else "",
             "model_kind": model_kind,
             "scenario_name": "test_scenario",
             "rtol": 1e-10,
@@ -166,7 +166,7 @@ def test_store_opens_with_xarray(store):
         "col": 3,
     }
     assert ds["status"].dtype == np.int32 and ds["trajectory"].dtype == np.int64
-    assert ds.attrs["summaries"] == SUMMARIES
+    assert ds.attrs["summaries"].split() == SUMMARIES
     np.testing.assert_array_equal(_plots._successful(ds), [0, 1, 2, 4])
 
 
@@ -248,10 +248,12 @@ def test_nutation_matches_scipy(rng):
     np.testing.assert_allclose(_plots._nutation_deg(q), expected, atol=1e-10)
 
 
-def test_status_names_from_json_or_mapping():
-    assert _plots._status_names(json.dumps(STATUS_CODES))[1] == "max_steps_reached"
-    assert _plots._status_names({"0": "successful"}) == {0: "successful"}
-    assert _plots._status_names(None) == {}
+def test_status_names_from_cf_flags():
+    attrs = {"flag_values": np.array([-1, 0, 1], np.int32),
+             "flag_meanings": "not_run successful max_steps_reached"}
+    assert _plots._status_names(attrs) == {-1: "not_run", 0: "successful",
+                                           1: "max_steps_reached"}
+    assert _plots._status_names({}) == {}
 
 
 def test_bad_n_sample(store):

@@ -82,7 +82,7 @@ def test_dataset_opens_with_xarray_and_equals_simulate(reference_run):
                         "row": 3, "col": 3}
     assert ds.attrs["seed"] == 3 and ds.attrs["complete"]
     assert ds.attrs["rbdyn_jax_version"] == rb.__version__
-    assert "[w, x, y, z]" in ds.attrs["conventions"]
+    assert "[w, x, y, z]" in ds.attrs["rbdyn_jax_conventions"]
     assert Scenario.from_dict(__import__("json").loads(ds.attrs["scenario"])).name == "small"
     assert np.all(ds.status.values == 0)
     ts = ds.time.values
