@@ -21,7 +21,7 @@ run: $(STAMP)
 
 # Two workers: the suite is bound by XLA compilation, which is single-threaded.
 test: $(STAMP)
-	$(PY) -m pytest -q -n 2
+	$(PY) -m pytest -q -n 2 --dist loadgroup
 
 # The documentation site, built offline into site/ (strict: a broken link fails the build).
 docs: $(STAMP)

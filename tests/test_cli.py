@@ -213,3 +213,72 @@ def test_observations_load_the_same_from_npz_netcdf_and_csv(tmp_path):
 
     with pytest.raises(ValueError, match="unknown arrays"):
         cli.load_observations(str(tmp_path / "bad.npz"))
+
+
+def _small_toml(path, max_steps=None, omega='{ dist = "normal", mean = [0.1, 1.0, 0.1], '
+                                           'std = 0.3 }'):
+    path.write_text(
+        'name = "tiny"\n[model]\nkind = "rigid_body"\n[model.inertia]\n'
+        'principal = [1.0, 2.0, 2.5]\n'
+        f'[initial]\nomega = {omega}\n[time]\nt1 = 4.0\nn = 5\n'
+        '[solver]\nrtol = 1e-8\natol = 1e-8\n'
+        + (f"max_steps = {max_steps}\n" if max_steps else "")
+        + '[outputs]\nsummaries = ["energy_drift"]\n')
+    return path
+
+
+def _files(path):
+    return {p: p.read_bytes() for p in sorted(path.rglob("*")) if p.is_file()}
+
+
+def test_sweep_refuses_an_existing_store_and_exports_netcdf(tmp_path, capsys):
+    """A second sweep into a store exits 2 naming the store and both flags and changes no
+    byte of it; --overwrite replaces it; `rbdyn export` writes a netCDF file xarray reads
+    back equal, and refuses to overwrite it unless asked."""
+    import xarray as xr
+
+    toml = _small_toml(tmp_path / "tiny.toml")
+    out = tmp_path / "s.zarr"
+    args = ["sweep", str(toml), "--n", "16", "--out", str(out), "--lanes", "8"]
+    assert cli.main(args) == 0
+    before = _files(out)
+    capsys.readouterr()
+    assert cli.main([*args, "--seed", "1"]) == 2
+    err = capsys.readouterr().err
+    assert str(out) in err and "--overwrite" in err and "--resume" in err
+    assert _files(out) == before
+    with pytest.raises(SystemExit):  # argparse: not both
+        cli.main([*args, "--overwrite", "--resume"])
+    assert cli.main([*args, "--seed", "1", "--overwrite"]) == 0
+    assert xr.open_zarr(out).attrs["seed"] == 1
+    nc = tmp_path / "s.nc"
+    assert cli.main(["export", str(out), str(nc)]) == 0
+    xr.testing.assert_identical(xr.open_dataset(nc).load(), xr.open_zarr(out).load())
+    capsys.readouterr()
+    assert cli.main(["export", str(out), str(nc)]) == 2
+    assert "--overwrite" in capsys.readouterr().err
+    assert cli.main(["export", str(out), str(nc), "--overwrite"]) == 0
+
+
+@pytest.mark.parametrize("case", ["some", "all"])
+def test_sweep_exit_status_when_trajectories_fail(tmp_path, capsys, case):
+    """Exit 3 when some trajectories fail, 4 when all do, after writing everything, with
+    the change to make."""
+    import xarray as xr
+
+    if case == "all":  # 3 steps cannot reach t1 = 4 at rtol 1e-8
+        toml = _small_toml(tmp_path / "t.toml", max_steps=3)
+    else:  # lognormal rates: some overflow (non-finite), some run out of steps
+        toml = _small_toml(tmp_path / "t.toml", max_steps=400, omega=(
+            '{ dist = "lognormal", median = [0.3, 1.0, 0.2], sigma = [0.0, 300.0, 0.0] }'))
+    out = tmp_path / "f.zarr"
+    code = cli.main(["sweep", str(toml), "--n", "40", "--out", str(out), "--lanes", "8"])
+    status = xr.open_zarr(out).status.values
+    assert np.all(status >= 0)  # everything was solved and written
+    err = capsys.readouterr().err
+    if case == "all":
+        assert code == cli.EXIT_ALL_FAILED == 4 and np.all(status != 0)
+        assert "40 of 40 trajectories failed" in err
+    else:
+        assert code == cli.EXIT_SOME_FAILED == 3 and 0 < np.sum(status != 0) < 40
+    assert "raise [solver] max_steps (now" in err

@@ -252,3 +252,128 @@ def test_resume_fills_scattered_gaps(reference_run, tmp_path):
               progress=lambda p: seen.append(p.solved_now))
     assert seen == [len(gaps)]
     assert_same(load(reference_run), load(out))
+
+
+# --------------------------------------------------------------------------------------
+# The store: refused overwrites, CF metadata other tools read, netCDF export, summaries
+# --------------------------------------------------------------------------------------
+
+
+def snapshot(path) -> dict:
+    """Every file under `path` with its bytes."""
+    return {p.relative_to(path): p.read_bytes() for p in sorted(path.rglob("*")) if p.is_file()}
+
+
+def test_existing_store_is_refused_untouched_and_replaced_only_when_asked(reference_run,
+                                                                          tmp_path):
+    import shutil
+
+    out = tmp_path / "x.zarr"
+    shutil.copytree(reference_run, out)
+    plots = sweep.plots_dir(out)
+    plots.mkdir()
+    (plots / "summaries.png").write_bytes(b"old plot")
+    before = snapshot(out)
+    other = Scenario.from_dict(small(name="other", time={"t1": 2.0, "n": 5}))
+    with pytest.raises(FileExistsError, match="--overwrite") as e:
+        sweep.run(other, 6, out, chunk=6, lanes=8)
+    assert str(out) in str(e.value) and "--resume" in str(e.value)
+    assert snapshot(out) == before and (plots / "summaries.png").exists()
+    with pytest.raises(ValueError, match="at most one"):
+        sweep.run(other, 6, out, chunk=6, lanes=8, overwrite=True, resume=True)
+    assert snapshot(out) == before
+    sweep.run(other, 6, out, chunk=6, lanes=8, overwrite=True)
+    ds = xr.open_zarr(out)
+    assert ds.attrs["scenario_name"] == "other" and ds.sizes["trajectory"] == 6
+    assert ds.sizes["time"] == 5 and np.all(ds.status.values == 0)
+    assert not plots.exists()  # the plots of the replaced store go with it
+
+
+def test_store_carries_cf_metadata(reference_run):
+    ds = xr.open_zarr(reference_run)
+    for name, v in ds.variables.items():
+        assert v.attrs.get("long_name") and v.attrs.get("description"), name
+        if v.dtype.kind != "U":
+            assert "units" in v.attrs, name
+    units = {k: ds[k].attrs["units"] for k in ("omega", "quat", "inertia", "time",
+                                                "energy_drift", "max_abs_omega",
+                                                "first_flip_time", "status", "num_steps")}
+    assert units == {"omega": "rad/s", "quat": "1", "inertia": "kg m2", "time": "s",
+                     "energy_drift": "1", "max_abs_omega": "rad/s", "first_flip_time": "s",
+                     "status": "1", "num_steps": "1"}
+    assert list(ds.axis.values) == ["x", "y", "z"]
+    assert list(ds.quat_component.values) == ["w", "x", "y", "z"]
+    np.testing.assert_array_equal(ds.omega.sel(axis="y").values, ds.omega.values[..., 1])
+    np.testing.assert_array_equal(ds.quat.sel(quat_component="w").values,
+                                  ds.quat.values[..., 0])
+    np.testing.assert_array_equal(ds.inertia.sel(row="x", col="y").values,
+                                  ds.inertia.values[:, 0, 1])
+    flags = dict(zip(ds.status.attrs["flag_values"], ds.status.attrs["flag_meanings"].split()))
+    assert flags == sweep.status_meanings()
+    assert flags[-1] == "not_run" and flags[0] == "successful"
+    assert flags[int(rb.RESULTS.max_steps_reached._value)] == "max_steps_reached"
+    # netCDF attribute types only: strings, numbers, 1-D numeric lists
+    for attrs in [ds.attrs, *(v.attrs for v in ds.variables.values())]:
+        for k, a in attrs.items():
+            ok = isinstance(a, str | int | float) and not isinstance(a, bool)
+            ok |= isinstance(a, list) and all(isinstance(x, int | float) for x in a)
+            assert ok, (k, a)
+
+
+def test_netcdf_export_reads_back_equal(reference_run, tmp_path):
+    nc = sweep.to_netcdf(reference_run, tmp_path / "s.nc")
+    back = xr.open_dataset(nc, engine="netcdf4").load()
+    xr.testing.assert_identical(back, xr.open_zarr(reference_run).load())
+    assert back.status.attrs["flag_values"].dtype == np.int32  # CF: the variable's type
+    with pytest.raises(FileExistsError, match="--overwrite"):
+        sweep.to_netcdf(reference_run, nc)
+    sweep.to_netcdf(reference_run, nc, overwrite=True)
+    with pytest.raises(ValueError, match="not a sweep store"):
+        sweep.to_netcdf(tmp_path, tmp_path / "t.nc")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["s.nc"]  # nothing half-written
+
+
+@pytest.fixture(scope="module")
+def failing_run(tmp_path_factory):
+    """40 trajectories of which some fail (non-finite or out of steps), in chunks of 8."""
+    d = small(initial={"omega": {"dist": "lognormal", "median": [0.3, 1.0, 0.2],
+                                 "sigma": [0.0, 300.0, 0.0]}})
+    d["solver"]["max_steps"] = 400
+    out = tmp_path_factory.mktemp("failing") / "f.zarr"
+    return sweep.run(Scenario.from_dict(d), 40, out, chunk=8, seed=0, lanes=8)
+
+
+@pytest.mark.parametrize("rows", [8, 1 << 20])  # five Dask blocks, and one
+def test_summarize_through_dask_equals_numpy(failing_run, rows):
+    g = zarr.open_group(str(failing_run), mode="r")
+    status = g["status"][:]
+    stats = sweep.summarize(failing_run, rows=rows)
+    assert stats["n"] == 40 and stats["complete"] and stats["scenario"] == "small"
+    names = sweep.status_meanings()
+    assert stats["status"] == {names[c]: int(k) for c, k in zip(*np.unique(status,
+                                                                          return_counts=True))}
+    for name in ("energy_drift", "max_abs_omega", "first_flip_time"):
+        x = g[name][:][status == 0]
+        x = x[np.isfinite(x)]
+        row = stats["summaries"][name]
+        assert row["count"] == x.size > 1
+        # sums in another order: equal to a few roundings
+        assert row["mean"] == pytest.approx(x.mean(), rel=1e-13)
+        assert row["std"] == pytest.approx(x.std(ddof=1), rel=1e-12)
+        assert (row["min"], row["max"]) == (x.min(), x.max())
+        assert [row["q05"], row["q50"], row["q95"]] == list(np.quantile(x, [0.05, 0.5, 0.95]))
+
+
+def test_summarize_approximates_quantiles_of_a_large_store(failing_run, monkeypatch):
+    """Beyond the exact limit the quantiles are Dask's, merged from per-block ones: within
+    the neighbouring order statistics of the exact ones."""
+    monkeypatch.setattr(sweep, "_EXACT_ROWS", 0)
+    g = zarr.open_group(str(failing_run), mode="r")
+    status = g["status"][:]
+    x = g["energy_drift"][:][status == 0]
+    row = sweep.summarize(failing_run, rows=8)["summaries"]["energy_drift"]
+    lo, hi = np.quantile(x, [0.35, 0.65])
+    assert hi > lo * 1.01  # a spread the bound below can resolve
+    # interpolation between the merged quantiles: a few roundings of slack
+    assert lo * (1 - 1e-12) <= row["q50"] <= hi * (1 + 1e-12)
+    assert row["mean"] == pytest.approx(x.mean(), rel=1e-13)

@@ -1,0 +1,175 @@
+"""Sweeps on a Dask cluster (`sweep.run(..., client=...)`, `rbdyn sweep --scheduler/--workers`)
+against the in-process run: the same bits, a worker killed mid-chunk losing nothing,
+resume, summaries.
+
+The cluster is a real `distributed.LocalCluster` of 2 worker processes (one thread each),
+each a JAX process of its own: the tasks solve and write the store in those processes.
+"""
+
+import os
+import signal
+import threading
+import time
+
+import numpy as np
+import pytest
+import zarr
+from helpers import small_scenario as small
+
+from rbdyn_jax import cli, sweep
+from rbdyn_jax.scenario import Scenario
+
+distributed = pytest.importorskip("distributed")
+
+pytestmark = pytest.mark.xdist_group("dask")  # one cluster for the module (--dist loadgroup)
+
+NAMES = ("omega", "quat", "inertia", "status", "num_steps", "energy_drift", "max_abs_omega",
+         "first_flip_time")
+
+
+def load(path, names=NAMES):
+    g = zarr.open_group(str(path), mode="r")
+    return {k: g[k][:] for k in names if k in g}
+
+
+def assert_same(a: dict, b: dict):
+    assert a.keys() == b.keys()
+    for k in a:
+        assert np.array_equal(a[k], b[k], equal_nan=True), k
+
+
+@pytest.fixture(scope="module")
+def client():
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                  dashboard_address=":0") as cluster:
+        with distributed.Client(cluster) as c:
+            yield c
+
+
+N = 100
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory):
+    out = tmp_path_factory.mktemp("dask") / "ref.zarr"
+    return sweep.run(Scenario.from_dict(small()), N, out, chunk=N, seed=3, lanes=8)
+
+
+@pytest.mark.parametrize("chunk", [16, 40])
+def test_workers_give_the_in_process_bits(client, reference, tmp_path, chunk):
+    seen = []
+    out = sweep.run(Scenario.from_dict(small()), N, tmp_path / "d.zarr", chunk=chunk, seed=3,
+                    lanes=8, client=client, progress=seen.append)
+    assert_same(load(reference), load(out))
+    assert sum(p.solved_now for p in seen) == N and max(p.done for p in seen) == N
+    assert len(seen) == -(-N // chunk)  # one report per task
+    assert zarr.open_group(str(out), mode="r").attrs["complete"] == 1
+    assert sweep.summarize(out) == sweep.summarize(reference)  # on the cluster's scheduler
+
+
+def test_resume_on_the_cluster_after_an_interrupted_run(client, reference, tmp_path):
+    """An in-process run stops after two chunks (as if killed); the cluster finishes it."""
+    out = tmp_path / "r.zarr"
+
+    def stop(p):
+        if p.done >= 32:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        sweep.run(Scenario.from_dict(small()), N, out, chunk=16, seed=3, lanes=8,
+                  progress=stop)
+    assert np.sum(zarr.open_group(str(out), mode="r")["status"][:] >= 0) == 32
+    seen = []
+    sweep.run(Scenario.from_dict(small()), N, out, chunk=16, seed=3, lanes=8, resume=True,
+              client=client, progress=seen.append)
+    assert sum(p.solved_now for p in seen) == N - 32
+    assert_same(load(reference), load(out))
+
+
+def test_cli_on_a_running_scheduler(client, reference, tmp_path, capsys):
+    toml = tmp_path / "small.toml"
+    toml.write_text(_toml(small()))
+    out = tmp_path / "cli.zarr"
+    code = cli.main(["sweep", str(toml), "--n", str(N), "--out", str(out), "--chunk", "32",
+                     "--seed", "3", "--lanes", "8", "--scheduler", client.scheduler.address])
+    assert code == 0
+    assert "as Dask tasks on 2 worker(s)" in capsys.readouterr().out
+    assert_same(load(reference), load(out))
+
+
+def _executing(dask_worker) -> int:
+    return len(dask_worker.state.executing)
+
+
+def test_worker_killed_mid_chunk_loses_nothing(client, tmp_path):
+    """A worker process is killed (SIGKILL) while it solves a chunk, after other chunks
+    are written: Dask reruns its chunk, and the store equals the in-process run with every
+    trajectory counted once."""
+    d = small(time={"t1": 150.0, "n": 5}, outputs={"summaries": ["energy_drift"]})
+    sc = Scenario.from_dict(d)
+    n, chunk = 384, 32
+    out = tmp_path / "killed.zarr"
+    seen, result = [], {}
+    run = threading.Thread(target=lambda: result.update(path=sweep.run(
+        sc, n, out, chunk=chunk, seed=5, lanes=8, client=client, progress=seen.append)))
+    pids = client.run(os.getpid)
+    run.start()
+    killed = None
+    deadline = time.time() + 240
+    while run.is_alive() and time.time() < deadline and killed is None:
+        time.sleep(0.01)
+        try:
+            done = int(np.sum(zarr.open_group(str(out), mode="r")["status"][:] >= 0))
+        except Exception:  # the store is not created yet
+            continue
+        if done < chunk:
+            continue
+        for address, busy in client.run(_executing).items():
+            if busy and address in pids:
+                os.kill(pids[address], signal.SIGKILL)
+                killed = (address, done)
+                break
+    run.join(timeout=300)
+    assert killed is not None and killed[1] < n, "no worker was killed mid-run"
+    assert not run.is_alive() and result["path"] == out.absolute()
+    assert sum(p.solved_now for p in seen) == n and seen[-1].done == n
+    ref = sweep.run(sc, n, tmp_path / "ref.zarr", chunk=n, seed=5, lanes=8)
+    names = ("omega", "quat", "inertia", "status", "num_steps", "energy_drift")
+    assert_same(load(ref, names), load(out, names))
+    assert killed[0] not in client.run(os.getpid)  # that worker is gone (its nanny restarts one)
+
+
+def test_cli_local_cluster(tmp_path, reference, capsys):
+    """`--workers 2` starts its own LocalCluster of two processes."""
+    toml = tmp_path / "small.toml"
+    toml.write_text(_toml(small()))
+    out = tmp_path / "w.zarr"
+    code = cli.main(["sweep", str(toml), "--n", str(N), "--out", str(out), "--chunk", "50",
+                     "--seed", "3", "--lanes", "8", "--workers", "2"])
+    assert code == 0
+    assert "as Dask tasks on 2 worker(s)" in capsys.readouterr().out
+    assert_same(load(reference), load(out))
+
+
+def _toml(d: dict) -> str:
+    """The small scenario as TOML (its values are numbers, strings and lists)."""
+    def value(v):
+        if isinstance(v, str):
+            return f'"{v}"'
+        if isinstance(v, list):
+            return "[" + ", ".join(value(x) for x in v) + "]"
+        return repr(v)
+
+    lines = []
+
+    def table(prefix, t):
+        scalars = {k: v for k, v in t.items() if not isinstance(v, dict)}
+        if prefix:
+            lines.append(f"[{prefix}]")
+        lines.extend(f"{k} = {value(v)}" for k, v in scalars.items())
+        for k, v in t.items():
+            if isinstance(v, dict):
+                table(f"{prefix}.{k}" if prefix else k, v)
+
+    table("", d)
+    return "\n".join(lines) + "\n"
