@@ -14,9 +14,10 @@ $(STAMP): pyproject.toml requirements.lock
 	$(PY) -m pip install --quiet -c requirements.lock -e ".[test,bench,docs,dask]"
 	touch $(STAMP)
 
-# The main job: a Monte Carlo sweep of the shipped default scenario, then its plots.
+# The main job: a Monte Carlo sweep of the shipped default scenario (replacing the last
+# one), then its plots.
 run: $(STAMP)
-	$(VENV)/bin/rbdyn sweep torque_free_flip --n 20000 --out results/sweep/torque_free_flip.zarr
+	$(VENV)/bin/rbdyn sweep torque_free_flip --n 20000 --out results/sweep/torque_free_flip.zarr --overwrite
 	$(VENV)/bin/rbdyn plot results/sweep/torque_free_flip.zarr
 
 # Two workers: the suite is bound by XLA compilation, which is single-threaded.

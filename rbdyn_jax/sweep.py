@@ -221,12 +221,61 @@ def status_meanings() -> dict[int, str]:
     return {_NOT_RUN: "not_run", **result_names()}
 
 
-def _create_store(path: pathlib.Path, sc: Scenario, n: int, chunk: int, seed: int, lanes: int):
+@dataclasses.dataclass(frozen=True)
+class _Location:
+    """Where a store is: a local path (made absolute, for workers started elsewhere), or a
+    URL fsspec opens (`s3://…`, `gs://…`, `file://…`) with its `storage_options`."""
+
+    url: str
+    options: dict
+
+    @classmethod
+    def of(cls, out: str | pathlib.Path, storage_options: dict | None = None) -> _Location:
+        if "://" not in str(out):
+            return cls(str(pathlib.Path(out).absolute()), {})
+        options = dict(storage_options or {})
+        if str(out).startswith("file://"):
+            options.setdefault("auto_mkdir", True)  # object stores need no directories
+        return cls(str(out), options)
+
+    @property
+    def is_url(self) -> bool:
+        return "://" in self.url
+
+    def group(self, mode: str):
+        import zarr
+
+        return zarr.open_group(self.url, mode=mode, zarr_format=2,
+                               storage_options=self.options if self.is_url else None)
+
+    def fs(self):
+        """(fsspec filesystem, root path in it)."""
+        import fsspec
+
+        return fsspec.core.url_to_fs(self.url, **self.options)
+
+    def is_store(self) -> bool:
+        """Whether a whole sweep store is here (its consolidated metadata, written last
+        when a store is made, is there)."""
+        fs, root = self.fs()
+        return fs.isfile(f"{root}/.zgroup") and fs.isfile(f"{root}/.zmetadata")
+
+    def is_empty(self) -> bool:
+        fs, root = self.fs()
+        return not fs.exists(root) or (fs.isdir(root) and not fs.ls(root))
+
+    def remove(self) -> None:
+        fs, root = self.fs()
+        if fs.exists(root):
+            fs.rm(root, recursive=True)
+
+
+def _create_store(loc: _Location, sc: Scenario, n: int, chunk: int, seed: int, lanes: int):
     import zarr
 
     from ._version import __version__
 
-    g = zarr.open_group(str(path), mode="w", zarr_format=2)
+    g = loc.group("w")
     shapes = {"omega": (n, sc.n_times, 3), "quat": (n, sc.n_times, 4), "inertia": (n, 3, 3),
               "status": (n,), "num_steps": (n,)}
     dtypes = {"status": "int32", "num_steps": "int64"}
@@ -280,24 +329,18 @@ def _create_store(path: pathlib.Path, sc: Scenario, n: int, chunk: int, seed: in
         "jax_version": jax.__version__,
         "complete": 0,
     })
-    zarr.consolidate_metadata(str(path))
+    zarr.consolidate_metadata(g.store)
     return g
 
 
-def _check_resumable(path: pathlib.Path, sc: Scenario, n: int, seed: int, lanes: int):
-    import zarr
-
-    g = zarr.open_group(str(path), mode="r", zarr_format=2)
+def _check_resumable(loc: _Location, sc: Scenario, n: int, seed: int, lanes: int):
+    g = loc.group("r")
     want = {"scenario": json.dumps(sc.source), "n_trajectories": n, "seed": seed,
             "lanes": lanes}
     for k, v in want.items():
         if g.attrs.get(k) != v:
-            raise ValueError(f"cannot resume {path}: its {k} is {g.attrs.get(k)!r}, this run's "
+            raise ValueError(f"cannot resume {loc.url}: its {k} is {g.attrs.get(k)!r}, this run's "
                              f"is {v!r}; use a new --out or drop --resume.")
-
-
-def _is_store(path: pathlib.Path) -> bool:
-    return (path / ".zgroup").is_file() and (path / "status").is_dir()
 
 
 def plots_dir(store: str | pathlib.Path) -> pathlib.Path:
@@ -306,26 +349,33 @@ def plots_dir(store: str | pathlib.Path) -> pathlib.Path:
     return store.with_name(store.name + "_plots")
 
 
-def _prepare_store(path: pathlib.Path, sc: Scenario, n, chunk, seed, lanes, resume,
+def _prepare_store(loc: _Location, sc: Scenario, n, chunk, seed, lanes, resume,
                    overwrite) -> None:
-    """Check a store to resume, or build a new one beside `path` and rename it into place,
-    so a store at `path` is always initialised (every status −1) and a kill at any moment
-    leaves something `resume` can finish. An existing store is replaced only when asked."""
+    """Check a store to resume, or make a new one. An existing store is replaced only when
+    asked. A local store is built beside its path and renamed into place, so a store at the
+    path is always initialised (every status −1) and a kill at any moment leaves something
+    `resume` can finish; at a URL it is built in place, its consolidated metadata last (a
+    kill before that leaves no store `resume` would take)."""
     if resume and overwrite:
         raise ValueError("give at most one of `resume` and `overwrite`.")
-    if _is_store(path):
+    if loc.is_store():
         if resume:
-            _check_resumable(path, sc, n, seed, lanes)
+            _check_resumable(loc, sc, n, seed, lanes)
             return
         if not overwrite:
             raise FileExistsError(
-                f"{path} already holds a sweep store: pass --overwrite (overwrite=True) to "
-                f"replace it and its plots, or --resume (resume=True) to finish it.")
-    elif path.exists() and (not path.is_dir() or any(path.iterdir())):
-        raise ValueError(f"{path} exists and is not a sweep store; choose another --out.")
+                f"{loc.url} already holds a sweep store: pass --overwrite (overwrite=True) "
+                f"to replace it and its plots, or --resume (resume=True) to finish it.")
+    elif not loc.is_empty():
+        raise ValueError(f"{loc.url} exists and is not a sweep store; choose another --out.")
+    if loc.is_url:
+        loc.remove()
+        _create_store(loc, sc, n, chunk, seed, lanes)
+        return
+    path = pathlib.Path(loc.url)
     tmp = path.with_name(path.name + ".partial")
     shutil.rmtree(tmp, ignore_errors=True)
-    _create_store(tmp, sc, n, chunk, seed, lanes)
+    _create_store(_Location.of(tmp), sc, n, chunk, seed, lanes)
     if overwrite:
         shutil.rmtree(plots_dir(path), ignore_errors=True)
     shutil.rmtree(path, ignore_errors=True)
@@ -390,23 +440,22 @@ def _solve_region(g, runner: _Runner, key, start: int, stop: int) -> tuple[int, 
 
 
 def solve_chunk(store: str, source: dict, name: str, start: int, stop: int, *, seed: int,
-                lanes: int, chunk: int, devices: int | None = None) -> tuple[int, int]:
+                lanes: int, chunk: int, devices: int | None = None,
+                storage_options: dict | None = None) -> tuple[int, int]:
     """Solve the trajectories `start:stop` of a sweep still marked not run, and write them
     into its `store` (`status` last): the task `run(..., client=...)` sends to a Dask worker
     for each store chunk.
 
-    It runs in float64 (it sets `jax_enable_x64` in its process) on the first `devices` of
-    the process's `jax.local_devices()` (default all). The scenario travels as its `source`
-    dict and is rebuilt here, after float64 is on; the compiled solver is kept for the
-    process's next chunk. A task run again (its worker lost after it wrote) finds its
-    trajectories done and solves nothing; one lost before it wrote `status` solves them
-    again into the same region, with the same bits.
+    `store` is a local path or a URL fsspec opens with `storage_options`. The task runs in float64
+    (it sets `jax_enable_x64` in its process) on the first `devices` of the process's
+    `jax.local_devices()` (default all). The scenario travels as its `source` dict and is rebuilt
+    here, after float64 is on; the compiled solver is kept for the process's next chunk. A task run
+    again (its worker lost after it wrote) finds its trajectories done and solves nothing; one lost
+    before it wrote `status` solves them again into the same region, with the same bits.
 
     **Returns:** `(done, failed)`: how many trajectories of `start:stop` are done and how
     many of them failed, once it has finished (the same for a task run again).
     """
-    import zarr
-
     jax.config.update("jax_enable_x64", True)
     sc = Scenario.from_dict(source, default_name=name)
     local = jax.local_devices()
@@ -415,7 +464,7 @@ def solve_chunk(store: str, source: dict, name: str, start: int, stop: int, *, s
         raise ValueError(f"`devices` must be in 1..{len(local)} on this worker, "
                          f"got {devices!r}.")
     runner = _runner(sc, lanes, tuple(local[:devices]), chunk)
-    g = zarr.open_group(store, mode="r+", zarr_format=2)
+    g = _Location.of(store, storage_options).group("r+")
     return _solve_region(g, runner, jax.random.key(seed), start, stop)
 
 
@@ -431,8 +480,9 @@ def run(
     resume: bool = False,
     overwrite: bool = False,
     client=None,
+    storage_options: dict | None = None,
     progress: Callable[[Progress], None] | None = None,
-) -> pathlib.Path:
+) -> pathlib.Path | str:
     """Run `n` trajectories of `scenario` and stream them to the zarr store `out`.
 
     **Arguments:**
@@ -453,12 +503,16 @@ def run(
     - `overwrite`: replace a sweep store already at `out`, and its plots folder
       (`plots_dir(out)`). Without `resume` or `overwrite` an existing store is refused.
     - `client`: a `dask.distributed.Client`: each chunk is then a task (`solve_chunk`) that
-      a worker solves and writes into the store itself, which must be on a filesystem
-      every worker sees. A chunk lost with its worker is rerun by Dask. Default: solve in
-      this process.
+      a worker solves and writes into the store itself, so the store must be where every
+      worker reaches it (a shared filesystem, or object storage by URL). A chunk lost with
+      its worker is rerun by Dask. Default: solve in this process.
+    - `storage_options`: for a URL `out` (`s3://bucket/sweep.zarr`, `gs://…`; any fsspec
+      protocol whose package is installed), the options of its fsspec filesystem
+      (credentials, endpoint), given to every worker too.
     - `progress`: called with a `Progress` after every chunk.
 
-    **Returns:** the path of the store; open it with `open_dataset(path)`.
+    **Returns:** the store: a `pathlib.Path` (absolute), or the URL as given; open it with
+    `open_dataset(store)`.
 
     **Raises:** `FileExistsError` if `out` holds a sweep store and neither `resume` nor
     `overwrite` is set (the store is left untouched); `ValueError` for invalid arguments,
@@ -483,9 +537,9 @@ def run(
         raise ValueError(f"`devices` must be a positive integer, got {devices!r}.")
     import zarr
 
-    path = pathlib.Path(out).absolute()
-    _prepare_store(path, sc, n, chunk, seed, lanes, resume, overwrite)
-    g = zarr.open_group(str(path), mode="r+", zarr_format=2)
+    loc = _Location.of(out, storage_options)
+    _prepare_store(loc, sc, n, chunk, seed, lanes, resume, overwrite)
+    g = loc.group("r+")
     done, failed, todo = _scan(g, chunk)
     t_start = time.perf_counter()
 
@@ -505,11 +559,11 @@ def run(
         for region in todo:
             report(region, _solve_region(g, runner, key, *region[:2]))
     else:
-        _run_on_dask(client, todo, report, str(path), sc, seed=seed, lanes=lanes, chunk=chunk,
-                     devices=devices)
+        _run_on_dask(client, todo, report, loc.url, sc, seed=seed, lanes=lanes, chunk=chunk,
+                     devices=devices, storage_options=loc.options or None)
     g.attrs["complete"] = 1
-    zarr.consolidate_metadata(str(path))
-    return path
+    zarr.consolidate_metadata(g.store)
+    return loc.url if loc.is_url else pathlib.Path(loc.url)
 
 
 def _run_on_dask(client, todo, report, store, sc, **kw) -> None:
@@ -533,28 +587,29 @@ def _run_on_dask(client, todo, report, store, sc, **kw) -> None:
 # ----------------------------------------------------------------------------------------
 
 
-def open_dataset(path: str | pathlib.Path, **kwargs):
-    """The sweep store at `path` as an `xarray.Dataset` (lazy: Dask arrays, nothing is
-    loaded); `kwargs` go to `xarray.open_zarr` (e.g. `chunks`)."""
+def open_dataset(store: str | pathlib.Path, *, storage_options: dict | None = None, **kwargs):
+    """The sweep store at `store` (a path or a URL) as an `xarray.Dataset` (lazy: Dask
+    arrays, nothing is loaded); `kwargs` go to `xarray.open_zarr` (e.g. `chunks`)."""
     import xarray as xr
 
-    return xr.open_zarr(str(path), **kwargs)
+    loc = _Location.of(store, storage_options)
+    return xr.open_zarr(loc.url, storage_options=loc.options or None, **kwargs)
 
 
 _EXACT_ROWS = 1 << 25  # quantiles exact (in memory, 8 bytes a row) up to this many values
 
 
-def summarize(path: str | pathlib.Path, quantiles=(0.05, 0.5, 0.95), *,
-              rows: int = 1 << 20) -> dict:
+def summarize(store: str | pathlib.Path, quantiles=(0.05, 0.5, 0.95), *,
+              rows: int = 1 << 20, storage_options: dict | None = None) -> dict:
     """Counts per status and, for every summary, count/mean/std/min/quantiles/max over the
     successful trajectories (finite values).
 
-    The store is read through `xarray.open_zarr` and Dask, `rows` trajectories at a time
-    (rounded to whole store chunks), reading only the `(trajectory,)` columns: a store of
-    any size is summarised without loading it whole, on the active Dask scheduler (a
-    `distributed.Client` if one is set up). Quantiles are exact while a summary has at
-    most 2²⁵ successful values (they are then gathered, 8 bytes each); beyond, they are
-    Dask's approximation merged from per-block quantiles (`dask.array.percentile`).
+    The store (a path or a URL) is read through `xarray.open_zarr` and Dask, `rows` trajectories at
+    a time (rounded to whole store chunks), reading only the `(trajectory,)` columns: a store of any
+    size is summarised without loading it whole, on the active Dask scheduler (a
+    `distributed.Client` if one is set up). Quantiles are exact while a summary has at most 2²⁵
+    successful values (they are then gathered, 8 bytes each); beyond, they are Dask's approximation
+    merged from per-block quantiles (`dask.array.percentile`).
 
     **Returns:** `{"n", "status": {name: count}, "summaries": {name: {count, mean, std,
     min, qNN…, max}}, "scenario", "complete"}`.
@@ -562,7 +617,7 @@ def summarize(path: str | pathlib.Path, quantiles=(0.05, 0.5, 0.95), *,
     import dask
     import dask.array as da
 
-    ds = open_dataset(path, chunks={})
+    ds = open_dataset(store, storage_options=storage_options, chunks={})
     stored = ds.status.chunks[0][0]
     ds = ds.chunk({"trajectory": stored * max(1, rows // stored)})
     status = ds.status.data
@@ -600,10 +655,10 @@ def summarize(path: str | pathlib.Path, quantiles=(0.05, 0.5, 0.95), *,
 
 
 def to_netcdf(store: str | pathlib.Path, path: str | pathlib.Path, *,
-              overwrite: bool = False) -> pathlib.Path:
-    """Write the sweep `store` to the netCDF-4 file `path` (engine netCDF4, zlib-compressed),
-    streamed chunk by chunk through Dask; `xarray.open_dataset(path)` reads it back equal to
-    `open_dataset(store)`, attributes included.
+              overwrite: bool = False, storage_options: dict | None = None) -> pathlib.Path:
+    """Write the sweep `store` (a path or a URL) to the local netCDF-4 file `path` (engine netCDF4,
+    zlib-compressed), streamed chunk by chunk through Dask; `xarray.open_dataset(path)` reads it
+    back equal to `open_dataset(store)`, attributes included.
 
     The file is written beside `path` and renamed into place, so a failed export leaves no
     broken file. An existing `path` is refused unless `overwrite`.
@@ -612,11 +667,11 @@ def to_netcdf(store: str | pathlib.Path, path: str | pathlib.Path, *,
     `overwrite`; `ValueError` if `store` is not a sweep store.
     """
     path = pathlib.Path(path)
-    if not _is_store(pathlib.Path(store)):
+    if not _Location.of(store, storage_options).is_store():
         raise ValueError(f"{store} is not a sweep store.")
     if path.exists() and not overwrite:
         raise FileExistsError(f"{path} exists: pass --overwrite (overwrite=True) to replace it.")
-    ds = open_dataset(store, chunks={})
+    ds = open_dataset(store, storage_options=storage_options, chunks={})
     for v in ds.variables.values():
         keep = {k: v.encoding[k] for k in ("dtype", "_FillValue") if k in v.encoding}
         if v.dtype.kind in "fiu" and v.ndim:

@@ -173,3 +173,21 @@ def _toml(d: dict) -> str:
 
     table("", d)
     return "\n".join(lines) + "\n"
+
+
+def test_store_by_url_through_fsspec(client, reference, tmp_path):
+    """A store given as a URL is written through fsspec (here its `file://` filesystem, the
+    code path of `s3://` or `gs://`), by the workers too: the same bits, the same refusal
+    of an existing store, and every reader takes the URL."""
+    url = (tmp_path / "u.zarr").as_uri()
+    out = sweep.run(Scenario.from_dict(small()), N, url, chunk=32, seed=3, lanes=8,
+                    client=client)
+    assert out == url
+    assert_same(load(reference), load(tmp_path / "u.zarr"))
+    with pytest.raises(FileExistsError, match="--overwrite"):
+        sweep.run(Scenario.from_dict(small()), N, url, chunk=32, seed=3, lanes=8)
+    assert sweep.summarize(url) == sweep.summarize(reference)
+    assert sweep.open_dataset(url).sizes["trajectory"] == N
+    sweep.to_netcdf(url, tmp_path / "u.nc")
+    sweep.run(Scenario.from_dict(small()), N, url, chunk=32, seed=3, lanes=8, overwrite=True)
+    assert_same(load(reference), load(tmp_path / "u.zarr"))
