@@ -1,4 +1,5 @@
-"""Scaling of Monte Carlo sweeps (`rbdyn_jax.sweep.run`): chunk size, device count, memory.
+"""Scaling of Monte Carlo sweeps (`rbdyn_jax.sweep.run`): chunk size, device count, memory,
+and in-process against a Dask LocalCluster.
 
 Setting: the shipped scenario `torque_free_flip` (or `--scenario NAME`), seed 0, float64,
 CPU only (`JAX_PLATFORMS=cpu`), each configuration in a fresh subprocess whose XLA host
@@ -14,15 +15,29 @@ after importing rbdyn_jax and starting JAX, before the sweep).
 2. 1 vs D devices at chunk 1024 (D ≥ 2), and whether the two stores hold bitwise-identical
    `omega`, `quat`, `inertia`, `status`, `num_steps`, every summary variable and
    `sweep.summarize` output ("identical: True/False");
-3. peak RSS at N and 4N (default 8192, 32768) at chunk 1024: memory must not grow with N.
+3. peak RSS at N and 4N (default 8192, 32768) at chunk 1024: memory must not grow with N;
+4. in-process against a Dask LocalCluster at N and chunk 1024: the in-process run of part 2
+   on D devices beside `sweep.run(..., client=Client(LocalCluster(n_workers=K,
+   threads_per_worker=1, processes=True)))` (K = `--workers`, default os.cpu_count()),
+   each worker with max(1, D // K) XLA host devices (the cluster starts in the
+   configuration's subprocess, whose environment its workers inherit). Measured: the
+   cluster's start-up (until K workers are up); "first chunk" = the warm-up, in which every
+   worker compiles the solver and solves one chunk of a scratch sweep (all at once, so that
+   the sweep's chunks never wait on a compilation, whichever worker takes them); "rest" =
+   the sweep of all N on the compiled workers, and steady trajectories/s = N / rest; the
+   driver's peak RSS (it holds the scheduler) and the largest worker's (`client.run`).
+   Reported: whether the two stores are bitwise identical (as in part 2) and the ratio of
+   the steady rates, LocalCluster ÷ in-process. A chunk is padded to a multiple of
+   8 × lanes × its devices (D in-process, D // K on a worker), and with N / chunk < K some
+   workers stay idle: the rates are those of this N and chunk, not each engine's best.
 
-A configuration shared by two parts runs once (at defaults 5 subprocesses, one after the
+A configuration shared by two parts runs once (at defaults 6 subprocesses, one after the
 other; `--jobs J` runs J at once, for smoke tests only). `--parts` picks parts. The zarr
 stores go to a temporary directory, each deleted once it is no longer needed.
 
 Run: `python benchmarks/sweep_scale.py [--n 8192] [--chunks 256 1024 4096]
-[--sizes 8192 32768] [--scenario torque_free_flip]` — prints a table per part and writes
-results/benchmarks/sweep_scale.json.
+[--sizes 8192 32768] [--workers K] [--parts 1 2 3 4] [--scenario torque_free_flip]` —
+prints a table per part and writes results/benchmarks/sweep_scale.json.
 """
 
 import argparse
@@ -87,27 +102,119 @@ def worker(cfg):
     }
 
 
+def _warm_up(source, name, store, chunk, seed, lanes, devices):
+    """In a Dask worker: compile the chunk solver `solve_chunk` will use (the same scenario
+    source, lanes, devices and padded chunk: `sweep` keeps it for the process) by solving
+    one chunk of a scratch sweep in this process; (seconds, jax devices)."""
+    t0 = time.perf_counter()
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    from rbdyn_jax import sweep
+    from rbdyn_jax.scenario import Scenario
+
+    sc = Scenario.from_dict(source, default_name=name)
+    sweep.run(sc, chunk, store, chunk=chunk, seed=seed, devices=devices, lanes=lanes)
+    shutil.rmtree(store, ignore_errors=True)
+    return time.perf_counter() - t0, len(jax.devices())
+
+
+def cluster_worker(cfg):
+    """Part 4's LocalCluster run: the cluster starts here, so its worker processes inherit
+    this process's environment (the XLA flags of `configure_xla`, the device count)."""
+    t_proc = time.perf_counter()
+    import rbdyn_jax
+
+    rbdyn_jax.configure_xla()  # into os.environ, before the workers start
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    from distributed import Client, LocalCluster
+
+    from rbdyn_jax import sweep
+    from rbdyn_jax.scenario import Scenario
+
+    sc = Scenario.load(cfg["scenario"])
+    k = cfg["workers"]
+    base_rss = _rss_mib()
+    ticks = []
+    t0 = time.perf_counter()
+    with (LocalCluster(n_workers=k, threads_per_worker=1, processes=True,
+                       dashboard_address=None) as cluster, Client(cluster) as client):
+        client.wait_for_workers(k)
+        start = time.perf_counter() - t0
+        t1 = time.perf_counter()
+        warm = client.gather([
+            client.submit(_warm_up, sc.source, sc.name, f"{cfg['store']}.warm{i}", cfg["chunk"],
+                          cfg["seed"], cfg["lanes"], cfg["devices"], workers=[addr],
+                          allow_other_workers=False, pure=False)
+            for i, addr in enumerate(client.scheduler_info(n_workers=-1)["workers"])])
+        first = time.perf_counter() - t1
+        if len(warm) != k:
+            raise RuntimeError(f"{len(warm)} of {k} workers warmed up")
+        t2 = time.perf_counter()
+        sweep.run(sc, cfg["n"], cfg["store"], chunk=cfg["chunk"], seed=cfg["seed"],
+                  devices=cfg["devices"], lanes=cfg["lanes"], client=client,
+                  progress=lambda p: ticks.append((p.elapsed, p.solved_now, p.failed)))
+        total = time.perf_counter() - t2
+        worker_rss = list(client.run(_rss_mib).values())
+    peak_rss = _rss_mib()
+    rest = ticks[-1][0]
+    summary = sweep.summarize(cfg["store"])
+    return {
+        "engine": "dask", "n": cfg["n"], "chunk": cfg["chunk"], "workers": k,
+        "devices": cfg["devices"], "jax_devices": min(d for _, d in warm),
+        "lanes": cfg["lanes"], "n_chunks": len(ticks), "cluster_start_s": start,
+        "first_chunk_s": first, "worker_compile_s": [s for s, _ in warm], "rest_s": rest,
+        "steady_traj_per_s": cfg["n"] / rest if rest > 0 else None,
+        "run_s": total, "process_s": time.perf_counter() - t_proc,
+        "base_rss_mib": base_rss, "peak_rss_mib": peak_rss,
+        "worker_peak_rss_mib": max(worker_rss), "worker_rss_mib": worker_rss,
+        "failed": ticks[-1][2], "status": summary["status"], "concurrent_jobs": cfg["jobs"],
+    }
+
+
 # ----------------------------------------------------------------------------------------
 # Driver
 # ----------------------------------------------------------------------------------------
 
 
-def run_worker(args, tmp, n, chunk, devices):
-    """One configuration in a fresh subprocess; its store is left in `tmp`."""
-    name = f"n{n}_c{chunk}_d{devices}"
-    cfg = {"scenario": args.scenario, "n": n, "chunk": chunk, "devices": devices,
-           "lanes": args.lanes, "seed": args.seed, "store": str(tmp / f"{name}.zarr"),
-           "result": str(tmp / f"{name}.json"), "jobs": args.jobs}
+def _spawn(cfg, host_devices, label):
+    """`cfg` in a fresh subprocess with `host_devices` XLA host devices; its result row."""
     env = dict(os.environ, JAX_PLATFORMS="cpu")
     flags = [f for f in env.get("XLA_FLAGS", "").split()
              if not f.startswith("--xla_force_host_platform_device_count")]
-    env["XLA_FLAGS"] = " ".join([*flags, f"--xla_force_host_platform_device_count={devices}"])
-    print(f"  run n={n} chunk={chunk} devices={devices} …", flush=True)
+    env["XLA_FLAGS"] = " ".join([*flags,
+                                 f"--xla_force_host_platform_device_count={host_devices}"])
+    print(f"  run {label} …", flush=True)
     proc = subprocess.run([sys.executable, os.path.abspath(__file__), "--worker",
                            json.dumps(cfg)], env=env, capture_output=True, text=True)
     if proc.returncode != 0:
         raise RuntimeError(f"worker {cfg} failed ({proc.returncode}):\n{proc.stderr}")
-    return json.loads(pathlib.Path(cfg["result"]).read_text()), cfg["store"]
+    return json.loads(pathlib.Path(cfg["result"]).read_text())
+
+
+def _cfg(args, tmp, name, **kw):
+    return {"scenario": args.scenario, "lanes": args.lanes, "seed": args.seed,
+            "store": str(tmp / f"{name}.zarr"), "result": str(tmp / f"{name}.json"),
+            "jobs": args.jobs, **kw}
+
+
+def run_worker(args, tmp, n, chunk, devices):
+    """One in-process configuration in a fresh subprocess; its store is left in `tmp`."""
+    cfg = _cfg(args, tmp, f"n{n}_c{chunk}_d{devices}", n=n, chunk=chunk, devices=devices)
+    row = _spawn(cfg, devices, f"n={n} chunk={chunk} devices={devices}")
+    return row, cfg["store"]
+
+
+def run_cluster(args, tmp, n, chunk, workers, devices):
+    """Part 4's LocalCluster of `workers` × `devices` in a fresh subprocess; its store is
+    left in `tmp`."""
+    cfg = _cfg(args, tmp, f"n{n}_c{chunk}_dask{workers}x{devices}", n=n, chunk=chunk,
+               devices=devices, workers=workers)
+    row = _spawn(cfg, devices, f"n={n} chunk={chunk} LocalCluster {workers} workers × "
+                               f"{devices} devices")
+    return row, cfg["store"]
 
 
 def compare_stores(a, b):
@@ -119,14 +226,14 @@ def compare_stores(a, b):
     from rbdyn_jax import sweep
 
     ga, gb = zarr.open_group(a, mode="r"), zarr.open_group(b, mode="r")
-    names = [*COMPARED, *ga.attrs["summaries"]]
+    names = [*COMPARED, *ga.attrs["summaries"].split()]
     same = {k: bool(np.array_equal(ga[k][:], gb[k][:], equal_nan=True)) for k in names}
     same["summarize"] = sweep.summarize(a) == sweep.summarize(b)
     return same
 
 
 def _f(x, spec):
-    return f"{'—':>{len(format(1.0, spec))}}" if x is None else format(x, spec)
+    return "—" if x is None else format(x, spec)
 
 
 def _table(title, rows, cols):
@@ -158,7 +265,11 @@ def main(argv=None):
     p.add_argument("--rss-chunk", type=int, default=1024, help="chunk of part 3")
     p.add_argument("--lanes", type=int, default=64)
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--parts", type=int, nargs="+", choices=[1, 2, 3], default=[1, 2, 3])
+    p.add_argument("--workers", type=int, default=cpus,
+                   help="Dask LocalCluster workers of part 4 (each max(1, devices // workers) "
+                        "host devices)")
+    p.add_argument("--parts", type=int, nargs="+", choices=[1, 2, 3, 4],
+                   default=[1, 2, 3, 4])
     p.add_argument("--jobs", type=int, default=1,
                    help="subprocesses at a time (> 1 only for smoke tests: timings contend)")
     p.add_argument("--out", default="results/benchmarks/sweep_scale.json")
@@ -166,7 +277,7 @@ def main(argv=None):
     args = p.parse_args(argv)
     if args.worker:
         cfg = json.loads(args.worker)
-        row = worker(cfg)
+        row = cluster_worker(cfg) if "workers" in cfg else worker(cfg)
         pathlib.Path(cfg["result"]).write_text(json.dumps(row))
         return row
 
@@ -185,11 +296,21 @@ def main(argv=None):
     pair = [(args.n, args.compare_chunk, d) for d in (1, many)]
     if 2 in args.parts:
         plan.update(dict.fromkeys(pair, True))
+    # Part 4: the in-process run of part 2 on D devices beside the LocalCluster (last).
+    per_worker = max(1, args.devices // args.workers)
+    local = (args.n, args.compare_chunk, args.devices)
+    cluster = ("dask", args.n, args.compare_chunk, args.workers, per_worker)
+    if 4 in args.parts:
+        plan[local] = True
+        plan[cluster] = True
     runs = {}
     with tempfile.TemporaryDirectory(prefix="sweep_scale_") as tmp:
 
         def one(key):
-            row, store = run_worker(args, pathlib.Path(tmp), *key)
+            if key[0] == "dask":
+                row, store = run_cluster(args, pathlib.Path(tmp), *key[1:])
+            else:
+                row, store = run_worker(args, pathlib.Path(tmp), *key)
             if not plan[key]:
                 shutil.rmtree(store, ignore_errors=True)
             return key, row, store
@@ -202,6 +323,16 @@ def main(argv=None):
             result["devices"] = {"n": args.n, "chunk": args.compare_chunk,
                                  "rows": [runs[k][0] for k in pair],
                                  "compared": same, "identical": all(same.values())}
+        if 4 in args.parts:
+            same = compare_stores(runs[local][1], runs[cluster][1])
+            a, b = runs[local][0], runs[cluster][0]
+            rate_a, rate_b = a["steady_traj_per_s"], b["steady_traj_per_s"]
+            empty = dict.fromkeys(("workers", "cluster_start_s", "worker_peak_rss_mib"))
+            result["dask"] = {"n": args.n, "chunk": args.compare_chunk,
+                              "workers": args.workers, "devices_per_worker": per_worker,
+                              "rows": [{"engine": "in-process", **empty, **a}, b],
+                              "compared": same, "identical": all(same.values()),
+                              "ratio": rate_b / rate_a if rate_a and rate_b else None}
     if 1 in args.parts:
         result["chunks"] = {"n": args.n, "devices": args.devices,
                             "rows": [runs[(args.n, c, args.devices)][0] for c in args.chunks]}
@@ -236,6 +367,22 @@ def main(argv=None):
                 ("peak RSS MiB", "peak_rss_mib", 12, ".0f")])
         print(f"peak RSS ratio N={m['rows'][1]['n']} / N={m['rows'][0]['n']}: "
               f"{m['peak_rss_ratio']:.3f} (N ratio {m['n_ratio']:g})")
+
+    if "dask" in result:
+        d = result["dask"]
+        _table(f"4. in-process vs Dask LocalCluster — N = {d['n']}, chunk {d['chunk']}, "
+               f"{d['workers']} workers × {d['devices_per_worker']} devices", d["rows"],
+               [("engine", "engine", 10, ""), ("workers", "workers", 7, "d"),
+                ("devices", "devices", 7, "d"), ("start s", "cluster_start_s", 7, ".2f"),
+                *TIMES, ("worker RSS MiB", "worker_peak_rss_mib", 14, ".0f")])
+        print("(LocalCluster: first chunk = the warm-up, every worker compiling and solving "
+              "one chunk at once; rest = the whole sweep after it)")
+        if d["ratio"] is not None:
+            print(f"steady traj/s LocalCluster ÷ in-process: {d['ratio']:.2f}")
+        diff = [k for k, v in d["compared"].items() if not v]
+        print(f"identical: {d['identical']}"
+              + (f" (differ: {', '.join(diff)})" if diff else
+                 f" ({', '.join(d['compared'])})"))
 
     path = pathlib.Path(args.out)
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -186,14 +186,11 @@ def _hints(status: dict[str, int], scenario) -> list[str]:
 def _cluster(args):
     """A Dask client: on the cluster at `--scheduler`, or on a new `LocalCluster` of
     `--workers` processes (one thread each: a task's solve uses the worker's XLA devices,
-    `--devices` of them, default cores // workers). None: solve in this process."""
+    `--devices` of them, default all). None: solve in this process."""
     if args.scheduler is None and args.workers is None:
         return None, None
-    try:
-        from distributed import Client, LocalCluster
-    except ImportError:
-        raise SystemExit("rbdyn sweep: --scheduler/--workers need Dask: "
-                         "pip install 'rbdyn_jax[dask]'") from None
+    from distributed import Client, LocalCluster
+
     if args.scheduler is not None:
         return Client(args.scheduler), None
     # The workers inherit this process's environment: XLA's flags and the compilation cache.
@@ -207,13 +204,21 @@ def _cluster(args):
 
 
 def sweep_command(args) -> int:
-    dask = args.scheduler is not None or args.workers is not None
-    if args.workers is not None and args.devices is None:
-        args.devices = max(1, (os.cpu_count() or 1) // args.workers)
-    # In-process: one XLA CPU device per core; with --workers the devices of each worker
-    # (its environment comes from this process); with --scheduler the workers' own.
-    _configure_xla(args.devices if args.devices is not None or dask
-                   else (os.cpu_count() or 1))
+    if args.scheduler is not None or args.workers is not None:
+        try:
+            import distributed  # noqa: F401
+        except ImportError:
+            print("rbdyn sweep: --scheduler/--workers need Dask's distributed: "
+                  "pip install 'rbdyn_jax[dask]'", file=sys.stderr)
+            return 2
+    # XLA CPU devices: in-process, one per core; with --workers, cores // workers for each
+    # worker (whose environment comes from this process; on GPUs each worker sees its
+    # GPUs); with --scheduler, the workers' own.
+    cores = os.cpu_count() or 1
+    if args.workers is not None:
+        _configure_xla(args.devices or max(1, cores // args.workers))
+    else:
+        _configure_xla(args.devices if args.devices is not None or args.scheduler else cores)
     import jax
 
     jax.config.update("jax_enable_x64", True)
@@ -588,8 +593,8 @@ def build_parser() -> argparse.ArgumentParser:
     engine = p_sweep.add_mutually_exclusive_group()
     engine.add_argument("--scheduler", default=None, metavar="ADDRESS",
                         help="run the chunks as tasks on the Dask cluster at ADDRESS "
-                             "(tcp://HOST:8786); the store must be on a filesystem its "
-                             "workers see")
+                             "(tcp://HOST:8786); --out must be where its workers reach it: "
+                             "a shared filesystem or an object-storage URL")
     engine.add_argument("--workers", type=int, default=None, metavar="K",
                         help="run the chunks as tasks on a new Dask LocalCluster of K "
                              "worker processes on this machine")

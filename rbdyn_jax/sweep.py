@@ -297,12 +297,18 @@ def _create_store(loc: _Location, sc: Scenario, n: int, chunk: int, seed: int, l
                               "flag_meanings": " ".join(meanings.values())})
     for start in range(0, n, 1 << 20):  # −1 = not run: written, not a fill value
         g["status"][start:start + (1 << 20)] = _NOT_RUN
-    coords = {"time": sc.ts, "trajectory": np.arange(n, dtype=np.int64),
+    coords = {"time": sc.ts, "trajectory": None,
               **{k: np.asarray(v[0]) for k, v in _LABELS.items()}}
     for name, values in coords.items():
-        a = g.create_array(name, shape=values.shape, chunks=(min(len(values), 1 << 20),),
-                           dtype=values.dtype, fill_value=None)
-        a[:] = values
+        if values is None:  # the trajectory index, written a block at a time
+            a = g.create_array(name, shape=(n,), chunks=(min(n, 1 << 20),), dtype="int64",
+                               fill_value=None)
+            for start in range(0, n, 1 << 20):
+                a[start:start + (1 << 20)] = np.arange(start, min(start + (1 << 20), n))
+        else:
+            a = g.create_array(name, shape=values.shape, chunks=values.shape,
+                               dtype=values.dtype, fill_value=None)
+            a[:] = values
         if name in _COORDS:
             units, long_name, description = _COORDS[name]
             attrs = {"units": units}
@@ -499,7 +505,7 @@ def run(
       lane takes the next trajectory as soon as its own has finished). Results are bitwise
       identical for any `chunk`, `devices` and `client` at the same `lanes`.
     - `resume`: continue an interrupted run in `out` (same scenario, n, seed, lanes),
-      solving only the trajectories not yet written.
+      solving only the trajectories not yet written, in the store's own chunks.
     - `overwrite`: replace a sweep store already at `out`, and its plots folder
       (`plots_dir(out)`). Without `resume` or `overwrite` an existing store is refused.
     - `client`: a `dask.distributed.Client`: each chunk is then a task (`solve_chunk`) that
@@ -540,6 +546,9 @@ def run(
     loc = _Location.of(out, storage_options)
     _prepare_store(loc, sc, n, chunk, seed, lanes, resume, overwrite)
     g = loc.group("r+")
+    # One task per zarr chunk of the store (a resumed run keeps the store's chunking, so no
+    # two tasks write one zarr chunk).
+    chunk = g["status"].chunks[0]
     done, failed, todo = _scan(g, chunk)
     t_start = time.perf_counter()
 
