@@ -176,7 +176,27 @@ def _sweep_scale() -> str:
                     "peak RSS (MiB)"], rows)
             + f"\n\nRSS after importing rbdyn_jax and starting JAX: {min(base):.0f}–"
             f"{max(base):.0f} MiB. Stores of 1 and {d['devices']['rows'][-1]['devices']} devices "
-            "bitwise identical: " + ("yes." if d["devices"]["identical"] else "**no**."))
+            "bitwise identical: " + ("yes." if d["devices"]["identical"] else "**no**.")
+            + ("\n\n" + _sweep_dask(d["dask"]) if "dask" in d else ""))
+
+
+def _sweep_dask(d: dict) -> str:
+    """In-process against a Dask LocalCluster: one row each, the ratio, bitwise identity."""
+    rows = []
+    for r in d["rows"]:
+        dask = r["engine"] == "dask"
+        rows.append([r["engine"], r["workers"] if dask else "—", r["devices"],
+                     f"{r['cluster_start_s']:.2f}" if dask else "—",
+                     f"{r['first_chunk_s']:.2f}", f"{r['rest_s']:.2f}",
+                     _n(r["steady_traj_per_s"]),
+                     f"{r['worker_peak_rss_mib']:.0f}" if dask else "—"])
+    return (f"In-process against a Dask `LocalCluster` of {d['workers']} worker processes "
+            f"({d['devices_per_worker']} device each), N = {_n(d['n'])}, chunk "
+            f"{_n(d['chunk'])}:\n\n"
+            + _table(["engine", "workers", "devices", "cluster start (s)", "first chunk (s)",
+                      "the rest (s)", "steady traj/s", "worker peak RSS (MiB)"], rows)
+            + f"\n\nLocalCluster ÷ in-process, steady traj/s: {d['ratio']:.2f}. Stores "
+            "bitwise identical: " + ("yes." if d["identical"] else "**no**."))
 
 
 def _identify() -> str:
