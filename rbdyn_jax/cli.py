@@ -193,13 +193,13 @@ def _cluster(args):
 
     if args.scheduler is not None:
         return Client(args.scheduler), None
-    # The workers inherit this process's environment: XLA's flags and the compilation cache.
+    # The workers inherit this process's environment (XLA's flags), and get its compilation
+    # cache through their own.
     cache = _cache_dir()
-    if cache:
-        os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", cache)
-        os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "1.0")
+    env = ({"JAX_COMPILATION_CACHE_DIR": cache, "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "1"}
+           if cache else {})
     cluster = LocalCluster(n_workers=args.workers, threads_per_worker=1, processes=True,
-                           dashboard_address=":0")
+                           dashboard_address=":0", env=env)
     return Client(cluster), cluster
 
 

@@ -215,6 +215,13 @@ def test_observations_load_the_same_from_npz_netcdf_and_csv(tmp_path):
         cli.load_observations(str(tmp_path / "bad.npz"))
 
 
+@pytest.fixture
+def no_cache(monkeypatch):
+    """`rbdyn sweep` run in this process turns on JAX's persistent compilation cache for
+    the process, unless `$RBDYN_JAX_CACHE_DIR` is empty: keep it off for the other tests."""
+    monkeypatch.setenv("RBDYN_JAX_CACHE_DIR", "")
+
+
 def _small_toml(path, max_steps=None, omega='{ dist = "normal", mean = [0.1, 1.0, 0.1], '
                                            'std = 0.3 }'):
     path.write_text(
@@ -231,7 +238,7 @@ def _files(path):
     return {p: p.read_bytes() for p in sorted(path.rglob("*")) if p.is_file()}
 
 
-def test_sweep_refuses_an_existing_store_and_exports_netcdf(tmp_path, capsys):
+def test_sweep_refuses_an_existing_store_and_exports_netcdf(tmp_path, capsys, no_cache):
     """A second sweep into a store exits 2 naming the store and both flags and changes no
     byte of it; --overwrite replaces it; `rbdyn export` writes a netCDF file xarray reads
     back equal, and refuses to overwrite it unless asked."""
@@ -261,7 +268,7 @@ def test_sweep_refuses_an_existing_store_and_exports_netcdf(tmp_path, capsys):
 
 
 @pytest.mark.parametrize("case", ["some", "all"])
-def test_sweep_exit_status_when_trajectories_fail(tmp_path, capsys, case):
+def test_sweep_exit_status_when_trajectories_fail(tmp_path, capsys, case, no_cache):
     """Exit 3 when some trajectories fail, 4 when all do, after writing everything, with
     the change to make."""
     import xarray as xr

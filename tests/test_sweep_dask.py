@@ -38,6 +38,13 @@ def assert_same(a: dict, b: dict):
         assert np.array_equal(a[k], b[k], equal_nan=True), k
 
 
+@pytest.fixture(autouse=True)
+def no_cache(monkeypatch):
+    """`rbdyn sweep` run in this process turns on JAX's persistent compilation cache for
+    the process, unless `$RBDYN_JAX_CACHE_DIR` is empty: keep it off for the other tests."""
+    monkeypatch.setenv("RBDYN_JAX_CACHE_DIR", "")
+
+
 @pytest.fixture(scope="module")
 def client():
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
