@@ -243,7 +243,7 @@ def sweep_command(args) -> int:
         n_dev = args.devices
         workers = len(client.scheduler_info()["workers"])
         where = (f"as Dask tasks on {workers} worker(s) at {client.scheduler.address}, "
-                 f"{'all' if n_dev is None else n_dev} device(s) each")
+                 + ("each on all its devices" if n_dev is None else f"{n_dev} device(s) each"))
     print(f"  {args.n} trajectories in chunks of {args.chunk} {where}, {args.lanes} lanes "
           f"per solver loop, seed {args.seed}, → {args.out}")
     bar = tqdm(total=args.n, unit="traj", unit_scale=True, dynamic_ncols=True,
