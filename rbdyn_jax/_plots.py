@@ -166,6 +166,12 @@ def _draw_status(fig, status: np.ndarray, names: dict[int, str]) -> None:
     ax.margins(x=0.15)
 
 
+def plots_dir(store: str | pathlib.Path) -> pathlib.Path:
+    """The default folder of a store's plots (`rbdyn plot`): `<store>_plots` beside it."""
+    store = pathlib.Path(store)
+    return store.with_name(store.name + "_plots")
+
+
 def plot_sweep(path, out_dir=None, *, n_sample: int = 8) -> list[pathlib.Path]:
     """Write PNG plots of the sweep dataset stored at `path`.
 
@@ -173,8 +179,8 @@ def plot_sweep(path, out_dir=None, *, n_sample: int = 8) -> list[pathlib.Path]:
 
     - `path`: the zarr store (v2 or v3) written by `rbdyn_jax.sweep` (opened with
       `xarray.open_zarr(path, consolidated=False)`).
-    - `out_dir`: the folder to write into, created if needed; default `<path>_plots`, beside the
-      store (`pathlib.Path(path).with_name(pathlib.Path(path).name + "_plots")`).
+    - `out_dir`: the folder to write into, created if needed; default `plots_dir(path)`,
+      `<path>_plots` beside the store.
     - `n_sample`: how many successful trajectories (the first by index) to draw in
       `trajectories.png`; `polhodes.png` draws the first `min(4, n_sample)` of them.
 
@@ -208,7 +214,7 @@ def plot_sweep(path, out_dir=None, *, n_sample: int = 8) -> list[pathlib.Path]:
         raise ValueError(f"`n_sample` must be at least 1, got {n_sample}.")
 
     path = pathlib.Path(path)
-    out_dir = path.with_name(path.name + "_plots") if out_dir is None else pathlib.Path(out_dir)
+    out_dir = plots_dir(path) if out_dir is None else pathlib.Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     written = []
 

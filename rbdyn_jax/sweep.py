@@ -50,6 +50,7 @@ import numpy as np
 from jax.sharding import NamedSharding, PartitionSpec as P
 
 from ._checks import checks_as_nan
+from ._plots import plots_dir
 from ._xla import jit
 from .integrate import (
     MODE_DEPENDENT_JITS,
@@ -295,28 +296,23 @@ def _create_store(loc: _Location, sc: Scenario, n: int, chunk: int, seed: int, l
                         "long_name": long_name, "description": description})
     g["status"].attrs.update({"flag_values": list(meanings),
                               "flag_meanings": " ".join(meanings.values())})
-    for start in range(0, n, 1 << 20):  # −1 = not run: written, not a fill value
-        g["status"][start:start + (1 << 20)] = _NOT_RUN
-    coords = {"time": sc.ts, "trajectory": None,
+    coords = {"time": sc.ts, "trajectory": None,  # the index: written a block at a time
               **{k: np.asarray(v[0]) for k, v in _LABELS.items()}}
     for name, values in coords.items():
-        if values is None:  # the trajectory index, written a block at a time
-            a = g.create_array(name, shape=(n,), chunks=(min(n, 1 << 20),), dtype="int64",
-                               fill_value=None)
-            for start in range(0, n, 1 << 20):
-                a[start:start + (1 << 20)] = np.arange(start, min(start + (1 << 20), n))
-        else:
-            a = g.create_array(name, shape=values.shape, chunks=values.shape,
-                               dtype=values.dtype, fill_value=None)
+        shape, dtype = ((n,), np.int64) if values is None else (values.shape, values.dtype)
+        a = g.create_array(name, shape=shape, chunks=(min(shape[0], 1 << 20),), dtype=dtype,
+                           fill_value=None)
+        if values is not None:
             a[:] = values
-        if name in _COORDS:
-            units, long_name, description = _COORDS[name]
-            attrs = {"units": units}
-        else:
-            _, long_name, description = _LABELS[name]
-            attrs = {}
+        units, long_name, description = (_COORDS[name] if name in _COORDS
+                                         else (None, *_LABELS[name][1:]))
         a.attrs.update({"_ARRAY_DIMENSIONS": [name], "long_name": long_name,
-                        "description": description, **attrs})
+                        "description": description,
+                        **({"units": units} if units else {})})
+    for start in range(0, n, 1 << 20):  # a block at a time: status −1 (not run: written,
+        stop = min(start + (1 << 20), n)  # not a fill value) and the trajectory index
+        g["status"][start:stop] = _NOT_RUN
+        g["trajectory"][start:stop] = np.arange(start, stop)
     # Attribute values are strings and numbers only, so that netCDF can hold them too.
     g.attrs.update({
         "title": f"rbdyn_jax Monte Carlo sweep: {sc.name}",
@@ -347,12 +343,6 @@ def _check_resumable(loc: _Location, sc: Scenario, n: int, seed: int, lanes: int
         if g.attrs.get(k) != v:
             raise ValueError(f"cannot resume {loc.url}: its {k} is {g.attrs.get(k)!r}, this run's "
                              f"is {v!r}; use a new --out or drop --resume.")
-
-
-def plots_dir(store: str | pathlib.Path) -> pathlib.Path:
-    """The default folder of a store's plots (`rbdyn plot`): `<store>_plots` beside it."""
-    store = pathlib.Path(store)
-    return store.with_name(store.name + "_plots")
 
 
 def _prepare_store(loc: _Location, sc: Scenario, n, chunk, seed, lanes, resume,

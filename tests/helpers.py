@@ -231,3 +231,22 @@ def small_scenario(**over) -> dict:
     for k, v in over.items():
         d[k] = v
     return d
+
+
+SWEEP_NAMES = ("omega", "quat", "inertia", "status", "num_steps", "energy_drift",
+               "max_abs_omega", "first_flip_time")
+
+
+def load_store(path, names=SWEEP_NAMES) -> dict:
+    """The named arrays of a sweep store (those it has), read with zarr."""
+    import zarr
+
+    g = zarr.open_group(str(path), mode="r")
+    return {k: g[k][:] for k in names if k in g}
+
+
+def assert_same_arrays(a: dict, b: dict):
+    """Bitwise equality of two `load_store` results (NaNs equal)."""
+    assert a.keys() == b.keys()
+    for k in a:
+        assert np.array_equal(a[k], b[k], equal_nan=True), k

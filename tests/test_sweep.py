@@ -16,24 +16,11 @@ import numpy as np
 import pytest
 import xarray as xr
 import zarr
-from helpers import small_scenario as small
+from helpers import assert_same_arrays as assert_same, load_store as load, small_scenario as small
 
 import rbdyn_jax as rb
 from rbdyn_jax import sweep
 from rbdyn_jax.scenario import Scenario, ScenarioError
-
-
-def load(path, names=("omega", "quat", "inertia", "status", "num_steps", "energy_drift",
-                      "max_abs_omega", "first_flip_time")):
-    g = zarr.open_group(str(path), mode="r")
-    return {k: g[k][:] for k in names if k in g}
-
-
-def assert_same(a: dict, b: dict):
-    assert a.keys() == b.keys()
-    for k in a:
-        assert np.array_equal(a[k], b[k], equal_nan=True), k
-
 
 # --------------------------------------------------------------------------------------
 # Running: determinism, dataset, isolation, resume

@@ -14,7 +14,7 @@ import time
 import numpy as np
 import pytest
 import zarr
-from helpers import small_scenario as small
+from helpers import assert_same_arrays as assert_same, load_store as load, small_scenario as small
 
 from rbdyn_jax import cli, sweep
 from rbdyn_jax.scenario import Scenario
@@ -22,21 +22,6 @@ from rbdyn_jax.scenario import Scenario
 distributed = pytest.importorskip("distributed")
 
 pytestmark = pytest.mark.xdist_group("dask")  # one cluster for the module (--dist loadgroup)
-
-NAMES = ("omega", "quat", "inertia", "status", "num_steps", "energy_drift", "max_abs_omega",
-         "first_flip_time")
-
-
-def load(path, names=NAMES):
-    g = zarr.open_group(str(path), mode="r")
-    return {k: g[k][:] for k in names if k in g}
-
-
-def assert_same(a: dict, b: dict):
-    assert a.keys() == b.keys()
-    for k in a:
-        assert np.array_equal(a[k], b[k], equal_nan=True), k
-
 
 @pytest.fixture(autouse=True)
 def no_cache(monkeypatch):
@@ -91,7 +76,7 @@ def test_resume_on_the_cluster_after_an_interrupted_run(client, reference, tmp_p
     # another --chunk: the tasks keep the store's chunks (no two write one zarr chunk)
     sweep.run(Scenario.from_dict(small()), N, out, chunk=40, seed=3, lanes=8, resume=True,
               client=client, progress=seen.append)
-    assert [p.solved_now for p in seen] == [16, 16, 16, 16, 4]
+    assert sorted(p.solved_now for p in seen) == [4, 16, 16, 16, 16]  # any order
     assert_same(load(reference), load(out))
 
 
