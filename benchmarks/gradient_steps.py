@@ -6,7 +6,9 @@ The lane solver's gradient (`simulate_batch(..., batching=rb.Lanes(…))` under 
 (`integrate._sensitivity.Sensitivity`). `gradients.py` times whole solves; this script
 times one Tsit5
 step as the lane loop takes it (diffrax's `solver.step` on the lanes' batched state,
-`integrate._lanes.LaneField`), for
+`integrate._lanes.LaneField`: the lane axis last on every leaf of the state, of the
+sensitivities and of a per-lane model, the lanes' times of shape `(lanes,)`, NumPy's rank
+promotion allowed around the step), for
 
 - `forward`: the state (ω, q), the step of the forward solve;
 - `sensitivities`: the state and ω's 18 columns for the six inertia parameters, the step of
@@ -97,10 +99,12 @@ def _jit(fn):
 def _loops(lanes, steps, kind_list):
     """name -> a function of no arguments running its compiled loop; and the check."""
     model = rb.RigidBody(jnp.asarray(J))
-    w0 = jnp.asarray(np.random.default_rng(0).normal(size=(lanes, 3)))
-    y0 = rb.State(w0, jnp.tile(jnp.array([1.0, 0.0, 0.0, 0.0]), (lanes, 1)))
+    # The lane axis last on every leaf (`LaneField`): ω (3, lanes), q (4, lanes); each
+    # lane's ω0 as before the layout changed (the rows of a (lanes, 3) draw).
+    w0 = jnp.asarray(np.random.default_rng(0).normal(size=(lanes, 3)).T)
+    y0 = rb.State(w0, jnp.tile(jnp.array([[1.0], [0.0], [0.0], [0.0]]), (1, lanes)))
     t0, span = jnp.asarray(0.0), jnp.asarray(SPAN)
-    tprev = jnp.zeros((lanes, 1))
+    tprev = jnp.zeros(lanes)  # the lanes' times, (lanes,) as the lane loop's
     tnext = tprev + H
     ok = jnp.ones(lanes, bool)
     solver = diffrax.Tsit5(scan_kind="lax")  # the lane loop's stage loop
@@ -115,12 +119,14 @@ def _loops(lanes, steps, kind_list):
 
         def body(_, c):
             y, ss = c
-            y1, _, _, ss1, _ = solver.step(term, tprev, tnext, y, ok, ss, False)
+            # (lanes,) times against (…, lanes) leaves, as `lane_loop`'s step allows
+            with jax.numpy_rank_promotion("allow"):
+                y1, _, _, ss1, _ = solver.step(term, tprev, tnext, y, ok, ss, False)
             return y1, ss1
 
         return jax.lax.fori_loop(0, steps, body, (y0, (jnp.array(False), f0)))[0]
 
-    S0 = (jnp.zeros((lanes, 3 * P)),)
+    S0 = (jnp.zeros((3 * P, lanes)),)  # ω's (3, P) columns per lane, flattened
     fns = {"forward": _jit(lambda y0: stepper(Plain(model), y0))}
     for name, aug in (("sensitivities", Sensitivity(model, *args)),
                       ("sensitivities, field zeroed", _ZeroField(model, *args)),
@@ -129,8 +135,9 @@ def _loops(lanes, steps, kind_list):
                        Sensitivity(model, (), (), P, (), (0,)))):
         fns[name] = _jit(lambda y0, aug=aug: stepper(aug, (y0, S0)))
 
-    # The reverse pass: per-lane inertia (a batched model), ω recorded at each step start.
-    Jl = jnp.broadcast_to(jnp.asarray(J), (lanes, 3, 3))
+    # The reverse pass: per-lane inertia (a batched model, (3, 3, lanes)), ω recorded at
+    # each step start.
+    Jl = jnp.broadcast_to(jnp.asarray(J)[..., None], (3, 3, lanes))
     group = eqx.tree_at(lambda g: g.model.inertia, _OmegaGroup(model, y0.quat), Jl)
 
     def omega_step(kind):
@@ -140,7 +147,8 @@ def _loops(lanes, steps, kind_list):
             g = eqx.tree_at(lambda g: g.model.inertia, group, Jl)
             term = _compat.wrapped_term(diffrax.ODETerm(LaneField(g, True, t0, span)))
             f0 = term.vf(tprev, w, ok)
-            return rk.step(term, tprev, tnext, w, ok, (jnp.array(False), f0), False)[0]
+            with jax.numpy_rank_promotion("allow"):
+                return rk.step(term, tprev, tnext, w, ok, (jnp.array(False), f0), False)[0]
 
         return step
 
@@ -159,8 +167,9 @@ def _loops(lanes, steps, kind_list):
         def run(ws, lam):
             def body(k, c):
                 lam, mu = c
-                _, vjp = jax.vjp(step, ws[steps - 1 - k], Jl)
-                dw, dJ = vjp(lam)
+                with jax.numpy_rank_promotion("allow"):
+                    _, vjp = jax.vjp(step, ws[steps - 1 - k], Jl)
+                    dw, dJ = vjp(lam)
                 return dw, mu + dJ
 
             return jax.lax.fori_loop(0, steps, body, (lam, jnp.zeros_like(Jl)))
@@ -169,18 +178,18 @@ def _loops(lanes, steps, kind_list):
         return lambda: run(ws, lam)
 
     ws = _jit(record)(w0)
-    lam = jnp.asarray(np.random.default_rng(1).normal(size=(lanes, 3)))
+    lam = jnp.asarray(np.random.default_rng(1).normal(size=(lanes, 3)).T)  # (3, lanes)
     calls = {name: (lambda f=f: f(y0)) for name, f in fns.items()}
     for kind in kind_list:
         calls[f"reverse, diffrax VJP (scan_kind={kind})"] = reverse(kind)
 
     def check():
         """max |g_sens − g_rev| / max |g_sens| of d(λ·ω_K)/dθ over the six parameters."""
-        S = calls["sensitivities"]()[1][0].reshape(lanes, 3, P)
-        g_sens = jnp.einsum("lip,li->lp", S, lam)
-        dJ = calls[f"reverse, diffrax VJP (scan_kind={kind_list[0]})"]()[1]
-        g_rev = jnp.stack([dJ[:, i, i] if i == j else dJ[:, i, j] + dJ[:, j, i]
-                           for i, j in SYMMETRIC], axis=-1)
+        S = calls["sensitivities"]()[1][0].reshape(3, P, lanes)
+        g_sens = jnp.einsum("ipl,il->pl", S, lam)
+        dJ = calls[f"reverse, diffrax VJP (scan_kind={kind_list[0]})"]()[1]  # (3, 3, lanes)
+        g_rev = jnp.stack([dJ[i, i] if i == j else dJ[i, j] + dJ[j, i]
+                           for i, j in SYMMETRIC])
         return float(jnp.max(jnp.abs(g_sens - g_rev)) / jnp.max(jnp.abs(g_sens)))
 
     return calls, check

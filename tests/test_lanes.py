@@ -577,3 +577,36 @@ def test_two_devices_and_the_persistent_cache(tmp_path):
     np.testing.assert_array_equal(got["steps2"], plain2.stats["num_steps"])
     np.testing.assert_allclose(got["omega2"], plain2.ys.omega, rtol=0, atol=ROUND_OFF)
     assert any(p.is_file() for p in cache.rglob("*")), "nothing entered the cache"
+
+
+def test_throw_over_two_devices_raises_instead_of_aborting(tmp_path):
+    """`throw=True` on a batch the lane solver splits over two devices: a failed check
+    raises, called eagerly and inside a caller's `jit`, rather than aborting the process
+    (XLA does when a check raises on one device while the other waits for it)."""
+    code = textwrap.dedent("""
+        import jax, jax.numpy as jnp, numpy as np
+        import equinox as eqx
+        import rbdyn_jax as rb
+        jax.config.update("jax_enable_x64", True)
+        assert jax.local_device_count() == 2
+        w = np.ones((8, 3)); w[5, 0] = np.inf
+        y0s = rb.State(jnp.asarray(w), jnp.tile(jnp.array([1.0, 0.0, 0.0, 0.0]), (8, 1)))
+        model, ts = rb.RigidBody(jnp.diag(jnp.array([1.0, 2.0, 3.0]))), jnp.linspace(0, 1, 3)
+        try:
+            rb.simulate_batch(model, y0s, ts, throw=True)
+        except eqx.EquinoxRuntimeError as e:
+            assert "not finite" in str(e)
+        else:
+            raise AssertionError("no error")
+        try:
+            jax.jit(lambda y: rb.simulate_batch(model, y, ts, throw=True).ys.omega)(y0s)
+        except Exception as e:
+            assert "not finite" in str(e)
+        else:
+            raise AssertionError("no error")
+        print("raised twice")
+    """)
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
+    out = subprocess.run([sys.executable, "-c", code], env=env, timeout=120,
+                         capture_output=True, text=True)
+    assert out.returncode == 0 and "raised twice" in out.stdout, out.stderr[-2000:]

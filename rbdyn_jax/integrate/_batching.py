@@ -57,7 +57,15 @@ class Lanes(AbstractBatching):
 
     - `lanes`: lanes per device; `None` chooses from the batch size and the device count.
     - `devices`: how many local devices share the batch; `None`, all of the default
-      backend (on CPU one, unless XLA was started with several, `configure_xla`).
+      backend (on CPU one per core: `import rbdyn_jax` starts XLA so, `configure_xla`).
+
+    A runtime check that fails inside a caller's `jax.jit` (an inertia checked by the
+    model's constructor from traced values, say) while the batch runs on several devices
+    makes XLA abort the process, after its timeout of about a minute: the device that
+    raised leaves the others waiting for it. Check inputs before tracing (NumPy values are
+    checked at once), run such a program with `devices=1`, or set equinox's
+    `EQX_ON_ERROR=nan`. `simulate_batch(..., throw=True)` inside a caller's
+    transformation runs on one device for this reason.
 
     Needs an explicit Runge–Kutta solver (`diffrax.AbstractERK`: Tsit5, Dopri5, …) and a
     `diffrax.PIDController`; takes no `adjoint`. Same steps and saved values (to

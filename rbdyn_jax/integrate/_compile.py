@@ -57,4 +57,9 @@ def thrown(traj):
     """`traj`, raising at run time (`eqx.error_if`) if any of its results failed."""
     if succeeded_now(traj.result):
         return traj
+    if not isinstance(_compat.result_value(traj.result), jax.core.Tracer):
+        # A concrete batch may lie across several devices (the lane solver's); XLA aborts
+        # the process when a host callback raises in a program over several devices, so
+        # the check runs on one.
+        traj = jax.device_put(traj, jax.local_devices()[0])
     return traj.result.error_if(traj, jnp.any(traj.result != RESULTS.successful))

@@ -71,11 +71,13 @@ class Plain(AbstractLaneSystem):
 
 
 class LaneField(eqx.Module):
-    """The vector field of `lanes` trajectories as one batched state (leading lane axis on
-    every leaf), each lane with its own unit time `s[:, 0]` (`unit_time`) and `ok` flag.
-    diffrax's solver step then runs on whole `(lanes, …)` arrays: its stage loop combines
-    contiguous blocks instead of a vmapped loop of tiny ones (bitwise the same arithmetic).
-    `system` carries a leading lane axis when `batched`."""
+    """The vector field of `lanes` trajectories as one batched state (the lane axis last on
+    every leaf), each lane with its own unit time `s` (`unit_time`) and `ok` flag. diffrax's
+    solver step then runs on whole `(…, lanes)` arrays: its stage loop combines contiguous
+    blocks instead of a vmapped loop of tiny ones (bitwise the same arithmetic), and each
+    component of the state is a contiguous row of lanes, which XLA vectorises across lanes
+    (with the lanes first, a component is a strided column). `system` carries a lane axis
+    last when `batched`."""
 
     system: AbstractLaneSystem
     batched: bool = eqx.field(static=True)
@@ -83,21 +85,22 @@ class LaneField(eqx.Module):
     span: Array
 
     def __call__(self, s, y, ok):  # `Guarded` per lane: the vmapped path's arithmetic
-        axis = 0 if self.batched else None
+        axis = -1 if self.batched else None
         return eqx.filter_vmap(lambda m, s, x, ok: Guarded(m, self.t0, self.span)(s, x, ok),
-                               in_axes=(axis, 0, 0, 0))(self.system, s[:, 0], y, ok)
+                               in_axes=(axis, 0, -1, 0), out_axes=-1)(self.system, s, y, ok)
 
 
 class LaneState(eqx.Module):
     """The lane loop's state. `L` lanes, `N` trajectories, `n` output times; times in the
-    unit time s ∈ [0, 1] (`unit_time`)."""
+    unit time s ∈ [0, 1] (`unit_time`). The lane axis is the last of `y`, `solver_state`,
+    `model` and `dense` (`LaneField`), the first of the controller's state."""
 
     # Per lane:
     idx: Int[Array, " L"]  # the lane's trajectory, as a position in the hand-out order; N: idle
     tprev: Float[Array, " L"]  # start of the lane's next step
     tnext: Float[Array, " L"]  # end of the lane's next step
     y: PyTree  # the state at `tprev`
-    solver_state: PyTree  # the solver's (its first stage, for an FSAL method)
+    solver_state: PyTree  # f(tprev, y) for an FSAL method (the next step's first stage); else None
     controller_state: PyTree  # the step-size controller's
     ok: Bool[Array, " L"]  # the trajectory's start was finite
     model: PyTree  # the lanes' model arrays, when every trajectory has its own; else None
@@ -114,14 +117,16 @@ class LaneState(eqx.Module):
     out_result: Int[Array, " N"]  # each trajectory's code, once finished
 
 
-def lane_select(mask, new, old, axis=0):
-    """Per-lane `where` on pytrees whose lane axis is `axis`."""
+def lane_select(mask, new, old):
+    """Per-lane `where` on pytrees whose lane axis is the last."""
+    return jax.tree_util.tree_map(
+        lambda a, b: jnp.where(jnp.broadcast_to(mask, b.shape), a, b), new, old)
 
-    def sel(a, b):
-        return jnp.where(mask.reshape((1,) * axis + mask.shape + (1,) * (b.ndim - axis - 1)),
-                         a, b)
 
-    return jax.tree_util.tree_map(sel, new, old)
+def first_select(mask, new, old):
+    """Per-lane `where` on pytrees whose lane axis is the first."""
+    return jax.tree_util.tree_map(
+        lambda a, b: jnp.where(mask.reshape(mask.shape + (1,) * (b.ndim - 1)), a, b), new, old)
 
 
 def clip_floor(dtype) -> np.floating:
@@ -135,6 +140,35 @@ def clip_floor(dtype) -> np.floating:
 
 def take(tree, i):
     return jax.tree_util.tree_map(lambda x: x[i], tree)
+
+
+def take_last(tree, i):
+    return jax.tree_util.tree_map(lambda x: x[..., i], tree)
+
+
+def lanes_last(tree):
+    """A table of trajectories, `(N, …)` on every leaf, as `(…, N)`."""
+    return jax.tree_util.tree_map(lambda x: jnp.moveaxis(x, 0, -1), tree)
+
+
+def lanes_first(tree):
+    """`(…, L)` on every leaf as `(L, …)`."""
+    return jax.tree_util.tree_map(lambda x: jnp.moveaxis(x, -1, 0), tree)
+
+
+def write_rows(buf, index, vals):
+    """`buf` with `vals[l]` written at `buf[index[0][l], index[1][l], …]` for each lane l,
+    in turn (a loop of `dynamic_update_slice`s, not a scatter: XLA:CPU compiles a while
+    loop holding a scatter as a sequence of kernels its runtime dispatches one by one at
+    every iteration, and one without as a single function, `_xla.LOOP_OPTION`)."""
+
+    def one(l, buf):
+        start = tuple(i[l].astype(jnp.int32) for i in index)
+        start += (jnp.zeros((), jnp.int32),) * (buf.ndim - len(index))
+        v = vals[l]
+        return jax.lax.dynamic_update_slice(buf, v.reshape((1,) * len(index) + v.shape), start)
+
+    return jax.lax.fori_loop(0, vals.shape[0], one, buf)
 
 
 def _term(model, t0, span):
@@ -165,7 +199,7 @@ def _interpolate(solver, tprev, tnext, dense, t):
         terms += [(w[len(keys) + j], k[j]) for j in range(stages)]
         out = None
         for wi, x in terms:
-            term = wi.reshape(wi.shape + (1,) * (x.ndim - 1)) * x
+            term = jnp.broadcast_to(wi, x.shape) * x  # the lane axis last
             out = term if out is None else out + term
         return out
 
@@ -182,7 +216,7 @@ def lane_loop(system: AbstractLaneSystem, y0s, ts, controller, *, solver, max_st
     the last ones are short and the lanes finish nearly together. `system` has a leading
     trajectory axis on every array leaf when `batched`.
     """
-    if getattr(solver, "scan_kind", "lax") is None:
+    if solver.scan_kind is None:
         # Runge–Kutta stages in a plain while loop rather than diffrax's checkpointed one
         # (a custom VJP, which forward-mode autodiff cannot pass); the same arithmetic.
         solver = eqx.tree_at(lambda s: s.scan_kind, solver, "lax", is_leaf=lambda x: x is None)
@@ -195,7 +229,7 @@ def lane_loop(system: AbstractLaneSystem, y0s, ts, controller, *, solver, max_st
     t1_floor = jnp.asarray(clip_floor(ts.dtype))  # diffeqsolve's clip
     dyn, static = eqx.partition(system, eqx.is_array)
     axis = 0 if batched else None
-    fsal = getattr(getattr(solver, "tableau", None), "fsal", False)
+    fsal = solver.tableau.fsal
 
     def first(m, y0):
         ok, y, f = start(m.model, m.primal(y0), start_time)  # f at y: the stand-in if not ok
@@ -204,13 +238,10 @@ def lane_loop(system: AbstractLaneSystem, y0s, ts, controller, *, solver, max_st
         tnext, cstate = controller.init(term, t0, t1, y, dt0, ok, solver.func,
                                         solver.error_order(term))
         tnext = jnp.minimum(tnext, t1)
-        if fsal:
-            # An explicit FSAL Runge–Kutta step starts from f(t0, y0): give it now (what
-            # `solver.init` would compute), so that a refilled lane does not make every
-            # lane re-evaluate its first stage.
-            sstate = (jnp.array(False), per_unit_time(span, where_tree(ok, f_run, 0.0)))
-        else:
-            sstate = solver.init(_term(m, start_time, span), t0, tnext, y_run, ok)
+        # An FSAL step starts from f(t0, y0), the last stage of the step before: give it
+        # now, so that a refilled lane needs no extra evaluation of the field. (Another
+        # method evaluates its first stage in the step.)
+        sstate = per_unit_time(span, where_tree(ok, f_run, 0.0)) if fsal else None
         # How long the trajectory will take: |f(t0, y0)| in the controller's tolerance
         # scale. An ordering only: no tangents through it.
         f, y_ = jax.lax.stop_gradient((f, y))
@@ -221,6 +252,8 @@ def lane_loop(system: AbstractLaneSystem, y0s, ts, controller, *, solver, max_st
 
     ok0, y0r, tnext0, sstate0, cstate0, difficulty = eqx.filter_vmap(
         first, in_axes=(axis, 0))(system, y0s)
+    y0r, sstate0 = lanes_last((y0r, sstate0))
+    lane_dyn = lanes_last(dyn) if batched else dyn
     order = jnp.argsort(-difficulty)  # longest first
     error_order = solver.error_order(diffrax.ODETerm(Guarded(system, start_time, span)))
     primal = system.primal
@@ -234,14 +267,20 @@ def lane_loop(system: AbstractLaneSystem, y0s, ts, controller, *, solver, max_st
         cstate = jax.tree_util.tree_map(jnp.asarray, cstate)
         return keep, tp, tn, cstate, result_code(result)
 
-    def step(m, tprev, tnext, y, ok, sstate):
+    def step(m, tprev, tnext, y, ok, f0):
         term = _compat.wrapped_term(diffrax.ODETerm(LaneField(m, batched, start_time, span)))
-        return solver.step(term, tprev[:, None], tnext[:, None], y, ok, sstate, False)
+        # diffrax multiplies each lane's rows by its time step, `(L,)` against `(…, L)`:
+        # NumPy's broadcasting, which a caller's `jax_numpy_rank_promotion="raise"` refuses.
+        with jax.numpy_rank_promotion("allow"):
+            y1, y_error, dense, sstate, _ = solver.step(
+                term, tprev, tnext, y, ok, None if f0 is None else (jnp.array(False), f0),
+                False)
+        return y1, y_error, dense, None if sstate is None else sstate[1]
 
     lane = order[:L]
-    m0 = take(dyn, lane) if batched else None
+    m0 = take_last(lane_dyn, lane) if batched else None
     tprev0 = jnp.full(L, t0)
-    y_lane, ss_lane, ok_lane = take(y0r, lane), take(sstate0, lane), ok0[lane]
+    y_lane, ss_lane, ok_lane = take_last(y0r, lane), take_last(sstate0, lane), ok0[lane]
     dense_struct = jax.eval_shape(lambda: step(
         eqx.combine(m0 if batched else dyn, static), tprev0, tnext0[lane], y_lane, ok_lane,
         ss_lane)[2])
@@ -252,9 +291,9 @@ def lane_loop(system: AbstractLaneSystem, y0s, ts, controller, *, solver, max_st
         dense_t=jnp.zeros((2, L), ts.dtype), pending=jnp.zeros(L, bool),
         save=jnp.zeros(L, jnp.int32), counts=jnp.zeros((3, L), int),
         result=jnp.zeros(L, jnp.int32), next=jnp.asarray(L, jnp.int32),
-        ys=jax.tree_util.tree_map(lambda x: jnp.full((N, n) + x.shape[1:], jnp.inf, x.dtype),
+        ys=jax.tree_util.tree_map(lambda x: jnp.full((N + 1, n) + x.shape[1:], jnp.inf, x.dtype),
                                   y0s),
-        out_counts=jnp.zeros((N, 3), int), out_result=jnp.zeros(N, jnp.int32),
+        out_counts=jnp.zeros((N + 1, 3), int), out_result=jnp.zeros(N + 1, jnp.int32),
     )
     # The state, the solver's state, the step's dense output and the saved values take a
     # batch axis (`jax.vmap`) from the model and the initial states (and tangents, for a
@@ -278,7 +317,6 @@ def lane_loop(system: AbstractLaneSystem, y0s, ts, controller, *, solver, max_st
             state, **{k: jax.tree_util.tree_map(tied, getattr(state, k))
                       for k in ("y", "solver_state", "dense", "ys")})
 
-    lane_ids = jnp.arange(L, dtype=order.dtype)
 
     def cond(c: LaneState):
         return jnp.any(c.idx < N)
@@ -288,50 +326,55 @@ def lane_loop(system: AbstractLaneSystem, y0s, ts, controller, *, solver, max_st
         current = order[jnp.minimum(c.idx, N - 1)]  # each lane's row of the batch
         # (1) Save one output time from each lane's last step.
         s = jnp.minimum(c.save, n - 1)
-        vals = _interpolate(solver, c.dense_t[0], c.dense_t[1], c.dense, ts[s])
-        # Lanes with nothing to save write to rows N + lane, out of bounds and dropped. Every
-        # row is then distinct, as `unique_indices` promises, and forward-mode autodiff
-        # scatters the tangents as it scatters the values (without the promise, JAX's
-        # scatter JVP masks the whole (N, n, …) buffer at every iteration: quadratic in N).
-        row = jnp.where(c.pending, current, N + lane_ids)
-        ys = jax.tree_util.tree_map(
-            lambda o, v: o.at[row, s].set(v, mode="drop", unique_indices=True), c.ys, vals)
+        vals = lanes_first(
+            _interpolate(solver, c.dense_t[0], c.dense_t[1], c.dense, ts[s]))
+        # Lanes with nothing to save write to the spare row N.
+        row = jnp.where(c.pending, current, N)
+        ys = jax.tree_util.tree_map(lambda o, v: write_rows(o, (row, s), v), c.ys, vals)
         save = c.save + c.pending.astype(jnp.int32)
         s = jnp.minimum(save, n - 1)
         pending = c.pending & (save < n) & (ts[s] <= c.dense_t[1])
         # (2) Finished lanes report and take the next trajectory.
         done = active & ~pending & ((c.tprev >= t1) | (c.result != 0))
-        row = jnp.where(done, current, N + lane_ids)
-        out_counts = c.out_counts.at[row].set(c.counts.T, mode="drop", unique_indices=True)
-        out_result = c.out_result.at[row].set(c.result, mode="drop", unique_indices=True)
-        new = c.next + jnp.cumsum(done, dtype=jnp.int32) - 1
-        nxt = c.next + jnp.sum(done, dtype=jnp.int32)
-        pick = order[jnp.minimum(new, N - 1)]
-        idx = jnp.where(done, jnp.where(new < N, new, N), c.idx)
-        tprev = jnp.where(done, t0, c.tprev)
-        tnext = lane_select(done, tnext0[pick], c.tnext)
-        y = lane_select(done, take(y0r, pick), c.y)
-        sstate = lane_select(done, take(sstate0, pick), c.solver_state)
-        cstate = lane_select(done, take(cstate0, pick), c.controller_state)
-        ok = lane_select(done, ok0[pick], c.ok)
-        m = lane_select(done, take(dyn, pick), c.model) if batched else None
-        save = jnp.where(done, 0, save)
-        counts = jnp.where(done, 0, c.counts)
-        result = jnp.where(done, 0, c.result)
+        lanes_now = (c.idx, c.tprev, c.tnext, c.y, c.solver_state, c.controller_state, c.ok,
+                     c.model, save, c.counts, c.result, c.out_counts, c.out_result, c.next)
+
+        def refill(lanes_now):
+            (idx, tprev, tnext, y, sstate, cstate, ok, m, save, counts, result, out_counts,
+             out_result, nxt) = lanes_now
+            row = jnp.where(done, current, N)
+            out_counts = write_rows(out_counts, (row,), counts.T)
+            out_result = write_rows(out_result, (row,), result)
+            new = nxt + jnp.cumsum(done, dtype=jnp.int32) - 1
+            nxt = nxt + jnp.sum(done, dtype=jnp.int32)
+            pick = order[jnp.minimum(new, N - 1)]
+            idx = jnp.where(done, jnp.where(new < N, new, N), idx)
+            tprev = jnp.where(done, t0, tprev)
+            tnext = jnp.where(done, tnext0[pick], tnext)
+            y = lane_select(done, take_last(y0r, pick), y)
+            sstate = lane_select(done, take_last(sstate0, pick), sstate)
+            cstate = first_select(done, take(cstate0, pick), cstate)
+            ok = jnp.where(done, ok0[pick], ok)
+            m = lane_select(done, take_last(lane_dyn, pick), m) if batched else None
+            save = jnp.where(done, 0, save)
+            counts = jnp.where(done, 0, counts)
+            result = jnp.where(done, 0, result)
+            return (idx, tprev, tnext, y, sstate, cstate, ok, m, save, counts, result,
+                    out_counts, out_result, nxt)
+
+        (idx, tprev, tnext, y, sstate, cstate, ok, m, save, counts, result, out_counts,
+         out_result, nxt) = jax.lax.cond(jnp.any(done), refill, lambda x: x, lanes_now)
         # (3) One solver step in every lane with nothing left to save.
         go = (idx < N) & ~pending & (tprev < t1) & (result == 0)
-        y1, y_error, dense, ss1, _ = step(eqx.combine(m if batched else dyn, static), tprev,
-                                          tnext, y, ok, sstate)
-        ss1 = jax.tree_util.tree_map(lambda a, b: jnp.broadcast_to(a, b.shape), ss1, sstate)
-        keep, tp, tn, cs1, step_result = jax.vmap(control)(
+        y1, y_error, dense, ss1 = step(eqx.combine(m if batched else dyn, static), tprev,
+                                       tnext, y, ok, sstate)
+        keep, tp, tn, cs1, step_result = jax.vmap(control, in_axes=(0, 0, -1, -1, -1, 0))(
             tprev, tnext, primal(y), primal(y1), primal(y_error), cstate)
         accept = go & keep
         y = lane_select(accept, y1, y)
         sstate = lane_select(accept, ss1, sstate)
-        cstate = lane_select(go, cs1, cstate)
-        dense = dict(lane_select(accept, {k: v for k, v in dense.items() if k != "k"},
-                                 {k: v for k, v in c.dense.items() if k != "k"}),
-                     k=lane_select(accept, dense["k"], c.dense["k"], axis=1))
+        cstate = first_select(go, cs1, cstate)
+        dense = lane_select(accept, dense, c.dense)
         dense_t = jnp.where(accept, jnp.stack([tprev, tnext]), c.dense_t)
         tprev = jnp.where(go, tp, tprev)
         tnext = jnp.where(go, tn, tnext)
@@ -348,4 +391,4 @@ def lane_loop(system: AbstractLaneSystem, y0s, ts, controller, *, solver, max_st
                          out_result=out_result)
 
     c = jax.lax.while_loop(cond, body, state)
-    return c.ys, ok0, c.out_result, c.out_counts
+    return take(c.ys, slice(N)), ok0, c.out_result[:N], c.out_counts[:N]

@@ -10,8 +10,9 @@ import numpy as np
 from jaxtyping import ArrayLike, Float, PyTree
 
 from .._checks import as_float_array
+from .._xla import top_level
 from ..models import AbstractRigidBody
-from ._batching import AbstractBatching, default_batching
+from ._batching import AbstractBatching, Lanes, default_batching
 from ._compile import cacheable, compiled, thrown
 from ._diffeqsolve import solve
 from ._solution import Trajectory
@@ -164,6 +165,9 @@ def simulate_batch(
       giving one selects `Vmap` by default.
     - `throw`: default `False`: a failing trajectory (`max_steps_reached`,
       `nonfinite_state`, …) gets its own code in `result` and the others are unaffected.
+      With `throw=True` inside a caller's transformation (`jax.jit`, …), the lane solver
+      runs on one device: XLA aborts the process when a check raises on one device of a
+      program while the others wait for it.
 
     **Returns:** a `Trajectory` with a leading batch axis on every leaf (including `ts`,
     `stats` and `result`).
@@ -174,6 +178,8 @@ def simulate_batch(
     elif not isinstance(batching, AbstractBatching):
         raise ValueError("`batching` must be `rbdyn_jax.Lanes(...)`, `rbdyn_jax.Vmap()` or "
                          f"None, got {type(batching).__name__}.")
+    if throw and isinstance(batching, Lanes) and not top_level():
+        batching = eqx.tree_at(lambda b: b.devices, batching, 1, is_leaf=lambda x: x is None)
     traj = batching.solve(model, y0s, ts, solver=solver, controller=controller,
                           adjoint=adjoint, max_steps=max_steps, dt0=dt0,
                           model_axes=model_axes, cacheable=cacheable(ts, controller))
