@@ -15,11 +15,12 @@
 - `rbdyn demo`: the shipped default body, one trajectory, printed.
 - `rbdyn --version`: the installed version.
 
-On a CPU-only machine `rbdyn sweep` splits the host into `--devices` XLA devices (default:
-one per core), since one XLA CPU device uses about one core for these solves. Every command
-starts XLA with `rbdyn_jax.configure_xla`'s flags (while loops compiled whole). It keeps
-compiled programs in JAX's persistent cache (`$RBDYN_JAX_CACHE_DIR`, default
-`~/.cache/rbdyn_jax/xla`; set it empty to turn this off).
+XLA starts with the flags `import rbdyn_jax` sets (`rbdyn_jax.configure_xla`: one CPU
+device per core, since one XLA CPU device uses about one core for these solves, and while
+loops compiled whole; the user's `XLA_FLAGS` win, and `RBDYN_JAX_CONFIGURE_XLA=0` turns them
+off). `rbdyn sweep --devices D` asks for D devices instead, and `--workers K` gives each
+worker `cores // K`. `rbdyn sweep` keeps compiled programs in JAX's persistent cache
+(`$RBDYN_JAX_CACHE_DIR`, default `~/.cache/rbdyn_jax/xla`; set it empty to turn this off).
 """
 
 import argparse
@@ -49,7 +50,6 @@ def _default_body():
 
 
 def demo(n_steps: int = 5, duration: float = 100.0) -> int:
-    _configure_xla()
     import jax
 
     jax.config.update("jax_enable_x64", True)
@@ -117,11 +117,12 @@ def demo(n_steps: int = 5, duration: float = 100.0) -> int:
     return 0
 
 
-def _configure_xla(devices: int | None = None) -> None:
-    """XLA's flags for the solves (`rbdyn_jax.configure_xla`: loops compiled whole), and for
-    `devices` CPU devices if given, when this process has not started JAX yet (when it has,
-    e.g. a test calling a command in-process, it runs as it is). No effect on GPU/TPU."""
-    from ._xla import backend_started, configure_xla
+def _configure_xla(devices: int) -> None:
+    """`devices` XLA CPU devices (`rbdyn_jax.configure_xla`, in place of the count that
+    `import rbdyn_jax` set; a count in the user's `XLA_FLAGS` wins), when this process has
+    not started JAX yet (when it has, e.g. a test calling a command in-process, it runs as
+    it is). No effect on GPU/TPU."""
+    from ._xla_flags import backend_started, configure_xla
 
     if not backend_started():
         configure_xla(devices)
@@ -211,14 +212,15 @@ def sweep_command(args) -> int:
             print("rbdyn sweep: --scheduler/--workers need Dask's distributed: "
                   "pip install 'rbdyn_jax[dask]'", file=sys.stderr)
             return 2
-    # XLA CPU devices: in-process, one per core; with --workers, cores // workers for each
-    # worker (whose environment comes from this process; on GPUs each worker sees its
-    # GPUs); with --scheduler, the workers' own.
-    cores = os.cpu_count() or 1
+    # XLA CPU devices: in-process, one per core (set by `import rbdyn_jax`) or --devices;
+    # with --workers, cores // workers for each worker (whose environment comes from this
+    # process; on GPUs each worker sees its GPUs); with --scheduler, the workers' own.
     if args.workers is not None:
-        _configure_xla(args.devices or max(1, cores // args.workers))
-    else:
-        _configure_xla(args.devices if args.devices is not None or args.scheduler else cores)
+        from ._xla_flags import usable_cores
+
+        _configure_xla(args.devices or max(1, usable_cores() // args.workers))
+    elif args.devices is not None:
+        _configure_xla(args.devices)
     import jax
 
     jax.config.update("jax_enable_x64", True)
@@ -432,7 +434,6 @@ def fit_command(args) -> int:
     import json
     import pathlib
 
-    _configure_xla()
     import jax
 
     jax.config.update("jax_enable_x64", True)
@@ -647,12 +648,11 @@ def main(argv: list[str] | None = None) -> int:
         if args.steps < 1:
             parser.error("--steps must be ≥ 1")
         return fit_command(args)
-    if args.command == "scenarios":
-        from .scenario import Scenario, list_scenarios
+    if args.command == "scenarios":  # read from the files: no JAX
+        from ._catalogue import catalogue
 
-        for name in list_scenarios():
-            sc = Scenario.load(name)
-            print(f"{name:28s} {sc.description}")
+        for name, description in catalogue().items():
+            print(f"{name:28s} {description}")
         return 0
     if args.command == "demo":
         if args.steps < 1:

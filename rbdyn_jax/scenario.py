@@ -31,6 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import inertia as _inertia, invariants, rotation
+from ._catalogue import SCENARIO_DIR as SCENARIO_DIR, list_scenarios as list_scenarios
 from ._vector import parse_seq
 from .frames import CircularOrbit, ConstantRate, EulerAngleFrame, HarmonicAngles, Inertial
 from .integrate import RESULTS, Trajectory
@@ -45,8 +46,6 @@ from .torques import (
     RestoringMoment,
     UniformGravity,
 )
-
-SCENARIO_DIR = pathlib.Path(__file__).parent / "scenarios"
 
 
 class ScenarioError(ValueError):
@@ -751,11 +750,6 @@ class Scenario:
             except (ValueError, NotImplementedError, AttributeError) as e:
                 raise ScenarioError(f"`outputs.summaries`: {name!r} is not defined for this "
                                     f"model: {e}") from None
-
-
-def list_scenarios() -> list[str]:
-    """Names of the scenarios shipped in `rbdyn_jax/scenarios/`."""
-    return sorted(p.stem for p in SCENARIO_DIR.glob("*.toml"))
 
 
 __all__ = [

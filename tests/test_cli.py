@@ -1,6 +1,7 @@
 """Smoke test of the `rbdyn` command: the main job runs and reports what it must."""
 
 import ast
+import os
 import pathlib
 import re
 import shutil
@@ -12,6 +13,7 @@ import pytest
 
 import rbdyn_jax
 from rbdyn_jax import cli
+from rbdyn_jax.scenario import Scenario, list_scenarios
 
 
 def test_demo_simulates_the_default_body(capsys):
@@ -72,6 +74,33 @@ def test_scenarios_lists_the_shipped_ones(capsys):
     for name in ("torque_free_flip", "lagrange_top_restoring", "gg_axisymmetric",
                  "rotating_platform", "satellite_gravity_gradient"):
         assert name in out
+
+
+# What `--help`, `--version` and `scenarios` print, as the commands' own code builds it:
+# the parser's help, the version, and each shipped scenario validated by `Scenario.load`.
+_QUICK = {
+    "--help": lambda: cli.build_parser().format_help(),
+    "--version": lambda: f"rbdyn {rbdyn_jax.__version__}\n",
+    "scenarios": lambda: "".join(
+        f"{name:28s} {Scenario.load(name).description}\n" for name in list_scenarios()),
+}
+
+
+@pytest.mark.parametrize("command", list(_QUICK))
+def test_quick_commands_print_the_same_without_importing_jax(command, monkeypatch):
+    """`rbdyn --help`, `--version` and `scenarios` in a fresh process import neither JAX
+    nor NumPy, and print what the parser, the package and the validated scenarios say."""
+    code = ("import sys\nfrom rbdyn_jax import cli\n"
+            "try:\n    code = cli.main(sys.argv[1:])\n"
+            "except SystemExit as e:\n    code = e.code\n"
+            "heavy = sorted(m for m in sys.modules if m.split('.')[0] in "
+            "('jax', 'jaxlib', 'numpy'))\n"
+            "assert not heavy, heavy\nsys.exit(code)\n")
+    monkeypatch.setenv("COLUMNS", "100")  # argparse's width, here and in the child
+    run = subprocess.run([sys.executable, "-c", code, command], capture_output=True,
+                         text=True, timeout=300, env=dict(os.environ, COLUMNS="100"))
+    assert run.returncode == 0, run.stderr[-3000:]
+    assert run.stdout == _QUICK[command]()
 
 
 def test_sweep_and_plot_commands(tmp_path):

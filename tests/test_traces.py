@@ -122,9 +122,10 @@ def _run(cache, tmp_path, script=SCRIPT, **env):
     the script prints), and the arrays it saved."""
     text, script, out = script, tmp_path / "traced.py", tmp_path / "out.npz"
     script.write_text(text)
-    # One XLA device unless asked: another test module may have set XLA_FLAGS for two
-    # (benchmarks/gradients.py does on import), and a two-device lane solve is not cached.
-    base = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+    # One XLA device unless asked: this process's XLA_FLAGS may ask for more (benchmarks/
+    # gradients.py sets two on import, `import rbdyn_jax` one per core unless
+    # RBDYN_JAX_CONFIGURE_XLA=0), and a two-device lane solve is not cached.
+    base = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=1")
     proc = subprocess.run([sys.executable, str(script), str(cache), str(out)],
                           capture_output=True, text=True, timeout=300, env=dict(base, **env))
     assert proc.returncode == 0, proc.stderr
@@ -279,7 +280,10 @@ def test_numpy_inputs_inside_a_callers_trace_are_checked_now_not_at_run_time():
     q = jnp.tile(jnp.array([1.0, 0, 0, 0]), (3, 1))
 
     def omegas(w, Jm=np.asarray(J)):
-        traj = rb.simulate_batch(rb.RigidBody(Jm), rb.State(w, q), TS, batching=rb.Lanes(2))
+        # One device: a check that fails in a program over several devices aborts the
+        # process (`rb.Lanes`).
+        traj = rb.simulate_batch(rb.RigidBody(Jm), rb.State(w, q), TS,
+                                 batching=rb.Lanes(2, devices=1))
         return traj.ys.omega
 
     w = jnp.ones((3, 3))

@@ -1,9 +1,12 @@
 """`_xla`: every program rbdyn_jax compiles gets `COMPILER_OPTIONS` when it is compiled at
 the top level, and stays callable inside a caller's transformations (JAX refuses compiler
 options on a nested jit); `configure_xla` sets XLA's flags, and a process started with them
-compiles every loop whole and gets the same trajectories and gradients."""
+compiles every loop whole and gets the same trajectories and gradients. `import rbdyn_jax`
+sets them itself (one device per core), never over the user's flags, and not with
+`RBDYN_JAX_CONFIGURE_XLA=0`."""
 
 import ast
+import json
 import os
 import pathlib
 import subprocess
@@ -16,7 +19,7 @@ import numpy as np
 import pytest
 
 import rbdyn_jax as rb
-from rbdyn_jax import _xla
+from rbdyn_jax import _xla, _xla_flags
 
 PACKAGE = pathlib.Path(rb.__file__).parent
 
@@ -90,13 +93,16 @@ def test_jit_checker_sees_a_direct_jit(tmp_path):
 # `configure_xla`: XLA's process-wide flags. The merge is checked on the string; what the
 # flags do is checked in a fresh process, since XLA reads them once, when JAX starts it.
 
-LOOP = f"{_xla.LOOP_OPTION}={_xla.LOOP_BYTES}"
+LOOP = f"{_xla_flags.LOOP_OPTION}={_xla_flags.LOOP_BYTES}"
+COUNT = "--xla_force_host_platform_device_count"
 
 
 @pytest.fixture
 def flags(monkeypatch):
-    """`configure_xla` on a given XLA_FLAGS, as if JAX had not started XLA yet."""
-    monkeypatch.setattr(_xla, "backend_started", lambda: False)
+    """`configure_xla` on a given XLA_FLAGS, as if JAX had not started XLA yet and the
+    import had set no device count."""
+    monkeypatch.setattr(_xla_flags, "backend_started", lambda: False)
+    monkeypatch.setattr(_xla_flags, "_count_set_on_import", None)
 
     def run(old, **kwargs):
         if old is None:
@@ -124,14 +130,34 @@ def test_configure_xla_keeps_what_xla_flags_already_say(flags):
     # `--xla_backend_extra_options`, so they must share it).
     assert flags("--xla_backend_extra_options=a=1,b=2") == (
         f"--xla_backend_extra_options=a=1,b=2,{LOOP}")
-    mine = f"--xla_backend_extra_options={_xla.LOOP_OPTION}=0"
+    mine = f"--xla_backend_extra_options={_xla_flags.LOOP_OPTION}=0"
     assert flags(mine) == mine  # the caller's threshold wins
     count = "--xla_force_host_platform_device_count=1"
     assert flags(count, host_devices=4) == f"{count} --xla_backend_extra_options={LOOP}"
 
 
+def test_configure_xla_replaces_only_the_count_the_import_set(flags, monkeypatch):
+    """The device count `import rbdyn_jax` added gives way to an explicit one, which then
+    stays; a count the user set, or one already in the environment the process started
+    with, is kept."""
+    ours = f"{COUNT}=4"
+    monkeypatch.setattr(_xla_flags, "_count_set_on_import", ours)
+    imported = f"--xla_backend_extra_options={LOOP} {ours}"
+    assert flags(imported) == imported  # the same flags again: nothing to change
+    assert flags(imported, host_devices=4) == imported
+    monkeypatch.setattr(_xla_flags, "_count_set_on_import", ours)
+    assert flags(imported, host_devices=1) == f"--xla_backend_extra_options={LOOP} {COUNT}=1"
+    assert _xla_flags._count_set_on_import is None  # the caller's count now
+    assert flags(f"--xla_backend_extra_options={LOOP} {COUNT}=1", host_devices=3) == (
+        f"--xla_backend_extra_options={LOOP} {COUNT}=1")
+    monkeypatch.setattr(_xla_flags, "_count_set_on_import", ours)
+    users = f"{COUNT}=2 --xla_backend_extra_options={LOOP}"
+    assert flags(users, host_devices=1) == users
+
+
 def test_configure_xla_refuses_what_would_have_no_effect(monkeypatch):
-    monkeypatch.setattr(_xla, "backend_started", lambda: True)
+    monkeypatch.setattr(_xla_flags, "backend_started", lambda: True)
+    monkeypatch.setattr(_xla_flags, "_count_set_on_import", None)
     monkeypatch.setenv("XLA_FLAGS", "")
     with pytest.raises(RuntimeError, match="already running"):
         _xla.configure_xla()
@@ -146,10 +172,103 @@ def test_configure_xla_refuses_what_would_have_no_effect(monkeypatch):
 
 def test_backend_started_is_true_in_a_running_process():
     jnp.ones(2).block_until_ready()
-    assert _xla.backend_started()
+    assert _xla_flags.backend_started()
 
 
-# Run in two fresh processes, one calling `configure_xla()` first, one with XLA's defaults.
+def test_usable_cores_is_a_positive_count_at_most_the_machines():
+    assert 1 <= _xla_flags.usable_cores() <= (os.cpu_count() or 1)
+
+
+# `import rbdyn_jax` in fresh processes, from an environment without XLA_FLAGS (this
+# process's may hold what its own import set) unless a test gives one.
+_REPORT = """
+import json, os, sys
+{before}
+import rbdyn_jax as rb
+flags = os.environ.get("XLA_FLAGS")
+{after}
+import jax
+print(json.dumps({{"flags": flags, "now": os.environ.get("XLA_FLAGS"),
+                   "devices": jax.local_device_count()}}))
+"""
+
+
+def fresh(before="", after="", **env):
+    """What a fresh process that imports rbdyn_jax sees: XLA_FLAGS after the import and
+    after `after`, and its number of XLA devices."""
+    base = {k: v for k, v in os.environ.items()
+            if k not in ("XLA_FLAGS", _xla_flags.OPT_OUT)}
+    run = subprocess.run([sys.executable, "-c", _REPORT.format(before=before, after=after)],
+                         env=dict(base, **env), capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr[-3000:]
+    return json.loads(run.stdout.strip().splitlines()[-1])
+
+
+def test_import_gives_one_device_per_core_and_loops_compiled_whole():
+    cores = _xla_flags.usable_cores()
+    got = fresh()
+    assert got["flags"] == f"--xla_backend_extra_options={LOOP} {COUNT}={cores}"
+    assert got["devices"] == cores
+    # JAX imported and configured first, as the examples do: it has not started XLA yet
+    after_jax = fresh(before="import jax; jax.config.update('jax_enable_x64', True)")
+    assert after_jax == got
+
+
+@pytest.mark.skipif(not hasattr(os, "sched_setaffinity") or _xla_flags.usable_cores() < 2,
+                    reason="needs CPU affinity and two cores")
+def test_a_process_limited_to_one_core_gets_one_device():
+    got = fresh(before="os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})")
+    assert got["flags"] == f"--xla_backend_extra_options={LOOP} {COUNT}=1"
+    assert got["devices"] == 1
+
+
+@pytest.mark.parametrize("users, devices", [
+    (f"{COUNT}=1", 1),
+    (f"{COUNT}=1 --xla_cpu_multi_thread_eigen=true", 1),
+    (f"--xla_backend_extra_options={_xla_flags.LOOP_OPTION}=0", None),
+    ("--xla_cpu_multi_thread_eigen=true", None),
+], ids=["count", "count-and-other", "threshold", "other"])
+def test_import_never_overrides_the_users_flags(users, devices):
+    """Each of the user's flags stays as written; only what it leaves out is added."""
+    cores = _xla_flags.usable_cores()
+    got = fresh(XLA_FLAGS=users)
+    assert got["flags"].startswith(users)
+    assert got["flags"].split()[:len(users.split())] == users.split()
+    assert got["flags"].count(COUNT) == 1 and got["flags"].count(_xla_flags.LOOP_OPTION) == 1
+    assert got["devices"] == (devices or cores)
+    if _xla_flags.LOOP_OPTION in users:
+        assert f"{_xla_flags.LOOP_OPTION}=0" in got["flags"]
+
+
+def test_opting_out_leaves_xla_flags_alone():
+    assert fresh(RBDYN_JAX_CONFIGURE_XLA="0") == {"flags": None, "now": None, "devices": 1}
+    users = "--xla_cpu_multi_thread_eigen=true"
+    got = fresh(RBDYN_JAX_CONFIGURE_XLA="0", XLA_FLAGS=users)
+    assert got == {"flags": users, "now": users, "devices": 1}
+
+
+def test_import_after_jax_computed_changes_nothing():
+    """XLA has read its flags: the import changes none and raises nothing, and the library
+    runs on the device JAX started."""
+    got = fresh(before="import jax; jax.numpy.ones(2).block_until_ready()",
+                after="jnp = jax.numpy; rb.simulate(rb.RigidBody(jnp.eye(3)), rb.State("
+                      "jnp.ones(3), jnp.array([1.0, 0, 0, 0])), jnp.array([0.0, 1.0]))")
+    assert got == {"flags": None, "now": None, "devices": 1}
+
+
+def test_explicit_configure_xla_after_import_takes_effect():
+    cores = _xla_flags.usable_cores()
+    got = fresh(after="rb.configure_xla(host_devices=1)")
+    assert got["flags"] == f"--xla_backend_extra_options={LOOP} {COUNT}={cores}"
+    assert got["now"] == f"--xla_backend_extra_options={LOOP} {COUNT}=1"
+    assert got["devices"] == 1
+    again = fresh(after="rb.configure_xla()")  # what the import set: nothing changes
+    assert again["now"] == again["flags"] and again["devices"] == cores
+
+
+# Run in two fresh processes with the import's configuration turned off
+# (`RBDYN_JAX_CONFIGURE_XLA=0`): one calling `configure_xla()` first, one with XLA's
+# defaults.
 # Prints the number of while loops in the compiled gradient program and of
 # those compiled whole (XLA's `xla_cpu_small_call` attribute), then the outputs' file.
 _PROGRAM = """
@@ -185,6 +304,7 @@ def test_configured_xla_compiles_every_loop_whole_with_the_same_results(tmp_path
     script = tmp_path / "program.py"
     script.write_text(_PROGRAM)
     env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+    env[_xla_flags.OPT_OUT] = "0"
     run = subprocess.run([sys.executable, str(script), "configure", str(tmp_path / "on.npz")],
                          env=env, capture_output=True, text=True, timeout=600)
     assert run.returncode == 0, run.stderr[-3000:]

@@ -23,8 +23,9 @@ Every use of diffrax's, equinox's or JAX's internals is in `rbdyn_jax/_compat.py
 
 `COMPILER_OPTIONS` are the XLA options of every program rbdyn_jax compiles. Pass them to
 your own `jax.jit` around a solve: `jax.jit(jax.grad(loss), compiler_options=
-COMPILER_OPTIONS)`. `configure_xla()`, called before JAX computes anything, sets XLA's
-process-wide flags for faster solves on CPU.
+COMPILER_OPTIONS)`. `configure_xla()` sets XLA's process-wide flags for faster solves on
+CPU, before JAX computes anything; `import rbdyn_jax` calls it (one device per core) unless
+`RBDYN_JAX_CONFIGURE_XLA=0`.
 """
 
 from .._xla import COMPILER_OPTIONS as COMPILER_OPTIONS, configure_xla as configure_xla
