@@ -124,7 +124,7 @@ def _run(cache, tmp_path, script=SCRIPT, **env):
     script.write_text(text)
     # One XLA device unless asked: this process's XLA_FLAGS may ask for more (benchmarks/
     # gradients.py sets two on import, `import rbdyn_jax` one per core unless
-    # RBDYN_JAX_CONFIGURE_XLA=0), and a two-device lane solve is not cached.
+    # RBDYN_JAX_CONFIGURE_XLA=0), and the device count is in every key.
     base = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=1")
     proc = subprocess.run([sys.executable, str(script), str(cache), str(out)],
                           capture_output=True, text=True, timeout=300, env=dict(base, **env))
@@ -143,7 +143,8 @@ def test_a_later_process_loads_the_traces_and_gets_the_same_results(tmp_path):
     """Three fresh processes: no cache; an empty cache (the three solves are traced and
     stored); the same cache (all three loaded, none traced). Every result bitwise equal
     (the same program), including the per-trajectory failure codes of the lane solve; the
-    same with the cache turned off. Then two XLA devices, where the lane solve is refused."""
+    same with the cache turned off. Then two XLA devices, over which the lane solve splits
+    its batch: stored and loaded in the same way, with the same results."""
     cache = tmp_path / "cache"
     ref_stats, ref = _run("none", tmp_path)
     cold_stats, cold = _run(cache, tmp_path)
@@ -159,10 +160,16 @@ def test_a_later_process_loads_the_traces_and_gets_the_same_results(tmp_path):
     off_stats, off = _run(cache, tmp_path, RBDYN_JAX_TRACE_CACHE="0")
     assert off_stats == {"hits": 0, "stores": 0, "uncacheable": 0}
     assert_same(off, ref)
-    # Two devices: the device count is in every key (nothing loaded), and the lane solve,
-    # split over both, is not exported at all.
-    two_stats, _ = _run(cache, tmp_path, XLA_FLAGS="--xla_force_host_platform_device_count=2")
-    assert two_stats == {"hits": 0, "stores": 2, "uncacheable": 1}
+    # Two devices: the device count is in every key (nothing loaded at first); the lane
+    # solve, split over both, is stored and loaded like the others.
+    two = dict(XLA_FLAGS="--xla_force_host_platform_device_count=2")
+    two_stats, two_cold = _run(cache, tmp_path, **two)
+    assert two_stats == {"hits": 0, "stores": 3, "uncacheable": 0}
+    two_stats, two_warm = _run(cache, tmp_path, **two)
+    assert two_stats == {"hits": 3, "stores": 0, "uncacheable": 0}
+    assert_same(two_warm, two_cold)
+    for k in ref:  # the same trajectories as on one device, to round-off
+        np.testing.assert_allclose(two_cold[k], ref[k], rtol=0, atol=1e-12, err_msg=k)
 
 
 def test_a_damaged_entry_is_traced_again(tmp_path):

@@ -134,10 +134,10 @@ def _value(v):
         return ("builtin", getattr(v, "__module__", None), v.__name__)
     if isinstance(v, functools.partial):
         return ("partial", _value(v.func), _value(v.args), _value(v.keywords))
-    if isinstance(v, jax.sharding.Mesh):
-        if v.devices.size != 1:  # a multi-device program: not exported here
+    if isinstance(v, jax.sharding.Mesh):  # its devices: the first ones of the platform
+        if [d.id for d in v.devices.flat] != list(range(v.devices.size)):
             raise _Unsafe(v)
-        return ("mesh", v.axis_names, v.devices.flat[0].platform)
+        return ("mesh", v.axis_names, v.devices.flat[0].platform, v.devices.size)
     if isinstance(v, eqx.Module):
         return ("tree", _tree(v))
     if _ours(type(v)) and " at 0x" not in repr(v):  # sentinels (equinox's `Missing`, …)
@@ -261,6 +261,17 @@ def _entry(where, k, fn, args, arrays):
     return entry
 
 
+def _placement(exported):
+    """How to place the inputs of a stored program: as they are for one device; for a
+    program over several (the lane solver's devices), replicated over the same first
+    devices, as `jit` placed them when it was traced."""
+    if exported.nr_devices == 1:
+        return lambda arrays: arrays
+    mesh = jax.sharding.Mesh(np.asarray(jax.devices()[:exported.nr_devices]), ("devices",))
+    replicated = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
+    return lambda arrays: [jax.device_put(x, replicated) for x in arrays]
+
+
 def cached(fn, jitted):
     """`jitted` (`filter_jit(fn)`), with `fn`'s traced program stored on disk and reused
     by later processes where `directory()` is set, the call is made at the top level with
@@ -300,9 +311,9 @@ def cached(fn, jitted):
             if entry is None:  # not exportable: traced as without the cache, from now on
                 return jitted(*args)
             exported, out_tree = entry
-            _LOADED[k] = (jit(exported.call), out_tree)
-        run, out_tree = _LOADED[k]
-        return jax.tree_util.tree_unflatten(out_tree, run(*arrays))
+            _LOADED[k] = (jit(exported.call), out_tree, _placement(exported))
+        run, out_tree, place = _LOADED[k]
+        return jax.tree_util.tree_unflatten(out_tree, run(*place(arrays)))
 
     return call
 
@@ -335,7 +346,9 @@ def embedded(fn, *args):
     mode = _compat.error_mode()
     name = f"{fn.__module__}.{fn.__qualname__}[embedded, {mode}]"
     leaves, treedef = jax.tree_util.tree_flatten(args)
-    k = _memo_key(name, treedef, leaves)
+    # A program over several devices cannot be called inside a caller's program over one.
+    several = any(isinstance(x, jax.sharding.Mesh) and x.devices.size > 1 for x in leaves)
+    k = None if several else _memo_key(name, treedef, leaves)
     if k is None or k in _UNEXPORTABLE:
         stats["uncacheable"] += 1
         return fn(*args)
