@@ -47,12 +47,14 @@ loops (the forward solve, and the sensitivities' solves of ω's group and of the
 are loaded from there. The speed-up is first call
 without cache / first call warm.
 
-`--configure-xla`: rbdyn_jax's cases start XLA with `rb.configure_xla()` (every while loop
-compiled whole: faster solves, a longer compile); without it, with XLA's defaults, as a
-program that does not call it. The yardstick always runs with XLA's defaults.
+rbdyn_jax's cases run with XLA's flags as `import rbdyn_jax` sets them (one XLA CPU device
+per core, every while loop compiled whole), as a user's program gets them;
+`--xla-defaults` runs them with XLA's own defaults instead (`RBDYN_JAX_CONFIGURE_XLA=0`: one
+device, loops dispatched kernel by kernel). The yardstick always runs with XLA's defaults.
+The children start without the parent's `XLA_FLAGS`.
 
 Run: `python benchmarks/compile.py [--cases simulate batch lanes grad jacfwd_lanes …]
-[--configure-xla]` — prints
+[--xla-defaults]` — prints
 a table and writes results/benchmarks/compile.json (`--out DIR`). Sequential, ≈ 5 min at
 the defaults on a 2-core CPU; `--cases simulate` is a quick smoke test.
 """
@@ -85,7 +87,6 @@ CASES = {  # name: (batch size, lanes per device: None the vmapped path, "defaul
     "bare_diffrax": (256, None),
 }
 YARDSTICK = "bare_diffrax"
-CONFIGURE = "RBDYN_BENCH_CONFIGURE_XLA"  # parent to children: call `rb.configure_xla()`
 # Gradient cases whose loss builds the model with its constructor (run-time inertia checks),
 # and those of them run with equinox's checks as NaN (`EQX_ON_ERROR=nan` in the child's
 # environment): the caller's switch that makes such a program cacheable.
@@ -144,10 +145,7 @@ def _start_jax(cache, case):
     if case == YARDSTICK:
         import diffrax  # noqa: F401
     else:
-        import rbdyn_jax
-
-        if os.environ.get(CONFIGURE) == "1":  # `--configure-xla`; nothing has run yet
-            rbdyn_jax.configure_xla()
+        import rbdyn_jax  # noqa: F401
 
     return t1 - t0, time.perf_counter() - t1
 
@@ -307,9 +305,10 @@ def child(case, cache):
 # ----------------------------------------------------------------------------------------
 
 
-def run_child(case, cache, configure=False):
-    env = {k: v for k, v in os.environ.items() if k not in CACHE_ENV + ("EQX_ON_ERROR",)}
-    env[CONFIGURE] = "1" if configure else "0"
+def run_child(case, cache, xla_defaults=False):
+    env = {k: v for k, v in os.environ.items()
+           if k not in CACHE_ENV + ("EQX_ON_ERROR", "XLA_FLAGS")}
+    env["RBDYN_JAX_CONFIGURE_XLA"] = "0" if xla_defaults or case == YARDSTICK else "1"
     if case in NAN_CASES:
         env["EQX_ON_ERROR"] = "nan"
     proc = subprocess.run([sys.executable, os.path.abspath(__file__), "--child", case,
@@ -320,14 +319,14 @@ def run_child(case, cache, configure=False):
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
-def measure(case, configure=False):
+def measure(case, xla_defaults=False):
     """The three conditions of one case: no cache, cold cache, warm cache."""
     tmp = tempfile.mkdtemp(prefix=f"rbdyn_compile_{case}_")
     try:
         runs = {}
         for cond, cache in (("no_cache", None), ("cold", tmp), ("warm", tmp)):
             print(f"  {case}: {cond} …", flush=True)
-            runs[cond] = run_child(case, cache, configure)
+            runs[cond] = run_child(case, cache, xla_defaults)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     imports = sorted(r["import_jax_s"] + r["import_rbdyn_jax_s"] for r in runs.values())
@@ -361,9 +360,9 @@ def print_table(rows):
                   f"{', '.join(sorted(set(r['callback_programs'])))}")
 
 
-def main(cases=tuple(CASES), out="results/benchmarks", configure=False):
+def main(cases=tuple(CASES), out="results/benchmarks", xla_defaults=False):
     t0 = time.perf_counter()
-    rows = [measure(c, configure) for c in cases]
+    rows = [measure(c, xla_defaults) for c in cases]
     bare = next((r["no_cache_s"] for r in rows if r["case"] == YARDSTICK), None)
     for r in rows:  # first call without cache as a multiple of the yardstick's, same run
         r["vs_bare"] = r["no_cache_s"] / bare if bare else None
@@ -374,7 +373,7 @@ def main(cases=tuple(CASES), out="results/benchmarks", configure=False):
             "equinox": version("equinox"), "diffrax": version("diffrax"),
             "backend": rows[0]["runs"]["no_cache"]["backend"] if rows else None,
             "inertia": J_TRUE, "t_end": T_END, "n_out": N_OUT, "rtol": TOL, "atol": TOL,
-            "seed": SEED, "configure_xla": configure, "total_s": time.perf_counter() - t0}
+            "seed": SEED, "xla_defaults": xla_defaults, "total_s": time.perf_counter() - t0}
     (path / "compile.json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=2))
     print(f"wrote {path / 'compile.json'} ({meta['total_s']:.0f} s)")
     return rows
@@ -384,12 +383,12 @@ if __name__ == "__main__":
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--cases", nargs="+", choices=list(CASES), default=list(CASES))
     p.add_argument("--out", default="results/benchmarks")
-    p.add_argument("--configure-xla", action="store_true",
-                   help="rbdyn_jax's cases call rb.configure_xla() first")
+    p.add_argument("--xla-defaults", action="store_true",
+                   help="rbdyn_jax's cases with XLA's defaults (RBDYN_JAX_CONFIGURE_XLA=0)")
     p.add_argument("--child", choices=list(CASES), help=argparse.SUPPRESS)
     p.add_argument("--cache", default="none", help=argparse.SUPPRESS)
     args = p.parse_args()
     if args.child:
         child(args.child, None if args.cache == "none" else args.cache)
     else:
-        main(tuple(args.cases), args.out, args.configure_xla)
+        main(tuple(args.cases), args.out, args.xla_defaults)
