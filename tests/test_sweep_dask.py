@@ -44,14 +44,14 @@ N = 100
 @pytest.fixture(scope="module")
 def reference(tmp_path_factory):
     out = tmp_path_factory.mktemp("dask") / "ref.zarr"
-    return sweep.run(Scenario.from_dict(small()), N, out, chunk=N, seed=3, lanes=8)
+    return sweep.run(Scenario.from_dict(small()), N, out, chunk=N, seed=3, lanes=16)
 
 
 @pytest.mark.parametrize("chunk", [16, 40])
 def test_workers_give_the_in_process_bits(client, reference, tmp_path, chunk):
     seen = []
     out = sweep.run(Scenario.from_dict(small()), N, tmp_path / "d.zarr", chunk=chunk, seed=3,
-                    lanes=8, client=client, progress=seen.append)
+                    lanes=16, client=client, progress=seen.append)
     assert_same(load(reference), load(out))
     assert sum(p.solved_now for p in seen) == N and max(p.done for p in seen) == N
     assert len(seen) == -(-N // chunk)  # one report per task
@@ -69,12 +69,12 @@ def test_resume_on_the_cluster_after_an_interrupted_run(client, reference, tmp_p
             raise KeyboardInterrupt
 
     with pytest.raises(KeyboardInterrupt):
-        sweep.run(Scenario.from_dict(small()), N, out, chunk=16, seed=3, lanes=8,
+        sweep.run(Scenario.from_dict(small()), N, out, chunk=16, seed=3, lanes=16,
                   progress=stop)
     assert np.sum(zarr.open_group(str(out), mode="r")["status"][:] >= 0) == 32
     seen = []
     # another --chunk: the tasks keep the store's chunks (no two write one zarr chunk)
-    sweep.run(Scenario.from_dict(small()), N, out, chunk=40, seed=3, lanes=8, resume=True,
+    sweep.run(Scenario.from_dict(small()), N, out, chunk=40, seed=3, lanes=16, resume=True,
               client=client, progress=seen.append)
     assert sorted(p.solved_now for p in seen) == [4, 16, 16, 16, 16]  # any order
     assert_same(load(reference), load(out))
@@ -85,7 +85,7 @@ def test_cli_on_a_running_scheduler(client, reference, tmp_path, capsys):
     toml.write_text(_toml(small()))
     out = tmp_path / "cli.zarr"
     code = cli.main(["sweep", str(toml), "--n", str(N), "--out", str(out), "--chunk", "32",
-                     "--seed", "3", "--lanes", "8", "--scheduler", client.scheduler.address])
+                     "--seed", "3", "--lanes", "16", "--scheduler", client.scheduler.address])
     assert code == 0
     assert "as Dask tasks on 2 worker(s)" in capsys.readouterr().out
     assert_same(load(reference), load(out))
@@ -105,7 +105,7 @@ def test_worker_killed_mid_chunk_loses_nothing(client, tmp_path):
     out = tmp_path / "killed.zarr"
     seen, result = [], {}
     run = threading.Thread(target=lambda: result.update(path=sweep.run(
-        sc, n, out, chunk=chunk, seed=5, lanes=8, client=client, progress=seen.append)))
+        sc, n, out, chunk=chunk, seed=5, lanes=16, client=client, progress=seen.append)))
     pids = client.run(os.getpid)
     run.start()
     killed = None
@@ -127,7 +127,7 @@ def test_worker_killed_mid_chunk_loses_nothing(client, tmp_path):
     assert killed is not None and killed[1] < n, "no worker was killed mid-run"
     assert not run.is_alive() and result["path"] == out.absolute()
     assert sum(p.solved_now for p in seen) == n and seen[-1].done == n
-    ref = sweep.run(sc, n, tmp_path / "ref.zarr", chunk=n, seed=5, lanes=8)
+    ref = sweep.run(sc, n, tmp_path / "ref.zarr", chunk=n, seed=5, lanes=16)
     names = ("omega", "quat", "inertia", "status", "num_steps", "energy_drift")
     assert_same(load(ref, names), load(out, names))
     assert killed[0] not in client.run(os.getpid)  # that worker is gone (its nanny restarts one)
@@ -139,7 +139,7 @@ def test_cli_local_cluster(tmp_path, reference, capsys):
     toml.write_text(_toml(small()))
     out = tmp_path / "w.zarr"
     code = cli.main(["sweep", str(toml), "--n", str(N), "--out", str(out), "--chunk", "50",
-                     "--seed", "3", "--lanes", "8", "--workers", "2"])
+                     "--seed", "3", "--lanes", "16", "--workers", "2"])
     assert code == 0
     assert "as Dask tasks on 2 worker(s)" in capsys.readouterr().out
     assert_same(load(reference), load(out))
@@ -174,14 +174,14 @@ def test_store_by_url_through_fsspec(client, reference, tmp_path):
     code path of `s3://` or `gs://`), by the workers too: the same bits, the same refusal
     of an existing store, and every reader takes the URL."""
     url = (tmp_path / "u.zarr").as_uri()
-    out = sweep.run(Scenario.from_dict(small()), N, url, chunk=32, seed=3, lanes=8,
+    out = sweep.run(Scenario.from_dict(small()), N, url, chunk=32, seed=3, lanes=16,
                     client=client)
     assert out == url
     assert_same(load(reference), load(tmp_path / "u.zarr"))
     with pytest.raises(FileExistsError, match="--overwrite"):
-        sweep.run(Scenario.from_dict(small()), N, url, chunk=32, seed=3, lanes=8)
+        sweep.run(Scenario.from_dict(small()), N, url, chunk=32, seed=3, lanes=16)
     assert sweep.summarize(url) == sweep.summarize(reference)
     assert sweep.open_dataset(url).sizes["trajectory"] == N
     sweep.to_netcdf(url, tmp_path / "u.nc")
-    sweep.run(Scenario.from_dict(small()), N, url, chunk=32, seed=3, lanes=8, overwrite=True)
+    sweep.run(Scenario.from_dict(small()), N, url, chunk=32, seed=3, lanes=16, overwrite=True)
     assert_same(load(reference), load(tmp_path / "u.zarr"))
