@@ -70,7 +70,7 @@ def _throughput() -> str:
         return [_n(r[key]["traj_per_s"]) if key in r else "—" for r in cols]
 
     def ratio(key):
-        return [f"{r['lanes']['traj_per_s'] / r[key]['traj_per_s']:.2f}" for r in cols]
+        return [f"{r['default']['traj_per_s'] / r[key]['traj_per_s']:.2f}" for r in cols]
 
     rows = [
         ["default", *rate("default")],
@@ -80,9 +80,9 @@ def _throughput() -> str:
         ["numba, same accuracy", *rate("numba_equal")],
         ["its tolerance", *[f"{r['numba_equal']['tol']:.1e}" for r in cols]],
         ["scipy", *[f"{r['scipy']['traj_per_s']:.1f}" for r in cols]],
-        ["lanes ÷ numba", *ratio("numba")],
-        ["lanes ÷ numba, same accuracy", *ratio("numba_equal")],
-        ["median error, lanes", *[_e(r["lanes"]["median_error"]) for r in cols]],
+        ["default ÷ numba", *ratio("numba")],
+        ["default ÷ numba, same accuracy", *ratio("numba_equal")],
+        ["median error, default", *[_e(r["default"]["median_error"]) for r in cols]],
         ["median error, numba", *[_e(r["numba"]["median_error"]) for r in cols]],
     ]
     head = [""] + [f"{_MODELS[r['model']]}<br>N = {_n(r['batch'])}" for r in cols]
