@@ -64,8 +64,9 @@ class Lanes(AbstractBatching):
     makes XLA abort the process, after its timeout of about a minute: the device that
     raised leaves the others waiting for it. Check inputs before tracing (NumPy values are
     checked at once), run such a program with `devices=1`, or set equinox's
-    `EQX_ON_ERROR=nan`. `simulate_batch(..., throw=True)` inside a caller's
-    transformation runs on one device for this reason.
+    `EQX_ON_ERROR=nan`. For this reason the lanes run on one device when the solve's own
+    checks run at run time: traced output times or tolerances, and `throw=True` inside a
+    caller's transformation.
 
     Needs an explicit Runge–Kutta solver (`diffrax.AbstractERK`: Tsit5, Dopri5, …) and a
     `diffrax.PIDController`; takes no `adjoint`. Same steps and saved values (to
@@ -95,7 +96,9 @@ class Lanes(AbstractBatching):
         if reason is not None:
             raise ValueError(f"`Lanes` {reason}; `batching=Vmap()` takes any solver, "
                              "controller and adjoint diffeqsolve takes.")
-        mesh = _mesh(self.devices)
+        # A solve whose times or tolerances are traced checks them at run time: on one
+        # device, since a check raising on one of several devices aborts the process.
+        mesh = _mesh(self.devices if cacheable else 1)
         n = jax.tree_util.tree_leaves(y0s)[0].shape[0]
         lanes = default_lanes(n, mesh.devices.size) if self.lanes is None else int(self.lanes)
         return _lane_solved[cacheable](model, y0s, ts, solver, controller, max_steps, dt0,
