@@ -63,10 +63,10 @@ class Lanes(AbstractBatching):
     model's constructor from traced values, say) while the batch runs on several devices
     makes XLA abort the process, after its timeout of about a minute: the device that
     raised leaves the others waiting for it. Check inputs before tracing (NumPy values are
-    checked at once), run such a program with `devices=1`, or set equinox's
-    `EQX_ON_ERROR=nan`. For this reason the lanes run on one device when the solve's own
-    checks run at run time: traced output times or tolerances, and `throw=True` inside a
-    caller's transformation.
+    checked at once), run such a program with `devices=1`, or have equinox give NaN for a
+    failed check (`eqx.error_if`). For this reason the lanes run on one device when the
+    solve's own checks run at run time: traced output times or tolerances, and
+    `throw=True` inside a caller's transformation.
 
     Needs an explicit Runge–Kutta solver (`diffrax.AbstractERK`: Tsit5, Dopri5, …) and a
     `diffrax.PIDController`; takes no `adjoint`. Same steps and saved values (to
