@@ -142,9 +142,8 @@ def configure_on_import() -> None:
     global _count_set_on_import
     if os.environ.get(OPT_OUT, "1") == "0" or backend_started():
         return
-    ours, n = _count_set_on_import, usable_cores()
-    theirs = [f for f in os.environ.get("XLA_FLAGS", "").split()
-              if f.startswith(DEVICE_COUNT) and f != ours]
+    n = usable_cores()
+    theirs = any(f.startswith(DEVICE_COUNT) for f in os.environ.get("XLA_FLAGS", "").split())
     configure_xla(host_devices=n)
     if not theirs:
         _count_set_on_import = f"{DEVICE_COUNT}={n}"

@@ -431,7 +431,8 @@ def _scan(g, chunk: int, block: int = 1 << 22) -> tuple[int, int, list[tuple[int
 
 
 def _launch_region(g, runner: _Runner, key, start: int, stop: int) -> tuple:
-    """Start solving the trajectories of `start:stop` still marked not run (`_finish`)."""
+    """Start solving the trajectories of `start:stop` still marked not run
+    (`_finish_region` waits for them and writes them)."""
     status = g["status"][start:stop]
     idx = start + np.nonzero(status < 0)[0]
     return start, status, idx, runner.launch(idx, key) if idx.size else None

@@ -179,7 +179,7 @@ def simulate_batch(
         raise ValueError("`batching` must be `rbdyn_jax.Lanes(...)`, `rbdyn_jax.Vmap()` or "
                          f"None, got {type(batching).__name__}.")
     if throw and isinstance(batching, Lanes) and not top_level():
-        batching = eqx.tree_at(lambda b: b.devices, batching, 1, is_leaf=lambda x: x is None)
+        batching = Lanes(batching.lanes, devices=1)
     traj = batching.solve(model, y0s, ts, solver=solver, controller=controller,
                           adjoint=adjoint, max_steps=max_steps, dt0=dt0,
                           model_axes=model_axes, cacheable=cacheable(ts, controller))
