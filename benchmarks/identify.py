@@ -27,7 +27,11 @@ Same objective, checked: the NumPy log-Cholesky map against rbdyn_jax's, and the
 residual's cost at rbdyn's optimum against rbdyn's final cost (`checks` in the JSON).
 
 Timed: the rbdyn fit's first call (includes compilation), then `--repeats` fits on fresh
-noise draws of the same sizes (compiled; median), and one scipy fit on the first draw.
+noise draws of the same sizes (compiled; median), and one scipy fit on the first draw; then
+the first rbdyn fit of the first draw in two new processes sharing a new directory for JAX's
+persistent compilation cache: the first finds it empty (it compiles and stores the fit), the
+second loads the fit from it (its traced and compiled program) instead of tracing and
+compiling (`--no-cache-processes` skips them).
 Reported per method: wall time, residual / Jacobian evaluations, final cost, max |J_fit −
 J_true|, and that error in units of rbdyn's standard errors (Gauss–Newton covariance of the
 same draw's rbdyn fit; max over the 6 distinct entries); the ratio of wall times
@@ -42,6 +46,9 @@ import argparse
 import json
 import pathlib
 import platform
+import subprocess
+import sys
+import tempfile
 import time
 from importlib.metadata import version
 
@@ -253,6 +260,35 @@ def run_rbdyn(ts, w_obs, q_obs, steps):
             "q0_fit": np.asarray(res.y0.quat)}
 
 
+def first_draw(K, n, seed):
+    """The first draw's times and noisy records."""
+    ts = np.linspace(0.0, T_END, n)
+    omega, quat = truth(K, ts, seed)
+    return ts, omega, quat, *noisy(omega, quat, seed + 1000)
+
+
+def run_in_new_process(K, n, seed, steps, cache):
+    """`run_rbdyn` on the first draw in a new process whose JAX persistent compilation cache
+    is the directory `cache` (this script as `--child-cache`); its J_fit and stderr_J as
+    arrays."""
+    args = [sys.executable, __file__, "--child-cache", str(cache), "--trajectories", str(K),
+            "--samples", str(n), "--seed", str(seed), "--steps", str(steps)]
+    proc = subprocess.run(args, capture_output=True, text=True, check=True)
+    r = json.loads(proc.stdout.strip().splitlines()[-1])
+    return {**r, "J_fit": np.array(r["J_fit"]), "stderr_J": np.array(r["stderr_J"])}
+
+
+def child(K, n, seed, steps, cache):
+    """`run_in_new_process`'s side: the cache configured before JAX compiles anything."""
+    jax.config.update("jax_compilation_cache_dir", cache)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    ts, _, _, w_obs, q_obs = first_draw(K, n, seed)
+    r = run_rbdyn(ts, w_obs, q_obs, steps)
+    print(json.dumps({k: v.tolist() if isinstance(v, np.ndarray) else v
+                      for k, v in r.items() if k not in ("x", "q0_fit")}))
+
+
 def run_scipy(ts, w_obs, q_obs, method, integrator):
     K = w_obs.shape[0]
     prob = ScipyProblem(ts, w_obs, q_obs, q_obs[:, 0], integrator)
@@ -286,11 +322,9 @@ def summarise(name, r, stderr):
 
 
 def main(trajectories=3, samples=50, seed=0, repeats=3, steps=30, scipy_method="trf",
-         integrator="DOP853", out="results/benchmarks/identify.json"):
+         integrator="DOP853", out="results/benchmarks/identify.json", cache_processes=True):
     K, n = trajectories, samples
-    ts = np.linspace(0.0, T_END, n)
-    omega, quat = truth(K, ts, seed)
-    w_obs, q_obs = noisy(omega, quat, seed + 1000)
+    ts, omega, quat, w_obs, q_obs = first_draw(K, n, seed)
     checks = {"log_cholesky_max_diff": log_cholesky_check()}
 
     # rbdyn: first call (compiles) on draw 0, then compiled calls on fresh draws.
@@ -300,6 +334,10 @@ def main(trajectories=3, samples=50, seed=0, repeats=3, steps=30, scipy_method="
                 for i in range(repeats)]
     times = [c["wall_s"] for c in compiled]
     sp = run_scipy(ts, w_obs, q_obs, scipy_method, integrator)
+    processes = []
+    if cache_processes:
+        with tempfile.TemporaryDirectory(prefix="rbdyn_identify_cache_") as cache:
+            processes = [run_in_new_process(K, n, seed, steps, cache) for _ in range(2)]
 
     rows = [summarise("rbdyn fit (first call)", first, stderr),
             # accuracy of the first fresh draw (own stderr), median time over the draws
@@ -307,6 +345,8 @@ def main(trajectories=3, samples=50, seed=0, repeats=3, steps=30, scipy_method="
             summarise(f"scipy least_squares {scipy_method}", sp, stderr)]
     rows[1]["wall_s"] = float(np.median(times))
     rows[1]["wall_s_all"] = times
+    for name, r in zip(("empty", "warm"), processes):
+        rows.append(summarise(f"rbdyn fit (new process, {name} cache)", r, stderr))
     for r in rows:
         r["time_ratio_scipy_over_this"] = sp["wall_s"] / r["wall_s"]
     # Same objective? The scipy residual at rbdyn's optimum (same draw) vs scipy's own.
@@ -325,6 +365,8 @@ def main(trajectories=3, samples=50, seed=0, repeats=3, steps=30, scipy_method="
     })
     ratios = {"scipy_over_rbdyn_compiled": sp["wall_s"] / rows[1]["wall_s"],
               "scipy_over_rbdyn_first_call": sp["wall_s"] / first["wall_s"]}
+    if processes:
+        ratios["scipy_over_rbdyn_warm_cache_process"] = sp["wall_s"] / processes[1]["wall_s"]
 
     head = (f"{'method':<34} {'wall s':>8} {'res/jac evals':>14} {'cost':>10} "
             f"{'max|ΔJ|':>9} {'/stderr':>8} {'scipy/this':>10}")
@@ -373,6 +415,12 @@ if __name__ == "__main__":
     p.add_argument("--scipy-method", default="trf", choices=["trf", "lm", "dogbox"])
     p.add_argument("--integrator", default="DOP853", choices=["DOP853", "RK45"])
     p.add_argument("--out", default="results/benchmarks/identify.json")
+    p.add_argument("--no-cache-processes", action="store_true",
+                   help="skip the first fits in new processes with the persistent cache")
+    p.add_argument("--child-cache", help=argparse.SUPPRESS)
     args = p.parse_args()
-    main(args.trajectories, args.samples, args.seed, args.repeats, args.steps,
-         args.scipy_method, args.integrator, args.out)
+    if args.child_cache:
+        child(args.trajectories, args.samples, args.seed, args.steps, args.child_cache)
+    else:
+        main(args.trajectories, args.samples, args.seed, args.repeats, args.steps,
+             args.scipy_method, args.integrator, args.out, not args.no_cache_processes)

@@ -40,10 +40,11 @@ import optax
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, ArrayLike, Bool, Float, PyTree
 
-from . import rotation
-from ._xla import filter_jit
+from . import _traces, rotation
+from ._checks import checks_as_nan
+from ._xla import QUICK_COMPILE_OPTIONS
 from .inertia import from_log_cholesky, to_log_cholesky
-from .integrate import RESULTS, make_controller, simulate
+from .integrate import MODE_DEPENDENT_JITS, RESULTS, make_controller, simulate
 from .models import RigidBody
 from .state import State
 
@@ -484,9 +485,15 @@ def fit(
       it). Every stage masks samples of the same arrays, so all stages share one
       compilation.
 
-    The whole fit (optimisation loop and covariance) is one compiled program (`eqx.filter_jit`,
-    `lax.scan` over the steps); a second fit of the same structure and sizes reuses it, also
-    with other values of `tol` and of a `PIDController`'s tolerances (passed as arrays).
+    The whole fit (starting point, optimisation loop, covariance and standard errors) is one
+    compiled program (`eqx.filter_jit`, `lax.scan` over the steps); a second fit of the same
+    structure and sizes reuses it, also with other values of `tol` and of a
+    `PIDController`'s tolerances (passed as arrays). With JAX's persistent compilation cache
+    configured (`jax_compilation_cache_dir`), a later process loads the fit's traced and
+    compiled program from it instead of tracing and compiling it again (the Levenberg–
+    Marquardt default; a fit with an `optimizer` only where its key can describe it). The
+    solves inside the fit run with their checks as NaN: a trial point whose solve fails is
+    rejected, as one whose loss went up.
 
     **Returns:** a `FitResult`.
     """
@@ -514,13 +521,10 @@ def fit(
         raise ValueError(f"`steps` must be a positive int, got {steps!r}.")
     K = data.num_trajectories
 
-    if y0 is None:
-        y0 = _initial_guess(data)
-    if y0.omega.shape != (K, 3) or y0.quat.shape != (K, 4):
+    if y0 is not None and (jnp.shape(y0.omega) != (K, 3) or jnp.shape(y0.quat) != (K, 4)):
         raise ValueError(f"`y0` must be a State with omega ({K}, 3) and quat ({K}, 4).")
-    q0_guess = rotation.quat_normalize(jnp.asarray(y0.quat))
 
-    # Free / fixed parameters as pytrees.
+    # The torque's free leaves and the rest.
     torque_dyn, torque_static = eqx.partition(model.torque, eqx.is_inexact_array)
     if torque_where is not None:
         spec = jax.tree_util.tree_map(lambda _: False, model.torque)
@@ -528,38 +532,24 @@ def fit(
         replace = (True,) * len(picked) if isinstance(picked, tuple) else True
         spec = eqx.tree_at(torque_where, spec, replace=replace)
         torque_dyn, torque_static = eqx.partition(model.torque, spec)
-    free, fixed = {}, {}
-    theta0 = to_log_cholesky(model.inertia)
-    (free if "inertia" in params else fixed)["theta"] = theta0
-    (free if "torque" in params else fixed)["torque"] = torque_dyn
-    ic = {"omega0": jnp.asarray(y0.omega), "dq0": jnp.zeros((K, 3), q0_guess.dtype)}
-    (free if "initial_conditions" in params else fixed).update(ic)
     if "torque" in params and not jax.tree_util.tree_leaves(torque_dyn):
         raise ValueError("`params` names 'torque' but the model's torque has no array leaves.")
 
     cfg = _Config(solver=solver, stepsize_controller=controller,
                   tol=jnp.asarray(tol, data.ts.dtype), max_steps=int(max_steps), steps=int(steps),
-                  scale=scale, optimizer=optimizer, torque_static=torque_static)
-    out = _run(free, fixed, q0_guess, model, data, cfg)
+                  scale=scale, optimizer=optimizer, torque_static=torque_static,
+                  params=tuple(sorted(set(params))))
+    out = _run(model, y0, torque_dyn, data, cfg)
 
-    # Assemble the result (eager, small).
-    p_opt = out.params
-    fitted = _assemble(p_opt, fixed, q0_guess, model, cfg)
-    flat, unravel = ravel_pytree(p_opt)
-    labels = _labels(p_opt)
-    it = np.array([lab.startswith("['theta']") for lab in labels])  # theta's flat indices
-    cov = out.covariance
+    # Read the result (NumPy: no further programs to compile).
+    labels = _labels(out.params)
     evals = np.asarray(out.eigenvalues)
     ill = int(np.sum(evals < rcond * evals.max()))
     notes = []
     scale_ok = True
     if "inertia" in params and scale is None:
         # Is the scaling of J a near-null direction of JᵀJ?
-        v = np.zeros(flat.size)
-        v[it] = np.asarray(_scale_direction(p_opt["theta"]))
-        H = np.asarray(out.gauss_newton)
-        hv = v @ H @ v / (v @ v)
-        if hv < rcond * evals.max():
+        if float(out.scale_curvature) < rcond * evals.max():
             scale_ok = False
             notes.append(
                 "The data fix the inertia only up to scale (J → cJ leaves the motion "
@@ -573,19 +563,9 @@ def fit(
             f"{ill} direction(s) of parameter space are ill-determined (eigenvalue of JᵀJ "
             f"below {rcond:g} × the largest): their standard errors are large."
         )
-    stderr_flat = jnp.sqrt(jnp.diag(cov))
-    se = unravel(stderr_flat)
-    stderr = {}
-    if "theta" in p_opt:
-        D = jax.jacfwd(lambda th: _inertia_of(th, scale).reshape(9))(p_opt["theta"])
-        cov_t = cov[np.ix_(it, it)]
-        se_J = jnp.sqrt(jnp.clip(jnp.diag(D @ cov_t @ D.T), 0.0)).reshape(3, 3)
-        stderr["inertia"] = se_J if scale_ok else jnp.full((3, 3), jnp.inf)
-    if "torque" in p_opt:
-        stderr["torque"] = se["torque"]
-    if "omega0" in p_opt:
-        stderr["omega0"] = se["omega0"]
-        stderr["quat0"] = se["dq0"]
+    stderr = dict(out.stderr)
+    if "inertia" in stderr and not scale_ok:
+        stderr["inertia"] = np.full((3, 3), np.inf)
     converged = bool(np.isfinite(float(out.loss)) and float(out.decrement) < tol)
     if not converged:
         notes.append(
@@ -593,9 +573,9 @@ def fit(
             f"{float(out.decrement):.3g} ≥ tol = {tol:g}."
         )
     return FitResult(
-        model=fitted.model, y0=fitted.y0, loss=out.loss, loss_history=out.loss_history,
+        model=out.model, y0=out.y0, loss=out.loss, loss_history=out.loss_history,
         inertia_history=out.inertia_history, grad_norm=out.grad_norm,
-        decrement=out.decrement, converged=converged, covariance=cov, labels=labels,
+        decrement=out.decrement, converged=converged, covariance=out.covariance, labels=labels,
         stderr=stderr, scale_identified=scale_ok, ill_determined=ill, notes=tuple(notes),
     )
 
@@ -633,6 +613,12 @@ class _Config(eqx.Module):
     scale: TraceScale | MomentScale | None  # the user's fix of the scale of J, if any
     optimizer: optax.GradientTransformation | None = eqx.field(static=True)  # None: LM
     torque_static: PyTree  # the torque's parts that are not free (`eqx.partition`)
+    params: tuple[str, ...] = eqx.field(static=True)  # which of `_PARAMS` are free
+
+
+# The parameters and which entry of `fit`'s `params` frees each.
+_FREED_BY = {"theta": "inertia", "torque": "torque", "omega0": "initial_conditions",
+             "dq0": "initial_conditions"}
 
 
 def _initial_guess(data: Observations) -> State:
@@ -711,6 +697,10 @@ class _Optimum(NamedTuple):
     """What the compiled fit returns."""
 
     params: dict  # the free parameters at the optimum, shaped like `free`
+    model: RigidBody  # the fitted model
+    y0: State  # the fitted initial states (leading K axis)
+    stderr: dict  # as `FitResult.stderr` (the inertia's before the scale check)
+    scale_curvature: Array  # vᵀ(JᵀJ)v/vᵀv along the scaling of J, v (0 if J is not free)
     loss: Array  # ½ Σ r² there
     loss_history: Array  # (steps + 1,)
     inertia_history: Array  # (steps + 1, 3, 3)
@@ -721,8 +711,16 @@ class _Optimum(NamedTuple):
     eigenvalues: Array  # of JᵀJ, ascending
 
 
-@filter_jit
-def _run(free, fixed, q0_guess, model, data, cfg: _Config) -> _Optimum:
+def _fit_program(model, y0, torque_dyn, data, cfg: _Config) -> _Optimum:
+    """The whole fit: the starting point from `model` and `y0` (`None`: the first observed
+    samples), the optimisation, and what `fit` reports at the optimum."""
+    if y0 is None:
+        y0 = _initial_guess(data)
+    q0_guess = rotation.quat_normalize(y0.quat)
+    start = {"theta": to_log_cholesky(model.inertia), "torque": torque_dyn,
+             "omega0": y0.omega, "dq0": jnp.zeros_like(y0.omega)}
+    free = {k: v for k, v in start.items() if _FREED_BY[k] in cfg.params}
+    fixed = {k: v for k, v in start.items() if _FREED_BY[k] not in cfg.params}
     flat0, unravel = ravel_pytree(free)
 
     def res(flat, adjoint):
@@ -743,7 +741,11 @@ def _run(free, fixed, q0_guess, model, data, cfg: _Config) -> _Optimum:
         return _inertia_of(allp["theta"], cfg.scale)
 
     def lin(y) -> _Linearisation:
-        Jm, r = jax.jacfwd(lambda z: (res_fwd(z), res_fwd(z)), has_aux=True)(y)
+        def both(z):
+            r = res_fwd(z)
+            return r, r
+
+        Jm, r = jax.jacfwd(both, has_aux=True)(y)
         return _Linearisation(Jm, r)
 
     if cfg.optimizer is None:
@@ -776,7 +778,7 @@ def _run(free, fixed, q0_guess, model, data, cfg: _Config) -> _Optimum:
             s = jax.lax.cond(s.done, lambda s, i: s, work, s, i)
             return s, _Iterate(loss=s.loss, inertia=inertia(s.x))
 
-        m = jax.eval_shape(res_fwd, flat0).shape[0]
+        m = data.ts.size * 3 * ((data.omega is not None) + (data.quat is not None))
         init = _LMState(x=flat0, r=jnp.zeros(m, flat0.dtype),
                         jacobian=jnp.zeros((m, flat0.size), flat0.dtype),
                         loss=jnp.asarray(jnp.inf, flat0.dtype),
@@ -819,11 +821,44 @@ def _run(free, fixed, q0_guess, model, data, cfg: _Config) -> _Optimum:
         inv_evals = jnp.where(evals > 1e-13 * jnp.max(evals), 1.0 / jnp.maximum(evals, floor),
                               0.0)
     inv = evecs @ jnp.diag(inv_evals) @ evecs.T
+    p_opt = unravel(x)
+    fitted = _assemble(p_opt, fixed, q0_guess, model, cfg)
+    se = unravel(jnp.sqrt(jnp.diag(inv)))
+    stderr, curvature = {}, jnp.zeros((), x.dtype)
+    if "theta" in p_opt:
+        it = np.array([lab.startswith("['theta']") for lab in _labels(p_opt)])
+        D = jax.jacfwd(lambda th: _inertia_of(th, cfg.scale).reshape(9))(p_opt["theta"])
+        cov_t = inv[np.ix_(it, it)]
+        stderr["inertia"] = jnp.sqrt(jnp.clip(jnp.diag(D @ cov_t @ D.T), 0.0)).reshape(3, 3)
+        v = jnp.zeros_like(x).at[np.flatnonzero(it)].set(_scale_direction(p_opt["theta"]))
+        curvature = v @ H @ v / (v @ v)
+    if "torque" in p_opt:
+        stderr["torque"] = se["torque"]
+    if "omega0" in p_opt:
+        stderr["omega0"] = se["omega0"]
+        stderr["quat0"] = se["dq0"]
     return _Optimum(
-        params=unravel(x), loss=f, loss_history=hist, inertia_history=Js,
+        params=p_opt, model=fitted.model, y0=fitted.y0, stderr=stderr,
+        scale_curvature=curvature, loss=f, loss_history=hist, inertia_history=Js,
         grad_norm=jnp.linalg.norm(g), decrement=0.5 * g @ inv @ g, covariance=inv,
         gauss_newton=H, eigenvalues=evals,
     )
+
+
+def _fit_checks_as_nan(*args) -> _Optimum:
+    """`_fit_program` traced with the solves' checks as NaN (`checks_as_nan`): `fit` has
+    validated its inputs, and a trial point whose solve fails gives NaN residuals, which
+    Levenberg–Marquardt rejects. The program then holds no host callback, so JAX's
+    persistent compilation cache stores it, and rbdyn_jax's cache of traced programs its
+    trace (`_traces`; a later process with the cache configured loads it instead of tracing
+    the fit again)."""
+    with checks_as_nan(jitted=MODE_DEPENDENT_JITS):
+        return _fit_program(*args)
+
+
+# The whole fit, one compiled program, compiled for a short first call (`QUICK_COMPILE_OPTIONS`):
+# `fit` calls it at the top level on concrete inputs.
+_run = _traces.cached(_fit_checks_as_nan, QUICK_COMPILE_OPTIONS)
 
 
 __all__ = ["FitResult", "MomentScale", "Observations", "TraceScale", "fit", "loss",

@@ -1,8 +1,9 @@
 """Smoke test: benchmarks/identify.py runs at tiny sizes (1 trajectory × 15 samples, one
 compiled repeat) and writes its JSON; rbdyn's `fit` and the scipy baseline both recover the
-inertia and reach the same optimum of the same objective.
+inertia and reach the same optimum of the same objective; the fits in new processes with the
+persistent cache (empty, then warm) give the first fit's result.
 
-One subprocess; the rbdyn fit's compilation (~25 s on a 2-core machine) dominates.
+One subprocess, which starts two more; their imports and the fit's compilation dominate.
 """
 
 import json
@@ -29,9 +30,14 @@ def test_identify_benchmark_runs_and_recovers_inertia(tmp_path):
     assert meta["trajectories"] == 1 and meta["samples"] == 15
     assert meta["n_params"] == 12 and meta["n_residuals"] == 90
 
-    first, compiled, sp = res["rows"]
+    first, compiled, sp, empty, warm = res["rows"]
     assert first["method"].startswith("rbdyn") and "compiled" in compiled["method"]
     assert sp["method"].startswith("scipy")
+    assert "empty cache" in empty["method"] and "warm cache" in warm["method"]
+    # The warm process loads the program the empty one stored: the same fit, bitwise; and
+    # the same program as this process's first call (same flags and options), to round-off.
+    assert warm["J_fit"] == empty["J_fit"] and warm["cost"] == empty["cost"]
+    np.testing.assert_allclose(empty["J_fit"], first["J_fit"], rtol=1e-12, atol=1e-12)
     keys = {"method", "wall_s", "residual_evals", "jacobian_evals", "cost", "max_abs_err_J",
             "max_err_in_stderr", "J_fit", "time_ratio_scipy_over_this"}
     j_true = np.array(meta["J_true"])

@@ -1,4 +1,4 @@
-"""The on-disk cache of traced solves (`rbdyn_jax/integrate/_traces.py`): a later process gets the
+"""The on-disk cache of traced solves (`rbdyn_jax/_traces.py`): a later process gets the
 same results from a loaded trace as from tracing, and a key never lets one call's program
 serve another's."""
 
@@ -16,8 +16,9 @@ import pytest
 from helpers import host_callbacks
 
 import rbdyn_jax as rb
-from rbdyn_jax._xla import filter_jit
-from rbdyn_jax.integrate import _simulate, _traces
+from rbdyn_jax import _traces
+from rbdyn_jax._xla import QUICK_COMPILE_OPTIONS
+from rbdyn_jax.integrate import _simulate
 
 J = jnp.array([[2.0, 0.05, 0.0], [0.05, 3.0, 0.02], [0.0, 0.02, 4.0]])
 TS = np.linspace(0.0, 5.0, 11)
@@ -98,7 +99,7 @@ SCRIPT = textwrap.dedent("""
         jax.config.update("jax_compilation_cache_dir", sys.argv[1])
     import jax.numpy as jnp, numpy as np
     import rbdyn_jax as rb
-    from rbdyn_jax.integrate import _traces
+    from rbdyn_jax import _traces
     J = jnp.array([[2.0, 0.05, 0.0], [0.05, 3.0, 0.02], [0.0, 0.02, 4.0]])
     w = np.random.default_rng(1).normal(size=(12, 3)) * np.linspace(0.05, 3, 12)[:, None]
     w = jnp.asarray(w)
@@ -202,7 +203,7 @@ def test_a_program_export_refuses_is_traced_as_without_the_cache(tmp_path, monke
         return x * scale
 
     fn.__module__ = "rbdyn_jax.integrate"  # describable, as rbdyn_jax's own solves are
-    call = _traces.cached(fn, filter_jit(fn))
+    call = _traces.cached(fn)
     before = dict(_traces.stats)
     x = jnp.array([1.5, 2.0])
     for _ in range(2):
@@ -222,7 +223,8 @@ CALLER = textwrap.dedent("""
         jax.config.update("jax_compilation_cache_dir", sys.argv[1])
     import jax.numpy as jnp, numpy as np
     import rbdyn_jax as rb
-    from rbdyn_jax.integrate import _batching, _traces
+    from rbdyn_jax import _traces
+    from rbdyn_jax.integrate import _batching
     traced = []  # the lane loops traced in this process
     loop = _batching.lane_loop
     _batching.lane_loop = lambda *a, **k: traced.append(1) or loop(*a, **k)
@@ -269,6 +271,58 @@ def test_a_callers_gradient_holds_the_stored_loops_and_gets_the_same_results(tmp
     assert_same(warm, cold)
     assert np.all(np.isfinite(ref["hessian"]))
     np.testing.assert_allclose(ref["hessian"], ref["hessian"].T, rtol=1e-9, atol=1e-12)
+
+
+FIT = textwrap.dedent("""
+    import json, sys
+    import jax
+    jax.config.update("jax_enable_x64", True)
+    if sys.argv[1] != "none":
+        jax.config.update("jax_compilation_cache_dir", sys.argv[1])
+    import jax.numpy as jnp, numpy as np
+    import rbdyn_jax as rb
+    from rbdyn_jax import _traces, identify
+    J = jnp.array([[2.0, 0.05, 0.0], [0.05, 3.0, 0.02], [0.0, 0.02, 4.0]])
+    model = rb.RigidBody(J, rb.UniformGravity(2.0, jnp.array([0.0, 0.0, 0.1])))
+    w = jnp.asarray(np.random.default_rng(2).normal(size=(2, 3)))
+    y0s = rb.State(w, jnp.tile(jnp.array([1.0, 0, 0, 0]), (2, 1)))
+    ts = np.linspace(0.0, 2.0, 9)
+    truth = rb.simulate_batch(model, y0s, ts, rtol=1e-10, atol=1e-10)
+    data = identify.Observations(ts, omega=truth.ys.omega, quat=truth.ys.quat)
+    guess = rb.RigidBody(1.1 * jnp.diag(jnp.diag(J)), model.torque)
+    res = identify.fit(guess, data, steps=4)
+    leaves = jax.tree_util.tree_leaves((res.model, res.y0, res.loss_history, res.covariance,
+                                        res.stderr))
+    np.savez(sys.argv[2], **{f"fit{i}": np.asarray(x) for i, x in enumerate(leaves)})
+    print(json.dumps(_traces.stats))
+""")
+
+
+def test_a_later_process_loads_the_fit_and_gets_the_same_result(tmp_path):
+    """`identify.fit`'s whole program (its Levenberg–Marquardt loop) in three fresh
+    processes: no cache; an empty cache (the fit and the solve making the data stored);
+    the same cache (both loaded, nothing traced). The fitted model, initial states, loss
+    history, covariance and standard errors bitwise equal in all three."""
+    cache = tmp_path / "cache"
+    ref_stats, ref = _run("none", tmp_path, script=FIT)
+    cold_stats, cold = _run(cache, tmp_path, script=FIT)
+    warm_stats, warm = _run(cache, tmp_path, script=FIT)
+    assert ref_stats == {"hits": 0, "stores": 0, "uncacheable": 0}
+    assert cold_stats == {"hits": 0, "stores": 2, "uncacheable": 0}
+    assert warm_stats == {"hits": 2, "stores": 0, "uncacheable": 0}
+    assert_same(cold, ref)
+    assert_same(warm, ref)
+    assert np.all(np.isfinite(ref["fit0"]))
+
+
+def test_key_holds_the_compiler_options():
+    """A program stored for other XLA options is another entry: it is compiled with them."""
+    args = solve_args()
+    quick = _traces.key("solve", args, QUICK_COMPILE_OPTIONS)
+    assert quick not in (None, _traces.key("solve", args))
+    leaves, treedef = jax.tree_util.tree_flatten(args)
+    assert _traces._memo_key("solve", treedef, leaves, QUICK_COMPILE_OPTIONS) == quick
+    assert _traces._memo_key("solve", treedef, leaves) == _traces.key("solve", args)
 
 
 def test_memo_tells_signed_zeros_apart():

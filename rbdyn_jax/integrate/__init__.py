@@ -17,7 +17,8 @@ The modules, one idea each:
 - `_sensitivity`: forward sensitivities of the lane loop, its derivative rule;
 - `_dependencies`: which state leaves a derivative must carry;
 - `_cheapest`: the equation that runs the cheapest program giving what is read;
-- `_compile`, `_traces`: when a solve is compiled, and which traces are stored on disk.
+- `_compile`: when a solve is compiled, and which of its traces are stored on disk
+  (`rbdyn_jax/_traces.py`, the package's cache of traced programs).
 
 Every use of diffrax's, equinox's or JAX's internals is in `rbdyn_jax/_compat.py`.
 

@@ -13,8 +13,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import PartitionSpec
 
+from .. import _traces
 from .._xla import loops_compiled_whole
-from . import _traces
 from ._compile import compiled
 from ._diffeqsolve import solve_vmapped
 from ._field import checked_times, finish, promoted

@@ -14,10 +14,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import _compat
+from .. import _compat, _traces
 from .._checks import checks_as_nan
 from .._xla import filter_jit
-from . import _traces
 from ._field import MODE_DEPENDENT_JITS
 from ._solution import RESULTS
 
@@ -34,7 +33,7 @@ def compiled(fn):
         with checks_as_nan(jitted=MODE_DEPENDENT_JITS):
             return fn(*args)
 
-    return {False: filter_jit(fn), True: _traces.cached(checks_nan, filter_jit(checks_nan))}
+    return {False: filter_jit(fn), True: _traces.cached(checks_nan)}
 
 
 def cacheable(*xs) -> bool:

@@ -1,9 +1,10 @@
-"""An on-disk cache of traced solves, beside JAX's persistent compilation cache.
+"""An on-disk cache of traced programs, beside JAX's persistent compilation cache.
 
 JAX's persistent cache stores compiled XLA programs, but a new process must still trace the
 Python function to find which program it needs, and for a diffrax solve the trace is most of a
 warm first call (far more than the cache lookup). When JAX's cache is configured
-(`jax_compilation_cache_dir`), the solves of `rbdyn_jax.integrate` are therefore also exported
+(`jax_compilation_cache_dir`), the solves of `rbdyn_jax.integrate` and the fits of
+`rbdyn_jax.identify` (their Levenberg–Marquardt program) are therefore also exported
 (`jax.export`: the traced program as StableHLO, with JAX's serialization) into
 `<cache dir>/rbdyn_jax-traces/`, and a later process with the same inputs loads that instead of
 tracing: the same program, the same results (tested bitwise), its compilation then served by
@@ -14,10 +15,10 @@ on every static value the code reads, which JAX's cache never sees. So an entry'
 built from a complete description of the call, and a call it cannot describe exactly is
 never cached (it is traced, as without this module):
 
-- the versions of JAX and of every library the solve's code comes from (diffrax, equinox,
-  lineax, optimistix, jaxtyping, numpy), a digest of rbdyn_jax's own source files, the JAX
-  settings that change a trace (float64, matmul precision, dtype promotion), the platform
-  and the number of devices;
+- the versions of JAX and of every library the program's code comes from (diffrax,
+  equinox, lineax, optimistix, optax, jaxtyping, numpy), a digest of rbdyn_jax's own source
+  files, the JAX settings that change a trace (float64, matmul precision, dtype promotion),
+  the platform and the number of devices;
 - the call's pytree: every node type, which must come from one of those libraries (a
   user's own torque class is not versioned by anything here, so its model is not cached),
   every static value (numbers, strings, functions and classes of those libraries by name,
@@ -46,15 +47,15 @@ import equinox as eqx
 import jax
 import numpy as np
 
-from .. import _compat
-from .._xla import COMPILER_OPTIONS, export, filter_jit, jit, top_level
+from . import _compat
+from ._xla import COMPILER_OPTIONS, export, filter_jit, jit, top_level
 
 # The modules whose classes and functions a key may name: their code is versioned by
 # `_environment` (builtins by the Python version, which changes the bytecode cache anyway).
-_LIBRARIES = ("builtins", "rbdyn_jax", "diffrax", "equinox", "lineax", "optimistix", "jax",
-              "jaxlib", "jaxtyping", "numpy")
-_DISTRIBUTIONS = ("jax", "jaxlib", "diffrax", "equinox", "lineax", "optimistix", "jaxtyping",
-                  "numpy", "flatbuffers")
+_LIBRARIES = ("builtins", "rbdyn_jax", "diffrax", "equinox", "lineax", "optimistix", "optax",
+              "jax", "jaxlib", "jaxtyping", "numpy")
+_DISTRIBUTIONS = ("jax", "jaxlib", "diffrax", "equinox", "lineax", "optimistix", "optax",
+                  "jaxtyping", "numpy", "flatbuffers")
 _SUBDIR = "rbdyn_jax-traces"
 
 stats = {"hits": 0, "stores": 0, "uncacheable": 0}  # this process's use of the cache (tests)
@@ -90,7 +91,7 @@ def _environment() -> str:
             h.update(f"{name}={importlib.metadata.version(name)};".encode())
         except importlib.metadata.PackageNotFoundError:
             h.update(f"{name}=none;".encode())
-    root = pathlib.Path(__file__).parent.parent  # the rbdyn_jax package
+    root = pathlib.Path(__file__).parent  # the rbdyn_jax package
     for path in sorted(root.rglob("*.py")):
         h.update(str(path.relative_to(root)).encode())
         h.update(path.read_bytes())
@@ -175,12 +176,11 @@ def _settings() -> tuple:
             c.jax_numpy_rank_promotion, jax.default_backend(), jax.device_count())
 
 
-def key(name: str, args: tuple) -> str | None:
-    """The cache key of `name(*args)`, or `None` if the call cannot be described exactly
-    (then it must not be cached)."""
+def key(name: str, args: tuple, options: dict = COMPILER_OPTIONS) -> str | None:
+    """The cache key of `name(*args)` compiled with XLA's `options`, or `None` if the call
+    cannot be described exactly (then it must not be cached)."""
     try:
-        description = (name, _environment(), _tree(args), _settings(),
-                       _value(COMPILER_OPTIONS))
+        description = (name, _environment(), _tree(args), _settings(), _value(options))
     except _Unsafe:
         return None
     return hashlib.sha256(repr(description).encode()).hexdigest()
@@ -222,12 +222,12 @@ def _export(path: pathlib.Path, fn, dyn, static, leaves):
     return exported, out_tree[0]
 
 
-def _memo_key(name, treedef, leaves):
+def _memo_key(name, treedef, leaves, options=COMPILER_OPTIONS):
     """`key(name, args)` looked up by value in this process's memo, whose keys are the
     JAX settings, the pytree structure (equinox's static fields compared by `==`), the
     static values with their types, and the arrays' shapes and dtypes: a dict lookup
     instead of the full description, which is too slow to build on every call."""
-    memo = (name, _settings(), treedef, tuple(
+    memo = (name, tuple(sorted(options.items())), _settings(), treedef, tuple(
         _aval(x) if eqx.is_array(x)
         else (type(x), repr(x)) if isinstance(x, (float, complex))  # 0.0 == -0.0
         else (type(x), x) for x in leaves))
@@ -236,8 +236,8 @@ def _memo_key(name, treedef, leaves):
     except KeyError:
         pass
     except Exception:  # an unhashable or incomparable static value: describe in full
-        return key(name, jax.tree_util.tree_unflatten(treedef, leaves))
-    k = key(name, jax.tree_util.tree_unflatten(treedef, leaves))
+        return key(name, jax.tree_util.tree_unflatten(treedef, leaves), options)
+    k = key(name, jax.tree_util.tree_unflatten(treedef, leaves), options)
     if len(_KEYS) > 1024:
         _KEYS.clear()
     _KEYS[memo] = k
@@ -272,14 +272,15 @@ def _placement(exported):
     return lambda arrays: [jax.device_put(x, replicated) for x in arrays]
 
 
-def cached(fn, jitted):
-    """`jitted` (`filter_jit(fn)`), with `fn`'s traced program stored on disk and reused
+def cached(fn, options: dict = COMPILER_OPTIONS):
+    """`filter_jit(fn, options)`, with `fn`'s traced program stored on disk and reused
     by later processes where `directory()` is set, the call is made at the top level with
-    concrete arrays, and `key` can describe it. `fn` must be traced with no host callback
-    (rbdyn_jax's checks-as-NaN solves), or it cannot be exported. Inside a caller's
-    transformation (with `directory()` set) `fn` is traced by a jit of its own with
-    `embedded` on."""
+    concrete arrays, and `key` can describe it (a loaded program is compiled with the same
+    XLA `options`). `fn` must be traced with no host callback (rbdyn_jax's checks-as-NaN
+    programs), or it cannot be exported. Inside a caller's transformation (with
+    `directory()` set) `fn` is traced by a jit of its own with `embedded` on."""
     name = f"{fn.__module__}.{fn.__qualname__}"
+    jitted = filter_jit(fn, options)
 
     @functools.wraps(fn)
     def embedding(*args):
@@ -302,7 +303,7 @@ def cached(fn, jitted):
         arrays = [x for x in leaves if eqx.is_array(x)]
         if any(isinstance(x, jax.core.Tracer) for x in arrays):
             return jitted(*args)
-        k = _memo_key(name, treedef, leaves)
+        k = _memo_key(name, treedef, leaves, options)
         if k is None or k in _UNEXPORTABLE:
             stats["uncacheable"] += 1
             return jitted(*args)
@@ -311,7 +312,7 @@ def cached(fn, jitted):
             if entry is None:  # not exportable: traced as without the cache, from now on
                 return jitted(*args)
             exported, out_tree = entry
-            _LOADED[k] = (jit(exported.call), out_tree, _placement(exported))
+            _LOADED[k] = (jit(exported.call, options), out_tree, _placement(exported))
         run, out_tree, place = _LOADED[k]
         return jax.tree_util.tree_unflatten(out_tree, run(*place(arrays)))
 
