@@ -32,16 +32,18 @@ float64, default solver (Tsit5). Cases:
 The data are ω(t) of the true body from scipy's `solve_ivp` (so that no JAX program is
 compiled before the timed call). Every measurement runs in a fresh process (this script
 re-invoked with `--child CASE --cache DIR|none`), which times `import jax` + `import
-rbdyn_jax`, then the building of the inputs and the model ("build", e.g. `RigidBody(J)` and
-its inertia checks; before the timed call), the first call (`block_until_ready`) and a second
-call with the same inputs (steady state). Three processes per case: (1) no persistent cache;
-(2) cache cold: a fresh empty cache directory (`jax_compilation_cache_dir`, min compile time
-0 s, min entry size 0 bytes); (3) cache warm: a new process on the same directory.
+rbdyn_jax.integrate` (the package and its solver layer, imported by the first name used
+otherwise; diffrax for the yardstick), then the building of the inputs and the model
+("build", e.g. `RigidBody(J)` and its inertia checks; before the timed call), the first call
+(`block_until_ready`) and a second call with the same inputs (steady state). Three processes
+per case: (1) no persistent cache; (2) cache cold: a fresh empty cache directory
+(`jax_compilation_cache_dir`, min compile time 0 s, min entry size 0 bytes); (3) cache warm:
+a new process on the same directory.
 "entries" counts the cache files (`*-cache`) that the first call of (2) wrote (0: nothing of
 it was cacheable); "cb skip" counts the programs JAX compiled during that call but refused
 to store because they hold host callbacks (taken from JAX's log; their names are in the
 JSON). "traces" counts the solves that (3) loaded from rbdyn_jax's cache of traced programs
-(`rbdyn_jax/integrate/_traces.py`, in the same directory) instead of tracing them; a gradient is
+(`rbdyn_jax/_traces.py`, in the same directory) instead of tracing them; a gradient is
 the caller's own `jit`, which rbdyn_jax cannot store, but inside it the lane solver's
 loops (the forward solve, and the sensitivities' solves of ω's group and of the whole state)
 are loaded from there. The speed-up is first call
@@ -131,8 +133,9 @@ class _Recorder(logging.Handler):
 
 
 def _start_jax(cache, case):
-    """Import jax (float64, the cache configured) and, but for the yardstick, rbdyn_jax
-    (diffrax for the yardstick); their import times."""
+    """Import jax (float64, the cache configured) and, but for the yardstick, rbdyn_jax with
+    its solver layer `rbdyn_jax.integrate` (which `import rbdyn_jax` leaves to the first
+    name used; it imports diffrax), or diffrax for the yardstick; their import times."""
     t0 = time.perf_counter()
     import jax
 
@@ -145,7 +148,7 @@ def _start_jax(cache, case):
     if case == YARDSTICK:
         import diffrax  # noqa: F401
     else:
-        import rbdyn_jax  # noqa: F401
+        import rbdyn_jax.integrate  # noqa: F401
 
     return t1 - t0, time.perf_counter() - t1
 
@@ -291,7 +294,7 @@ def child(case, cache):
     t0 = time.perf_counter()
     jax.block_until_ready(call())
     steady = time.perf_counter() - t0
-    traces = sys.modules.get("rbdyn_jax.integrate._traces")  # rbdyn_jax's cache of traced solves
+    traces = sys.modules.get("rbdyn_jax._traces")  # rbdyn_jax's cache of traced solves
     print(json.dumps({"import_jax_s": import_jax_s, "import_rbdyn_jax_s": import_rb_s,
                       "build_s": build, "first_s": first, "steady_s": steady,
                       "entries_written": entries,
