@@ -157,8 +157,8 @@ def _cache_dir() -> str:
 
 
 def _compilation_cache(jax) -> None:
-    """JAX's persistent compilation cache in `_cache_dir()`, so a repeated sweep skips XLA
-    compilation."""
+    """JAX's persistent compilation cache in `_cache_dir()`, so a repeated sweep or fit skips
+    tracing and compiling its program (rbdyn_jax stores the traced program beside it)."""
     path = _cache_dir()
     if path:
         jax.config.update("jax_compilation_cache_dir", path)
@@ -437,6 +437,7 @@ def fit_command(args) -> int:
     import jax
 
     jax.config.update("jax_enable_x64", True)
+    _compilation_cache(jax)
     import jax.numpy as jnp
     import numpy as np
 

@@ -164,6 +164,8 @@ def planar(J: MatrixLike) -> Matrix:
     diagonal, products `Σ m x y`, … with a plus sign off it).
     """
     J = check_trailing(J, (3, 3), "J")
+    if not isinstance(J, jax.core.Tracer):
+        return jnp.asarray(_planar(np.asarray(J), np))  # concrete: compiles nothing
     return _planar(J)
 
 
@@ -311,8 +313,10 @@ def is_physical(J: MatrixLike) -> BoolArray:
 
     A boolean array of shape `(*batch,)`.
     """
-    J = jax.lax.stop_gradient(check_trailing(J, (3, 3), "J"))
-    return _physical(J)
+    J = check_trailing(J, (3, 3), "J")
+    if not isinstance(J, jax.core.Tracer) and np.all(np.isfinite(J)):
+        return jnp.asarray(_physical(np.asarray(J), np))  # concrete: compiles nothing
+    return _physical(jax.lax.stop_gradient(J))
 
 
 def check_inertia(J: MatrixLike, name: str = "inertia") -> Matrix:

@@ -740,10 +740,14 @@ class Scenario:
         return {path: dist.sample(_path_key(k, path)) for path, dist in dists.items()}
 
     def _check_summaries(self):
-        model, y0 = self.build(self.nominal())
-        ts = jnp.asarray(self.ts[:2])
-        ys = jax.tree_util.tree_map(lambda x: jnp.stack([x, x]), y0)
-        traj = Trajectory(ts=ts, ys=ys, stats={}, result=RESULTS.successful)
+        def nominal_run():
+            model, y0 = self.build(self.nominal())
+            ys = jax.tree_util.tree_map(lambda x: jnp.stack([x, x]), y0)
+            return model, Trajectory(ts=jnp.asarray(self.ts[:2]), ys=ys, stats={},
+                                     result=RESULTS.successful)
+
+        # Shapes only (nothing computed or compiled): what the summaries are traced with.
+        model, traj = jax.eval_shape(nominal_run)
         for name in self.summaries:
             try:
                 jax.eval_shape(lambda m, tr, f=SUMMARIES[name].fn: f(m, tr), model, traj)

@@ -50,9 +50,9 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import NamedSharding, PartitionSpec as P
 
+from . import _traces
 from ._checks import checks_as_nan
 from ._plots import plots_dir
-from ._xla import jit
 from .integrate import (
     MODE_DEPENDENT_JITS,
     RESULTS,
@@ -119,6 +119,42 @@ def _solve_block(scenario: Scenario, dists, key, idx, lanes):
 _PER_LANE = 8  # trajectories per lane in one lane-solver block (a block: 8 × lanes)
 
 
+# The scenarios of this process's runners by their source's JSON text (`_Runner`).
+_SCENARIOS: dict[str, Scenario] = {}
+
+
+def _chunk_program(source: str, lanes: int, mesh, idx, dists, key) -> dict:
+    """Sample and solve the trajectories `idx` (sharded over `mesh`'s devices) of the
+    scenario whose `source` is the JSON text `source`, with `dists` its distributions.
+
+    The scenario enters as its source text, which the trace cache can describe exactly
+    (`_traces`): a later process with the cache configured loads this program instead of
+    tracing it. Traced with the solves' checks as NaN (`checks_as_nan`: the scenario was
+    validated, and a failing trajectory is reported in `status`), so the program holds no
+    host callback and can be stored."""
+    sc = _SCENARIOS[source]
+
+    def per_device(idx, dists, key):
+        # Fixed blocks of _PER_LANE × lanes trajectories, one after the other: the
+        # block's program is then the same for every chunk size and device count, so
+        # the results are bitwise identical across them (a lane-solver loop over the
+        # whole share compiles differently for each share size and rounds differently).
+        # Fixed blocks also avoid a hang in the XLA runtime (all threads asleep) that
+        # one loop over a large share (2048 on 2 XLA:CPU host devices) runs into.
+        out = jax.lax.map(lambda b: _solve_block(sc, dists, key, b, lanes),
+                          idx.reshape(-1, _PER_LANE * lanes))
+        return jax.tree_util.tree_map(lambda x: x.reshape((-1,) + x.shape[2:]), out)
+
+    # No collectives inside the solver loop: each device runs its own while loops.
+    sharded = jax.shard_map(per_device, mesh=mesh, in_specs=(P("batch"), P(), P()),
+                            out_specs=P("batch"), check_vma=False)
+    with checks_as_nan(jitted=MODE_DEPENDENT_JITS):
+        return sharded(idx, dists, key)
+
+
+_solve_chunk = _traces.cached(_chunk_program)
+
+
 @dataclasses.dataclass
 class _Runner:
     """The compiled chunk solver: every call has the same padded size (one compilation)."""
@@ -127,29 +163,14 @@ class _Runner:
     lanes: int
     devices: list
     chunk: int
-    fn: Callable = dataclasses.field(init=False)
     mesh: Any = dataclasses.field(init=False)
+    source: str = dataclasses.field(init=False)
 
     def __post_init__(self):
-        sc, lanes = self.scenario, self.lanes
         self.mesh = jax.sharding.Mesh(np.asarray(self.devices), ("batch",))
-
-        def per_device(idx, dists, key):
-            # Fixed blocks of _PER_LANE × lanes trajectories, one after the other: the
-            # block's program is then the same for every chunk size and device count, so
-            # the results are bitwise identical across them (a lane-solver loop over the
-            # whole share compiles differently for each share size and rounds differently).
-            # Fixed blocks also avoid a hang in the XLA runtime (all threads asleep) that
-            # one loop over a large share (2048 on 2 XLA:CPU host devices) runs into.
-            out = jax.lax.map(lambda b: _solve_block(sc, dists, key, b, lanes),
-                              idx.reshape(-1, _PER_LANE * lanes))
-            return jax.tree_util.tree_map(lambda x: x.reshape((-1,) + x.shape[2:]), out)
-
-        # No collectives inside the solver loop: each device runs its own while loops.
-        sharded = jax.shard_map(per_device, mesh=self.mesh,
-                                in_specs=(P("batch"), P(), P()), out_specs=P("batch"),
-                                check_vma=False)
-        self.fn = jit(sharded)
+        self.source = json.dumps(self.scenario.source, sort_keys=True)
+        _SCENARIOS.clear()  # as `_RUNNERS`, keep one
+        _SCENARIOS[self.source] = self.scenario
 
     @property
     def size(self) -> int:
@@ -164,8 +185,7 @@ class _Runner:
         full = np.concatenate([idx, np.full(self.size - n, idx[-1], idx.dtype)])
         arr = jax.make_array_from_callback(
             (self.size,), NamedSharding(self.mesh, P("batch")), lambda i: full[i])
-        with checks_as_nan(jitted=MODE_DEPENDENT_JITS):  # traced on the first call only
-            return self.fn(arr, self.scenario.dists, key)
+        return _solve_chunk(self.source, self.lanes, self.mesh, arr, self.scenario.dists, key)
 
     @staticmethod
     def collect(out: dict, n: int) -> dict[str, np.ndarray]:

@@ -141,7 +141,7 @@ def test_sweep_and_plot_commands(tmp_path):
     assert fail.returncode == 2 and "`model.inertia.principal`" in fail.stderr
 
 
-def test_fit_command_recovers_the_inertia_from_csv(tmp_path, capsys):
+def test_fit_command_recovers_the_inertia_from_csv(tmp_path, capsys, no_cache):
     """`rbdyn fit` on a CSV of noisy ω and attitude of a heavy top (a known torque fixes the
     scale of J): the fitted inertia is within 4 standard errors, the files are written."""
     import json
@@ -246,8 +246,9 @@ def test_observations_load_the_same_from_npz_netcdf_and_csv(tmp_path):
 
 @pytest.fixture
 def no_cache(monkeypatch):
-    """`rbdyn sweep` run in this process turns on JAX's persistent compilation cache for
-    the process, unless `$RBDYN_JAX_CACHE_DIR` is empty: keep it off for the other tests."""
+    """`rbdyn sweep` or `rbdyn fit` run in this process turns on JAX's persistent compilation
+    cache for the process, unless `$RBDYN_JAX_CACHE_DIR` is empty: keep it off for the other
+    tests."""
     monkeypatch.setenv("RBDYN_JAX_CACHE_DIR", "")
 
 
