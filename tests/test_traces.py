@@ -315,6 +315,38 @@ def test_a_later_process_loads_the_fit_and_gets_the_same_result(tmp_path):
     assert np.all(np.isfinite(ref["fit0"]))
 
 
+SWEEP = textwrap.dedent("""
+    import json, sys
+    import jax
+    jax.config.update("jax_enable_x64", True)
+    if sys.argv[1] != "none":
+        jax.config.update("jax_compilation_cache_dir", sys.argv[1])
+    import numpy as np, xarray as xr
+    from rbdyn_jax import _traces, sweep
+    out = sys.argv[2] + ".zarr"
+    sweep.run("torque_free_flip", 96, out, chunk=64, lanes=4, overwrite=True)
+    ds = xr.open_zarr(out)
+    np.savez(sys.argv[2], **{k: ds[k].values for k in ds.data_vars})
+    print(json.dumps(_traces.stats))
+""")
+
+
+def test_a_later_process_loads_the_sweep_program_and_writes_the_same_store(tmp_path):
+    """`sweep.run` in three fresh processes: no cache; an empty cache (the chunk program is
+    stored, and the lane loop inside it); the same cache (the chunk program loaded: nothing
+    traced, not even the loop). Every variable of the store bitwise equal."""
+    cache = tmp_path / "cache"
+    ref_stats, ref = _run("none", tmp_path, script=SWEEP)
+    cold_stats, cold = _run(cache, tmp_path, script=SWEEP)
+    warm_stats, warm = _run(cache, tmp_path, script=SWEEP)
+    assert ref_stats == {"hits": 0, "stores": 0, "uncacheable": 0}
+    assert cold_stats == {"hits": 0, "stores": 2, "uncacheable": 0}
+    assert warm_stats == {"hits": 1, "stores": 0, "uncacheable": 0}
+    assert_same(cold, ref)
+    assert_same(warm, ref)
+    assert (ref["status"] == 0).all() and np.isfinite(ref["omega"]).all()
+
+
 def test_key_holds_the_compiler_options():
     """A program stored for other XLA options is another entry: it is compiled with them."""
     args = solve_args()
