@@ -368,7 +368,7 @@ def main(trajectories=3, samples=50, seed=0, repeats=3, steps=30, scipy_method="
     if processes:
         ratios["scipy_over_rbdyn_warm_cache_process"] = sp["wall_s"] / processes[1]["wall_s"]
 
-    head = (f"{'method':<34} {'wall s':>8} {'res/jac evals':>14} {'cost':>10} "
+    head = (f"{'method':<38} {'wall s':>8} {'res/jac evals':>14} {'cost':>10} "
             f"{'max|ΔJ|':>9} {'/stderr':>8} {'scipy/this':>10}")
     print(f"K = {K} trajectories × n = {n} samples, {6 + 6 * K} parameters, "
           f"{6 * K * n} residuals, seed {seed}")
@@ -376,7 +376,7 @@ def main(trajectories=3, samples=50, seed=0, repeats=3, steps=30, scipy_method="
     print("-" * len(head))
     for r in rows:
         ev = f"{r['residual_evals']}/{r['jacobian_evals'] or '-'}"
-        print(f"{r['method']:<34} {r['wall_s']:>8.2f} {ev:>14} {r['cost']:>10.2f} "
+        print(f"{r['method']:<38} {r['wall_s']:>8.2f} {ev:>14} {r['cost']:>10.2f} "
               f"{r['max_abs_err_J']:>9.2e} {r['max_err_in_stderr']:>8.2f} "
               f"{r['time_ratio_scipy_over_this']:>9.1f}x")
     print(f"scipy: {sp['nfev']} nfev + finite differences = {sp['residual_evals']} residual "

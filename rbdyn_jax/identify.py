@@ -490,10 +490,10 @@ def fit(
     structure and sizes reuses it, also with other values of `tol` and of a
     `PIDController`'s tolerances (passed as arrays). With JAX's persistent compilation cache
     configured (`jax_compilation_cache_dir`), a later process loads the fit's traced and
-    compiled program from it instead of tracing and compiling it again (the Levenberg–
-    Marquardt default; a fit with an `optimizer` only where its key can describe it). The
-    solves inside the fit run with their checks as NaN: a trial point whose solve fails is
-    rejected, as one whose loss went up.
+    compiled program from it instead of tracing and compiling it again (a fit with an optax
+    `optimizer` only where the cache can describe the optimizer exactly, else it is traced).
+    The solves inside the fit run with their checks as NaN: a trial point whose solve fails
+    is rejected, as one whose loss went up.
 
     **Returns:** a `FitResult`.
     """
@@ -707,7 +707,6 @@ class _Optimum(NamedTuple):
     grad_norm: Array  # |Jᵀr|
     decrement: Array  # ½ gᵀ (JᵀJ)⁻¹ g
     covariance: Array  # (JᵀJ)⁻¹ (a pseudo-inverse along a scale fix's gauge direction)
-    gauss_newton: Array  # JᵀJ
     eigenvalues: Array  # of JᵀJ, ascending
 
 
@@ -778,6 +777,7 @@ def _fit_program(model, y0, torque_dyn, data, cfg: _Config) -> _Optimum:
             s = jax.lax.cond(s.done, lambda s, i: s, work, s, i)
             return s, _Iterate(loss=s.loss, inertia=inertia(s.x))
 
+        # the residuals' count: 3 a sample for ω and 3 for the attitude, where observed
         m = data.ts.size * 3 * ((data.omega is not None) + (data.quat is not None))
         init = _LMState(x=flat0, r=jnp.zeros(m, flat0.dtype),
                         jacobian=jnp.zeros((m, flat0.size), flat0.dtype),
@@ -841,7 +841,7 @@ def _fit_program(model, y0, torque_dyn, data, cfg: _Config) -> _Optimum:
         params=p_opt, model=fitted.model, y0=fitted.y0, stderr=stderr,
         scale_curvature=curvature, loss=f, loss_history=hist, inertia_history=Js,
         grad_norm=jnp.linalg.norm(g), decrement=0.5 * g @ inv @ g, covariance=inv,
-        gauss_newton=H, eigenvalues=evals,
+        eigenvalues=evals,
     )
 
 

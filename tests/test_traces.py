@@ -133,6 +133,22 @@ def _run(cache, tmp_path, script=SCRIPT, **env):
     return json.loads(proc.stdout.strip().splitlines()[-1]), dict(np.load(out))
 
 
+def _stored_then_loaded(tmp_path, script, stores, hits):
+    """`script` in three fresh processes, no cache, an empty one, the same one again: the
+    second stores `stores` traces and the third loads `hits` (and stores none); every saved
+    array bitwise the same in all three. The arrays of the first."""
+    cache = tmp_path / "cache"
+    runs = [_run(c, tmp_path, script=script) for c in ("none", cache, cache)]
+    assert [stats for stats, _ in runs] == [
+        {"hits": 0, "stores": 0, "uncacheable": 0},
+        {"hits": 0, "stores": stores, "uncacheable": 0},
+        {"hits": hits, "stores": 0, "uncacheable": 0}]
+    ref = runs[0][1]
+    for _, out in runs[1:]:
+        assert_same(out, ref)
+    return ref
+
+
 def assert_same(a, b):
     """Bitwise the same leaves (NaN where the other has NaN)."""
     assert a.keys() == b.keys()
@@ -303,15 +319,7 @@ def test_a_later_process_loads_the_fit_and_gets_the_same_result(tmp_path):
     processes: no cache; an empty cache (the fit and the solve making the data stored);
     the same cache (both loaded, nothing traced). The fitted model, initial states, loss
     history, covariance and standard errors bitwise equal in all three."""
-    cache = tmp_path / "cache"
-    ref_stats, ref = _run("none", tmp_path, script=FIT)
-    cold_stats, cold = _run(cache, tmp_path, script=FIT)
-    warm_stats, warm = _run(cache, tmp_path, script=FIT)
-    assert ref_stats == {"hits": 0, "stores": 0, "uncacheable": 0}
-    assert cold_stats == {"hits": 0, "stores": 2, "uncacheable": 0}
-    assert warm_stats == {"hits": 2, "stores": 0, "uncacheable": 0}
-    assert_same(cold, ref)
-    assert_same(warm, ref)
+    ref = _stored_then_loaded(tmp_path, FIT, stores=2, hits=2)
     assert np.all(np.isfinite(ref["fit0"]))
 
 
@@ -335,15 +343,7 @@ def test_a_later_process_loads_the_sweep_program_and_writes_the_same_store(tmp_p
     """`sweep.run` in three fresh processes: no cache; an empty cache (the chunk program is
     stored, and the lane loop inside it); the same cache (the chunk program loaded: nothing
     traced, not even the loop). Every variable of the store bitwise equal."""
-    cache = tmp_path / "cache"
-    ref_stats, ref = _run("none", tmp_path, script=SWEEP)
-    cold_stats, cold = _run(cache, tmp_path, script=SWEEP)
-    warm_stats, warm = _run(cache, tmp_path, script=SWEEP)
-    assert ref_stats == {"hits": 0, "stores": 0, "uncacheable": 0}
-    assert cold_stats == {"hits": 0, "stores": 2, "uncacheable": 0}
-    assert warm_stats == {"hits": 1, "stores": 0, "uncacheable": 0}
-    assert_same(cold, ref)
-    assert_same(warm, ref)
+    ref = _stored_then_loaded(tmp_path, SWEEP, stores=2, hits=1)
     assert (ref["status"] == 0).all() and np.isfinite(ref["omega"]).all()
 
 
