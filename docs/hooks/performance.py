@@ -153,9 +153,11 @@ def _compile() -> str:
     writes = [r["cold_s"] - r["no_cache_s"] for r in d["rows"]]
     return (_table(["case", "no cache", "÷ bare", "warm", "speed-up", "refused", "traces"],
                    rows)
-            + "\n\nWith an empty cache directory the first call took "
-            f"{min(writes):.2f}–{max(writes):.2f} s longer than without a cache (writing "
-            "the entries). Before the first call, `import jax` and `import rbdyn_jax` took "
+            + "\n\nWith an empty cache directory the first call took from "
+            f"{min(writes):+.2f} to {max(writes):+.2f} s more than without a cache (writing "
+            "the entries, within the runs' spread). Before the first call, `import jax` and "
+            "`import rbdyn_jax.integrate` (the solver layer with diffrax, which `import "
+            "rbdyn_jax` alone leaves to the first name used) took "
             f"{min(imports):.2f}–{max(imports):.2f} s, and building the inputs and the model "
             f"{min(builds):.2f}–{max(builds):.2f} s.")
 
