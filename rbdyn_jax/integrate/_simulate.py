@@ -30,7 +30,7 @@ def _tolerance(tol, name, dtype):
     if not float(tol) > 0:
         raise ValueError(f"`{name}` must be a positive scalar, got {tol!r}.")
     with jax.ensure_compile_time_eval():  # concrete, also inside a caller's trace
-        return jnp.asarray(tol, dtype)
+        return jax.device_put(np.asarray(tol, dtype))  # NumPy's cast: no program compiled
 
 
 def make_controller(
