@@ -19,8 +19,9 @@ XLA starts with the flags `import rbdyn_jax` sets (`rbdyn_jax.configure_xla`: on
 device per core, since one XLA CPU device uses about one core for these solves, and while
 loops compiled whole; the user's `XLA_FLAGS` win, and `RBDYN_JAX_CONFIGURE_XLA=0` turns them
 off). `rbdyn sweep --devices D` asks for D devices instead, and `--workers K` gives each
-worker `cores // K`. `rbdyn sweep` keeps compiled programs in JAX's persistent cache
-(`$RBDYN_JAX_CACHE_DIR`, default `~/.cache/rbdyn_jax/xla`; set it empty to turn this off).
+worker `cores // K`. `rbdyn sweep` and `rbdyn fit` keep their traced and compiled programs
+in JAX's persistent cache (`$RBDYN_JAX_CACHE_DIR`, default `~/.cache/rbdyn_jax/xla`; set it
+empty to turn this off).
 """
 
 import argparse

@@ -163,12 +163,11 @@ class _Runner:
     lanes: int
     devices: list
     chunk: int
+    source: str  # the scenario's source as JSON text (`_chunk_program`)
     mesh: Any = dataclasses.field(init=False)
-    source: str = dataclasses.field(init=False)
 
     def __post_init__(self):
         self.mesh = jax.sharding.Mesh(np.asarray(self.devices), ("batch",))
-        self.source = json.dumps(self.scenario.source, sort_keys=True)
         _SCENARIOS.clear()  # as `_RUNNERS`, keep one
         _SCENARIOS[self.source] = self.scenario
 
@@ -200,10 +199,11 @@ def _runner(sc: Scenario, lanes: int, devices: tuple, chunk: int) -> _Runner:
     """A compiled runner, reused by later runs of the same scenario and layout (a resumed
     or repeated run in the same process compiles nothing)."""
     quantum = _PER_LANE * lanes * len(devices)  # the compiled shape: the padded chunk
-    key = (json.dumps(sc.source, sort_keys=True), lanes, devices, -(-chunk // quantum))
+    source = json.dumps(sc.source, sort_keys=True)
+    key = (source, lanes, devices, -(-chunk // quantum))
     if key not in _RUNNERS:
-        _RUNNERS.clear()  # keep one: a compiled solver holds memory
-        _RUNNERS[key] = _Runner(sc, lanes, list(devices), chunk)
+        _RUNNERS.clear()  # keep one
+        _RUNNERS[key] = _Runner(sc, lanes, list(devices), chunk, source)
     return _RUNNERS[key]
 
 

@@ -1,4 +1,4 @@
-"""The on-disk cache of traced solves (`rbdyn_jax/_traces.py`): a later process gets the
+"""The on-disk cache of traced programs (`rbdyn_jax/_traces.py`): a later process gets the
 same results from a loaded trace as from tracing, and a key never lets one call's program
 serve another's."""
 

@@ -4,8 +4,8 @@ Every public solve goes through `compiled`: one `eqx.filter_jit` per solve *stru
 new parameter values, initial conditions, times or tolerances reuse the compiled program.
 Inputs validated before tracing (concrete, not traced) take a second wrapper whose trace
 has its runtime checks as NaN: that program holds no host callback, so JAX's persistent
-compilation cache can store it, and rbdyn_jax's cache of traced solves (`_traces.py`)
-stores its trace beside it.
+compilation cache can store it, and rbdyn_jax's cache of traced programs
+(`rbdyn_jax/_traces.py`) stores its trace beside it.
 """
 
 import functools
