@@ -5,7 +5,7 @@ VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: run test docs setup clean
+.PHONY: run test test-jax-next docs setup clean
 
 setup: $(STAMP)
 
@@ -24,9 +24,14 @@ run: $(STAMP)
 test: $(STAMP)
 	$(PY) -m pytest -q -n 2 --dist loadgroup
 
+# The suite's core again under the next JAX (0.11, on Python >= 3.12): a second venv,
+# .venv-jax-next (.ci/jax-next).
+test-jax-next:
+	.ci/jax-next
+
 # The documentation site, built offline into site/ (strict: a broken link fails the build).
 docs: $(STAMP)
 	NO_MKDOCS_2_WARNING=1 $(PY) -m mkdocs build --strict
 
 clean:
-	rm -rf $(VENV) site
+	rm -rf $(VENV) .venv-jax-next site

@@ -2,10 +2,12 @@
 here, which pass `COMPILER_OPTIONS` to XLA.
 
 XLA:CPU compiles each fused kernel of a program through its MLIR "fusion emitters" by
-default. Its classic emitters compile a solver program (~100 kernels) markedly faster,
-and the program runs as fast (the performance page, docs/performance.md).
-`xla_cpu_use_fusion_emitters` is a field of XLA's `DebugOptions`; only the CPU backend
-reads it.
+default. Up to jaxlib 0.10 its classic emitters remain, and compile a solver program (~100
+kernels) markedly faster, and the program runs as fast (the performance page,
+docs/performance.md). `xla_cpu_use_fusion_emitters` is a field of XLA's `DebugOptions`;
+only the CPU backend reads it, but every backend parses a program's options and refuses one
+its XLA does not know, so `COMPILER_OPTIONS` holds only the options of the running jaxlib's
+XLA (`known_options`; the XLA of jaxlib 0.11 has no classic emitters and no such option).
 
 JAX takes compiler options only from the outermost `jit` of a program (a nested one
 raises). So the wrappers here pass them when called at the top level and are plain jits
@@ -23,6 +25,7 @@ import functools
 
 import equinox as eqx
 import jax
+import jaxlib
 
 from . import _compat
 from ._xla_flags import (
@@ -30,7 +33,24 @@ from ._xla_flags import (
     loops_compiled_whole as loops_compiled_whole,
 )
 
-COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
+# Options that only some XLA versions know: name → the first jaxlib (major, minor) whose XLA
+# refuses it ("No such compile option").
+RETIRED = {"xla_cpu_use_fusion_emitters": (0, 11)}
+
+
+def jaxlib_version() -> tuple[int, int]:
+    """The running jaxlib's (major, minor): the version of its XLA."""
+    return tuple(int(p) for p in jaxlib.__version__.split(".")[:2])
+
+
+def known_options(options: dict, version: tuple[int, int] | None = None) -> dict:
+    """`options` less those the XLA of jaxlib `version` (default the running one) no longer
+    knows (`RETIRED`)."""
+    version = jaxlib_version() if version is None else version
+    return {k: v for k, v in options.items() if k not in RETIRED or version < RETIRED[k]}
+
+
+COMPILER_OPTIONS = known_options({"xla_cpu_use_fusion_emitters": False})
 
 # For a program compiled at the first call of every process and run for a short while, whose
 # compile time is most of that call: `identify.fit`'s. XLA's backend optimisation level 1

@@ -198,7 +198,7 @@ class Observations(eqx.Module):
         q, m_q = field(quat, "quat", 4)
         if q is not None:
             norm = np.linalg.norm(q, axis=-1)
-            bad = m_q & ((norm == 0) | (~normalise_quat & (np.abs(norm - 1) > _UNIT_TOL)))
+            bad = m_q & ((norm == 0) | ((not normalise_quat) & (np.abs(norm - 1) > _UNIT_TOL)))
             if np.any(bad):
                 k, i = np.argwhere(bad)[0]
                 raise ValueError(

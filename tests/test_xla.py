@@ -51,17 +51,43 @@ def test_wrapped_function_runs_alike_at_top_level_and_nested(jitter):
                                rtol=1e-14)
 
 
-def test_a_nested_jit_with_options_is_what_jax_refuses():
-    """Why `_xla` dispatches: if JAX starts accepting this, the dispatch can go."""
+def test_a_nested_jit_with_options_is_what_jax_0_10_refuses():
+    """Why `_xla` dispatches: JAX 0.10 refuses a nested jit with compiler options; 0.11
+    takes it. The dispatch can go with JAX 0.10."""
     g = jax.jit(jnp.sin, compiler_options=_xla.COMPILER_OPTIONS)
     assert float(g(1.0)) == pytest.approx(np.sin(1.0))
-    with pytest.raises(ValueError, match="top-level"):
-        jax.jit(lambda x: g(x))(1.0)
+    nested = jax.jit(lambda x: g(x))
+    if jax.__version_info__ < (0, 11):
+        with pytest.raises(ValueError, match="top-level"):
+            nested(1.0)
+    else:
+        assert float(nested(1.0)) == pytest.approx(np.sin(1.0))
 
 
-def test_the_public_options_go_to_a_callers_jit():
-    f = jax.jit(lambda x: jnp.cos(x), compiler_options=rb.COMPILER_OPTIONS)
+@pytest.mark.parametrize("options", [rb.COMPILER_OPTIONS, _xla.QUICK_COMPILE_OPTIONS])
+def test_the_options_are_known_to_this_xla(options):
+    """Every backend parses a program's options and refuses an unknown one: what rbdyn_jax
+    passes (and advises a caller to pass) compiles on the running jaxlib."""
+    f = jax.jit(lambda x: jnp.cos(x), compiler_options=options)
     assert float(f(0.5)) == pytest.approx(np.cos(0.5))
+
+
+@pytest.mark.parametrize("name", sorted(_xla.RETIRED))
+def test_retired_options_are_refused_exactly_from_their_jaxlib(name):
+    """`RETIRED` is what the running XLA does: an option it lists is refused from its
+    jaxlib on and compiles before it; `known_options` keeps it only before."""
+    value = rb.COMPILER_OPTIONS.get(name, False)
+    f = jax.jit(lambda x: x + 1, compiler_options={name: value})
+    if _xla.jaxlib_version() >= _xla.RETIRED[name]:
+        with pytest.raises(Exception, match="No such compile option"):
+            f(1.0)
+        assert name not in rb.COMPILER_OPTIONS
+    else:
+        assert float(f(1.0)) == 2.0
+        assert name in rb.COMPILER_OPTIONS
+    first = _xla.RETIRED[name]
+    assert name in _xla.known_options({name: value}, (first[0], first[1] - 1))
+    assert _xla.known_options({name: value, "other": 1}, first) == {"other": 1}
 
 
 def direct_jits(path: pathlib.Path) -> list[int]:
