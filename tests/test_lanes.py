@@ -34,12 +34,17 @@ import pytest
 from helpers import cheapest_call, equations, host_callbacks
 
 import rbdyn_jax as rb
+from rbdyn_jax import _compat as rb_compat
 from rbdyn_jax.integrate._dependencies import closed_groups
+from rbdyn_jax.integrate._lanes import Plain
 
 
-def batching(lanes):
+def batching(lanes, layout=None):
     """The lane solver with `lanes` lanes, or the vmapped `diffeqsolve` for `None`."""
-    return rb.Vmap() if lanes is None else rb.Lanes(lanes)
+    return rb.Vmap() if lanes is None else rb.Lanes(lanes, layout=layout)
+
+
+LAYOUTS = ("cpu", "array")
 
 
 J = jnp.array([[2.0, 0.05, 0.0], [0.05, 3.0, 0.02], [0.0, 0.02, 4.0]])
@@ -82,22 +87,26 @@ CASES = {
 }
 
 
+@pytest.mark.parametrize("layout", LAYOUTS)
 @pytest.mark.parametrize("case", CASES)
-def test_same_steps_and_values_as_vmapped_diffeqsolve(case):
+def test_same_steps_and_values_as_vmapped_diffeqsolve(case, layout):
     """From a start time that is not 0: both solvers run in the unit time s = (t − t0)/span
-    and must read a time-dependent field at t0 + s·span (`integrate._field.unit_time`)."""
+    and must read a time-dependent field at t0 + s·span (`integrate._field.unit_time`).
+    Both layouts of the loop (the CPU's, and the accelerators' with unrolled stages and
+    scattered outputs, run here on the CPU)."""
     model, axes, solver = CASES[case]()
     y0s = initial_states()
     ts = TS + 1.5
     kw = dict(model_axes=axes, solver=solver, rtol=RTOL, atol=RTOL)
-    lanes = rb.simulate_batch(model, y0s, ts, batching=rb.Lanes(LANES), **kw)
+    lanes = rb.simulate_batch(model, y0s, ts, batching=rb.Lanes(LANES, layout=layout), **kw)
     plain = rb.simulate_batch(model, y0s, ts, batching=rb.Vmap(), **kw)
     assert np.all(plain.result._value == 0)
     assert_same_solves(lanes, plain)
     assert lanes.ys.omega.shape == (N, len(TS), 3)
 
 
-def test_results_do_not_depend_on_the_order_of_the_batch_or_the_lane():
+@pytest.mark.parametrize("layout", LAYOUTS)
+def test_results_do_not_depend_on_the_order_of_the_batch_or_the_lane(layout):
     """Lanes take trajectories longest-first (by |f(t0, y0)| in the tolerance scale).
     (1) A permuted batch gives the permuted results, to the bit: the bookkeeping returns
     every trajectory to its own row. (2) Replacing one trajectory by a fast spinner moves it
@@ -105,7 +114,7 @@ def test_results_do_not_depend_on_the_order_of_the_batch_or_the_lane():
     another iteration; their results are unchanged to the bit (a lane's arithmetic is its
     own)."""
     y0s = initial_states()
-    kw = dict(rtol=RTOL, atol=RTOL, batching=rb.Lanes(LANES))
+    kw = dict(rtol=RTOL, atol=RTOL, batching=rb.Lanes(LANES, layout=layout))
     a = rb.simulate_batch(rb.RigidBody(J), y0s, TS, **kw)
     perm = np.random.default_rng(3).permutation(N)
     b = rb.simulate_batch(rb.RigidBody(J), jax.tree_util.tree_map(lambda x: x[perm], y0s),
@@ -163,14 +172,16 @@ def test_vmap_over_the_lane_solver_gives_each_member_its_own_solve():
         assert_same_solves(jax.tree_util.tree_map(lambda x, i=i: x[i], both), one)
 
 
-def test_failures_stay_in_their_lane():
+@pytest.mark.parametrize("layout", LAYOUTS)
+def test_failures_stay_in_their_lane(layout):
     """A NaN start is `nonfinite_state`, a fast spinner runs out of steps; the lanes they
     shared go on with other trajectories, which equal the plain solve."""
     y0s = initial_states()
     omega = y0s.omega.at[2].set(jnp.nan).at[7].set(jnp.array([0.0, 400.0, 1.0]))
     y0s = rb.State(omega, y0s.quat)
     kw = dict(rtol=RTOL, atol=RTOL, max_steps=300)
-    lanes = rb.simulate_batch(rb.RigidBody(J), y0s, TS, batching=rb.Lanes(LANES), **kw)
+    lanes = rb.simulate_batch(rb.RigidBody(J), y0s, TS,
+                              batching=rb.Lanes(LANES, layout=layout), **kw)
     plain = rb.simulate_batch(rb.RigidBody(J), y0s, TS, batching=rb.Vmap(), **kw)
     codes = np.asarray(lanes.result._value)
     assert codes[2] == rb.RESULTS.nonfinite_state._value
@@ -499,6 +510,108 @@ def test_a_jvp_runs_one_loop_with_the_sensitivities_and_the_same_steps():
     tr, dtr = jax.jit(lambda J, dJ: jax.jvp(solve, (J,), (dJ,)))(J, jnp.eye(3))
     assert_same_solves(tr, solve(J))
     assert float(jnp.max(jnp.abs(dtr.ys.omega))) > 1e-3
+
+
+# Stage sums in another order, with the tableaus' coefficients up to ~20 in size (Dopri8,
+# Tsit5) cancelling: measured ≤ 3e-15 on O(1) states.
+ROUND_OFF_STEP = 2e-14
+ERK_SOLVERS = [diffrax.Tsit5(), diffrax.Dopri5(), diffrax.Dopri8(), diffrax.Bosh3(),
+               diffrax.Ralston(), diffrax.Midpoint(), diffrax.Heun()]
+
+
+@pytest.mark.parametrize("solver", ERK_SOLVERS, ids=lambda s: type(s).__name__)
+def test_unrolled_step_is_diffrax_step(solver):
+    """The array layout's step (`_lanes.unrolled_step`: the stages unrolled from the
+    solver's Butcher tableau) against diffrax's own `solver.step` on a time-dependent field
+    (a relative body in a turning frame, whose torque reads t at each stage's cᵢ) over a
+    lane axis: the same solution, error estimate, dense output (every key, the stages'
+    increments included) and FSAL stage, to round-off (the stages are summed in another
+    order, `ROUND_OFF_STEP`)."""
+    from rbdyn_jax.integrate._lanes import LaneField, unrolled_step
+
+    model = rb.RelativeRigidBody(J, rb.ConstantRate(jnp.array([0.0, 0.3, 1.0])),
+                                 rb.UniformGravity(1.0, jnp.array([0.0, 0.1, 0.5])))
+    y = jax.tree_util.tree_map(lambda x: jnp.moveaxis(x, 0, -1), initial_states(5))
+    ok = jnp.ones(5, bool)
+    field = LaneField(Plain(model), False, jnp.asarray(0.7), jnp.asarray(2.0))
+    term = rb_compat.wrapped_term(diffrax.ODETerm(field))
+    t0, t1 = jnp.full(5, 0.1), jnp.linspace(0.2, 0.4, 5)
+    fsal = solver.tableau.fsal
+    f0 = field(t0, y, ok) if fsal else None
+    with jax.numpy_rank_promotion("allow"):
+        want = solver.step(term, t0, t1, y, ok, (jnp.array(False), f0) if fsal else None,
+                           False)
+        got = unrolled_step(solver, term, t0, t1, y, ok, f0)
+    y1, err, dense, state, result = want
+    assert result == diffrax.RESULTS.successful
+    assert jax.tree_util.tree_structure(got[2]) == jax.tree_util.tree_structure(dense)
+    pairs = [(got[0], y1), (got[1], err), (got[2], dense)]
+    if fsal:
+        pairs.append((got[3], state[1]))
+    else:
+        assert got[3] is None
+    for a, b in pairs:
+        for x, z in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b),
+                        strict=True):
+            np.testing.assert_allclose(x, z, rtol=0, atol=ROUND_OFF_STEP)
+    assert float(jnp.max(jnp.abs(err.omega))) > 1e-8  # a real error estimate
+
+
+def test_the_array_layout_differentiates_as_the_cpu_layout():
+    """Forward sensitivities run through the same loop: `jax.grad` and `jax.jacfwd` of a
+    batched loss (w.r.t. the log-Cholesky inertia) through the array layout equal the CPU
+    layout's to round-off, with refills (more trajectories than lanes)."""
+    y0s = initial_states()
+    theta0 = rb.inertia.to_log_cholesky(J)
+
+    def loss(theta, layout):
+        tr = rb.simulate_batch(rb.with_log_cholesky(rb.RigidBody(J), theta), y0s, TS,
+                               rtol=RTOL, atol=RTOL, batching=rb.Lanes(LANES, layout=layout))
+        return jnp.sum(jnp.sin(tr.ys.omega)) + jnp.sum(tr.ys.quat[..., 1:] ** 2)
+
+    ref = jax.grad(loss)(theta0, "cpu")
+    assert float(jnp.max(jnp.abs(ref))) > 1e-2
+    for g in (jax.grad(loss)(theta0, "array"), jax.jacfwd(loss)(theta0, "array")):
+        np.testing.assert_allclose(g, ref, rtol=1e-10, atol=1e-12)
+
+
+def test_layouts_by_platform_and_lanes_by_memory():
+    """The default layout follows the device's platform; on an accelerator every
+    trajectory of a device's share gets a lane while their working set fits the memory
+    budget (`default_lanes`), and a bad layout is refused."""
+    from rbdyn_jax.integrate._batching import (
+        LANE_COPIES,
+        MAX_LANES_ARRAY,
+        MEMORY_SHARE,
+        MIN_LANES_ARRAY,
+        PER_LANE_ARRAY,
+        default_lanes,
+        default_layout,
+        lane_bytes,
+    )
+
+    assert default_layout("cpu") == "cpu"
+    assert default_layout("gpu") == default_layout("tpu") == "array"
+    y0s = initial_states(4)
+    assert lane_bytes(y0s) == 7 * 8
+    tops = eqx.filter_vmap(heavy_top)(jnp.ones(4))
+    assert lane_bytes(y0s, tops) == 7 * 8 + (9 + 1 + 3) * 8  # J, weight, centre of mass
+    per_lane, memory = 56, 80 << 30
+    for n in (1, 1000, MIN_LANES_ARRAY):  # a small batch: a lane per trajectory
+        assert default_lanes(n, 1, "gpu", per_lane, memory) == n
+    assert default_lanes(1000, 2, "gpu", per_lane, memory) == 500
+    assert default_lanes(10**5, 1, "gpu", per_lane, memory) == -(-10**5 // PER_LANE_ARRAY)
+    assert default_lanes(4 * MIN_LANES_ARRAY, 1, "gpu", per_lane, memory) == -(
+        -4 * MIN_LANES_ARRAY // PER_LANE_ARRAY)
+    assert default_lanes(2 * MIN_LANES_ARRAY, 1, "gpu", per_lane, memory) == MIN_LANES_ARRAY
+    assert default_lanes(10**7, 1, "gpu", per_lane, memory) == MAX_LANES_ARRAY
+    big = 10**5  # a large state (sensitivities, say): the memory budget binds
+    assert default_lanes(10**7, 1, "gpu", big, memory) == int(
+        MEMORY_SHARE * memory // (LANE_COPIES * big)) < MAX_LANES_ARRAY
+    assert default_lanes(10**7, 1, "gpu", big, None) < default_lanes(
+        10**7, 1, "gpu", big, memory)  # the fallback budget is smaller
+    with pytest.raises(ValueError, match="`layout`"):
+        rb.Lanes(layout="gpu")
 
 
 def test_float32_initial_states_start_in_float64():

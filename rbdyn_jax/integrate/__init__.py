@@ -33,7 +33,9 @@ from .._xla import COMPILER_OPTIONS as COMPILER_OPTIONS, configure_xla as config
 from ._batching import AbstractBatching as AbstractBatching, Lanes as Lanes, Vmap as Vmap
 from ._field import MODE_DEPENDENT_JITS as MODE_DEPENDENT_JITS
 from ._simulate import (
+    default_tolerance as default_tolerance,
     make_controller as make_controller,
+    min_rtol as min_rtol,
     simulate as simulate,
     simulate_batch as simulate_batch,
 )
@@ -45,5 +47,6 @@ from ._solution import (
 )
 
 __all__ = ["COMPILER_OPTIONS", "RESULTS", "AbstractBatching", "Lanes", "Trajectory", "Vmap",
-           "configure_xla", "make_controller", "result_code", "result_names", "simulate",
-           "simulate_batch"]
+           "configure_xla", "default_tolerance", "make_controller", "min_rtol",
+           "result_code", "result_names",
+           "simulate", "simulate_batch"]

@@ -18,7 +18,7 @@ from .._xla import loops_compiled_whole
 from ._compile import compiled
 from ._diffeqsolve import solve_vmapped
 from ._field import checked_times, finish, promoted
-from ._lanes import Plain, lane_loop
+from ._lanes import LAYOUTS, Plain, lane_loop
 from ._sensitivity import lane_jvp
 from ._solution import Trajectory, as_result
 
@@ -55,9 +55,20 @@ class Lanes(AbstractBatching):
 
     **Arguments:**
 
-    - `lanes`: lanes per device; `None` chooses from the batch size and the device count.
+    - `lanes`: lanes per device; `None` chooses from the batch size, the device count and
+      the backend (`default_lanes`): on a CPU a few dozen, each device's share refilled
+      through them; on an accelerator a lane per trajectory for up to 16,384 of them, and
+      for a larger batch a third as many lanes as trajectories, refilled, up to 131,072
+      lanes (and within a memory budget).
     - `devices`: how many local devices share the batch; `None`, all of the default
       backend (on CPU one per core: `import rbdyn_jax` starts XLA so, `configure_xla`).
+    - `layout`: how each iteration of the loop is laid out: `"cpu"` (for XLA:CPU, whose
+      compiled loop runs an iteration as one function: outputs written lane by lane,
+      refills only when a lane finished, diffrax's own step), or `"array"` (for a GPU or
+      another accelerator, where each operation is a kernel launch and each branch or
+      inner loop a wait for the host: one scatter for the outputs, the refill selected
+      every iteration, the Runge–Kutta stages unrolled). `None` picks by the devices'
+      platform. Both take the same steps and give the same values to round-off.
 
     A runtime check that fails inside a caller's `jax.jit` (an inertia checked by the
     model's constructor from traced values, say) while the batch runs on several devices
@@ -82,6 +93,7 @@ class Lanes(AbstractBatching):
 
     lanes: int | None = None
     devices: int | None = None
+    layout: str | None = None
 
     def __check_init__(self):
         for name in ("lanes", "devices"):
@@ -89,6 +101,9 @@ class Lanes(AbstractBatching):
             if v is not None and (isinstance(v, bool) or not isinstance(v, numbers.Integral)
                                   or v < 1):
                 raise ValueError(f"`{name}` must be a positive int or None, got {v!r}.")
+        if self.layout is not None and self.layout not in LAYOUTS:
+            raise ValueError(f"`layout` must be one of {LAYOUTS} or None, got "
+                             f"{self.layout!r}.")
 
     def solve(self, model, y0s, ts, *, solver, controller, adjoint, max_steps, dt0,
               model_axes, cacheable) -> Trajectory:
@@ -99,10 +114,17 @@ class Lanes(AbstractBatching):
         # A solve whose times or tolerances are traced checks them at run time: on one
         # device, since a check raising on one of several devices aborts the process.
         mesh = _mesh(self.devices if cacheable else 1)
+        platform = mesh.devices.flat[0].platform
+        layout = self.layout or default_layout(platform)
         n = jax.tree_util.tree_leaves(y0s)[0].shape[0]
-        lanes = default_lanes(n, mesh.devices.size) if self.lanes is None else int(self.lanes)
+        if self.lanes is None:
+            per_lane = lane_bytes(y0s, model if model_axes is not None else None)
+            lanes = default_lanes(n, mesh.devices.size, platform, per_lane,
+                                  device_memory(mesh.devices.flat[0]))
+        else:
+            lanes = int(self.lanes)
         return _lane_solved[cacheable](model, y0s, ts, solver, controller, max_steps, dt0,
-                                       model_axes, lanes, mesh)
+                                       model_axes, lanes, mesh, layout)
 
 
 def _lanes_refuse(solver, controller, adjoint) -> str | None:
@@ -118,18 +140,61 @@ def _lanes_refuse(solver, controller, adjoint) -> str | None:
     return None
 
 
-# Lanes per device: about two trajectories per lane, so that lanes refill and finish
+# Lanes per CPU device: about two trajectories per lane, so that lanes refill and finish
 # together, at least a few lanes (a small batch runs side by side), and at most a cap: with
 # XLA's loops compiled whole (`configure_xla`) a lane step costs little beyond its
 # arithmetic and fewer lanes win; with XLA's defaults the loop's dispatch per iteration is
 # shared by more lanes (the performance page).
 MAX_LANES_WHOLE, MAX_LANES_DEFAULT, MIN_LANES, PER_LANE = 64, 256, 8, 2
+# On an accelerator an iteration costs its kernel launches (about 55 kernels, ~100 µs on an
+# H100) plus memory traffic that grows with the lanes (~3 ns a lane in float64 there), and
+# an idle lane costs its traffic as a busy one does. With a lane per trajectory the loop
+# runs as long as the slowest trajectory while most lanes idle (3.5× the mean steps in the
+# benchmark's batch); refilled lanes, `PER_LANE_ARRAY` trajectories each, finish together.
+# Below `MIN_LANES_ARRAY` lanes an iteration costs its launches whatever the count, so a
+# batch that small gets a lane per trajectory; beyond `MAX_LANES_ARRAY` the launches are a
+# small part of an iteration and more lanes only idle longer at the end (measured on the
+# performance page: 10⁶ trajectories through 83,334 or 166,667 lanes solve 1.3× faster than
+# through 333,334). The lanes' working set (`LANE_COPIES` copies of a trajectory's state and
+# model arrays: the stages, the dense output, the step's temporaries) stays within
+# `MEMORY_SHARE` of the device's memory (`FALLBACK_MEMORY` where the device does not say).
+PER_LANE_ARRAY, MIN_LANES_ARRAY, MAX_LANES_ARRAY = 3, 1 << 14, 1 << 17
+LANE_COPIES, MEMORY_SHARE, FALLBACK_MEMORY = 64, 0.25, 8 << 30
 
 
-def default_lanes(n: int, devices: int) -> int:
-    """The lane count per device for `n` trajectories over `devices` devices."""
-    cap = MAX_LANES_WHOLE if loops_compiled_whole() else MAX_LANES_DEFAULT
+def default_layout(platform: str) -> str:
+    """The lane loop's layout for a device platform: `"cpu"` on a CPU, else `"array"`."""
+    return "cpu" if platform == "cpu" else "array"
+
+
+def lane_bytes(y0s, model=None) -> int:
+    """Bytes of one trajectory's state (and model arrays, for a batch of models): the
+    leading axis of every array leaf is the batch's."""
+    leaves = [x for x in jax.tree_util.tree_leaves((y0s, model)) if eqx.is_array(x)]
+    return sum(math.prod(x.shape[1:]) * x.dtype.itemsize for x in leaves)
+
+
+def device_memory(device) -> int | None:
+    """The memory a device's allocator may use, or `None` where it does not say (CPU)."""
+    try:
+        stats = device.memory_stats()
+    except Exception:  # a backend without memory statistics
+        return None
+    return None if not stats else stats.get("bytes_limit")
+
+
+def default_lanes(n: int, devices: int, platform: str = "cpu", per_lane: int = 0,
+                  memory: int | None = None) -> int:
+    """The lane count per device for `n` trajectories over `devices` devices of
+    `platform`; on an accelerator, `per_lane` bytes a trajectory's state and `memory` the
+    device's (`lane_bytes`, `device_memory`)."""
     share = math.ceil(n / devices)
+    if default_layout(platform) == "array":
+        budget = MEMORY_SHARE * (memory or FALLBACK_MEMORY)
+        fits = int(budget // max(1, LANE_COPIES * per_lane))
+        wanted = min(max(math.ceil(share / PER_LANE_ARRAY), MIN_LANES_ARRAY), MAX_LANES_ARRAY)
+        return max(1, min(share, wanted, fits))
+    cap = MAX_LANES_WHOLE if loops_compiled_whole() else MAX_LANES_DEFAULT
     return max(1, min(cap, max(min(share, MIN_LANES), math.ceil(share / PER_LANE))))
 
 
@@ -149,7 +214,7 @@ def _mesh(devices) -> jax.sharding.Mesh:
 
 
 def lane_solve(model, y0s, ts, solver, controller, max_steps, dt0, model_axes, lanes,
-               mesh=None) -> Trajectory:
+               mesh=None, layout="cpu") -> Trajectory:
     """The lane loop (`_lanes.lane_loop`; on each device of `mesh`, `_sharded`) and its
     `Trajectory`s.
 
@@ -173,7 +238,7 @@ def lane_solve(model, y0s, ts, solver, controller, max_steps, dt0, model_axes, l
 
     def loop(system, y0s, ts, tols):
         return stored(lane_run, system, y0s, ts, tols, cstatic, solver, max_steps, dt0,
-                      batched, lanes, mesh)
+                      batched, lanes, mesh, layout)
 
     @jax.custom_jvp
     def solve(dyn, y0s, ts, tols):
@@ -189,10 +254,11 @@ def lane_solve(model, y0s, ts, solver, controller, max_steps, dt0, model_axes, l
         model, ys, ok0, result, counts)
 
 
-def lane_run(system, y0s, ts, tols, cstatic, solver, max_steps, dt0, batched, lanes, mesh):
-    """The lane loop, on one device or on each of `mesh`'s."""
+def lane_run(system, y0s, ts, tols, cstatic, solver, max_steps, dt0, batched, lanes, mesh,
+             layout="cpu"):
+    """The lane loop (in `layout`), on one device or on each of `mesh`'s."""
     run = functools.partial(lane_loop, solver=solver, max_steps=max_steps, dt0=dt0,
-                            batched=batched, lanes=lanes)
+                            batched=batched, lanes=lanes, layout=layout)
     if mesh is None or mesh.devices.size == 1:
         return run(system, y0s, ts, eqx.combine(tols, cstatic))
     return _sharded(run, system, y0s, ts, tols, cstatic, batched, mesh)

@@ -115,15 +115,20 @@ class Guarded(eqx.Module):
         return per_unit_time(self.span, where_tree(ok, f, 0.0))
 
 
-def promoted(model, y0, t):
-    """`y0` with its floating leaves in the dtype its steps give it: that of the times, the
-    model's arrays and `y0` together (standard promotion; an explicit cast, so also under
-    the caller's strict promotion). A float32 `y0` with float64 times starts in float64,
-    and is normalised there."""
+def solve_dtype(model, y0, t):
+    """The dtype a solve runs in: that of the times, the model's arrays and `y0` together
+    (standard promotion, also under the caller's strict promotion)."""
     inexact = [x for x in jax.tree_util.tree_leaves((t, model, y0))
                if eqx.is_array(x) and jnp.issubdtype(x.dtype, jnp.inexact)]
     with jax.numpy_dtype_promotion("standard"):
-        dtype = jnp.result_type(*inexact)
+        return jnp.result_type(*inexact)
+
+
+def promoted(model, y0, t):
+    """`y0` with its floating leaves in the dtype its steps give it (`solve_dtype`; an
+    explicit cast). A float32 `y0` with float64 times starts in float64, and is normalised
+    there."""
+    dtype = solve_dtype(model, y0, t)
     return jax.tree_util.tree_map(
         lambda y: y.astype(dtype) if jnp.issubdtype(y.dtype, jnp.inexact) else y, y0)
 

@@ -8,6 +8,19 @@ lane the next waiting trajectory, and (3) takes one diffrax solver step in every
 has no output left to save, with diffrax's step-size controller deciding acceptance and the
 next step per lane. The steps, accepted/rejected decisions and saved values are those of
 `diffeqsolve` for the same trajectory (tested), and no lane idles behind the slowest.
+
+The loop has two layouts of the same iteration (`LAYOUTS`), chosen by the backend:
+
+- `"cpu"`: tuned for XLA:CPU, whose compiled while loop runs the whole iteration as one
+  function: outputs written by a loop of `dynamic_update_slice`s, the refill of finished
+  lanes under a `lax.cond`, diffrax's own solver step (its loop over stages).
+- `"array"`: for an accelerator, where every operation of the iteration is at least one
+  kernel launch and every loop or branch a round trip to the host: outputs written by one
+  scatter, the refill computed every iteration and selected, the Runge–Kutta stages
+  unrolled from the solver's tableau (`unrolled_step`), so that an iteration is a fixed
+  sequence of whole-array kernels whatever the lane count.
+
+Both take the same steps and save the same values to round-off (tested).
 """
 
 import abc
@@ -156,6 +169,20 @@ def lanes_first(tree):
     return jax.tree_util.tree_map(lambda x: jnp.moveaxis(x, -1, 0), tree)
 
 
+LAYOUTS = ("cpu", "array")
+
+
+def scatter_rows(buf, index, vals, write):
+    """`buf` with `vals[l]` written at `buf[index[0][l], index[1][l], …]` for each lane l
+    where `write[l]`: one scatter. A lane that writes nothing aims past the buffer's end,
+    at a row of its own, which the scatter drops; the indices are then unique, and XLA
+    writes without atomics."""
+    lane = jnp.arange(vals.shape[0], dtype=jnp.int32)
+    rows = jnp.where(write, index[0].astype(jnp.int32), buf.shape[0] + lane)
+    idx = (rows, *(i.astype(jnp.int32) for i in index[1:]))
+    return buf.at[idx].set(vals, mode="drop", unique_indices=True)
+
+
 def write_rows(buf, index, vals):
     """`buf` with `vals[l]` written at `buf[index[0][l], index[1][l], …]` for each lane l,
     in turn (a loop of `dynamic_update_slice`s, not a scatter: XLA:CPU compiles a while
@@ -169,6 +196,54 @@ def write_rows(buf, index, vals):
         return jax.lax.dynamic_update_slice(buf, v.reshape((1,) * len(index) + v.shape), start)
 
     return jax.lax.fori_loop(0, vals.shape[0], one, buf)
+
+
+def unrolled_step(solver, term, t0, t1, y0, args, f0):
+    """One step of the explicit Runge–Kutta `solver` from `y0` at `t0` to `t1`, its stages
+    unrolled from its Butcher tableau; `(y1, y_error, dense, f1)` as `solver.step` gives
+    them (`f1` the FSAL stage, or `None`). `f0` is f(t0, y0) for an FSAL method.
+
+    The arithmetic of diffrax's step (`diffrax.AbstractRungeKutta`): the increments
+    kᵢ = f(tᵢ, yᵢ)·Δt with yᵢ = y0 + Σⱼ aᵢⱼ kⱼ and tᵢ = t0 + cᵢΔt (t1 where cᵢ = 1),
+    y1 = y0 + Σ bⱼ kⱼ (the last stage's yᵢ for a method whose last stage is its solution),
+    y_error = Σ eⱼ kⱼ, and the dense output `{y0, y1, k}` its interpolant reads. diffrax
+    runs the stages as a loop over a buffer, each a dot with a row of the tableau padded
+    by zeros; here each stage is a fixed sum over the stages before it, so the two round
+    differently in the last bits."""
+    tab = solver.tableau
+    control = term.contr(t0, t1)
+    dt = t1 - t0
+    c = (tab.c1, *(float(x) for x in tab.c))
+
+    def combine(weights, ks):
+        out = y0
+        for w, k in zip(weights, ks):
+            if w != 0:
+                out = jax.tree_util.tree_map(lambda o, x, w=float(w): o + w * x, out, k)
+        return out
+
+    ks = []
+    fi = None
+    y_stage = y0
+    for i in range(tab.num_stages):
+        if i == 0 and tab.fsal:
+            fi = f0
+        else:
+            y_stage = y0 if i == 0 else combine(tab.a_lower[i - 1], ks)
+            ti = t1 if c[i] == 1 else t0 + c[i] * dt
+            fi = term.vf(ti, y_stage, args)
+        ks.append(term.prod(fi, control))
+    if tab.ssal:
+        y1 = y_stage
+    else:
+        y1 = combine(tab.b_sol, ks)
+    zero = jax.tree_util.tree_map(jnp.zeros_like, y0)
+    y_error = zero
+    for w, k in zip(tab.b_error, ks):
+        if w != 0:
+            y_error = jax.tree_util.tree_map(lambda o, x, w=float(w): o + w * x, y_error, k)
+    k = jax.tree_util.tree_map(lambda *x: jnp.stack(x), *ks)
+    return y1, y_error, dict(y0=y0, y1=y1, k=k), fi if tab.fsal else None
 
 
 def _term(model, t0, span):
@@ -207,15 +282,19 @@ def _interpolate(solver, tprev, tnext, dense, t):
 
 
 def lane_loop(system: AbstractLaneSystem, y0s, ts, controller, *, solver, max_steps, dt0,
-              batched, lanes):
-    """All trajectories of `y0s` through `lanes` lanes of one while loop; the raw saved
-    states (before `finish`), the start flags, result codes and step counts.
+              batched, lanes, layout="cpu"):
+    """All trajectories of `y0s` through `lanes` lanes of one while loop (in the `layout`
+    of `LAYOUTS`); the raw saved states (before `finish`), the start flags, result codes
+    and step counts.
 
     Trajectories are handed out longest-first, by |f(t0, y0)| in the tolerance scale (the
     rate the state moves at, which sets the step count of these rotational problems), so
     the last ones are short and the lanes finish nearly together. `system` has a leading
     trajectory axis on every array leaf when `batched`.
     """
+    if layout not in LAYOUTS:
+        raise ValueError(f"`layout` must be one of {LAYOUTS}, got {layout!r}.")
+    array = layout == "array"
     if solver.scan_kind is None:
         # Runge–Kutta stages in a plain while loop rather than diffrax's checkpointed one
         # (a custom VJP, which forward-mode autodiff cannot pass); the same arithmetic.
@@ -272,10 +351,17 @@ def lane_loop(system: AbstractLaneSystem, y0s, ts, controller, *, solver, max_st
         # diffrax multiplies each lane's rows by its time step, `(L,)` against `(…, L)`:
         # NumPy's broadcasting, which a caller's `jax_numpy_rank_promotion="raise"` refuses.
         with jax.numpy_rank_promotion("allow"):
+            if array:
+                return unrolled_step(solver, term, tprev, tnext, y, ok, f0)
             y1, y_error, dense, sstate, _ = solver.step(
                 term, tprev, tnext, y, ok, None if f0 is None else (jnp.array(False), f0),
                 False)
         return y1, y_error, dense, None if sstate is None else sstate[1]
+
+    def write(buf, index, vals, mask):  # rows of lanes where `mask` (the others: row N)
+        if array:
+            return scatter_rows(buf, index, vals, mask)
+        return write_rows(buf, (jnp.where(mask, index[0], N), *index[1:]), vals)
 
     lane = order[:L]
     m0 = take_last(lane_dyn, lane) if batched else None
@@ -328,9 +414,8 @@ def lane_loop(system: AbstractLaneSystem, y0s, ts, controller, *, solver, max_st
         s = jnp.minimum(c.save, n - 1)
         vals = lanes_first(
             _interpolate(solver, c.dense_t[0], c.dense_t[1], c.dense, ts[s]))
-        # Lanes with nothing to save write to the spare row N.
-        row = jnp.where(c.pending, current, N)
-        ys = jax.tree_util.tree_map(lambda o, v: write_rows(o, (row, s), v), c.ys, vals)
+        ys = jax.tree_util.tree_map(lambda o, v: write(o, (current, s), v, c.pending),
+                                    c.ys, vals)
         save = c.save + c.pending.astype(jnp.int32)
         s = jnp.minimum(save, n - 1)
         pending = c.pending & (save < n) & (ts[s] <= c.dense_t[1])
@@ -342,9 +427,8 @@ def lane_loop(system: AbstractLaneSystem, y0s, ts, controller, *, solver, max_st
         def refill(lanes_now):
             (idx, tprev, tnext, y, sstate, cstate, ok, m, save, counts, result, out_counts,
              out_result, nxt) = lanes_now
-            row = jnp.where(done, current, N)
-            out_counts = write_rows(out_counts, (row,), counts.T)
-            out_result = write_rows(out_result, (row,), result)
+            out_counts = write(out_counts, (current,), counts.T, done)
+            out_result = write(out_result, (current,), result, done)
             new = nxt + jnp.cumsum(done, dtype=jnp.int32) - 1
             nxt = nxt + jnp.sum(done, dtype=jnp.int32)
             pick = order[jnp.minimum(new, N - 1)]
@@ -362,8 +446,12 @@ def lane_loop(system: AbstractLaneSystem, y0s, ts, controller, *, solver, max_st
             return (idx, tprev, tnext, y, sstate, cstate, ok, m, save, counts, result,
                     out_counts, out_result, nxt)
 
+        if array:  # a branch would wait for the host: refill, selecting per lane
+            refilled = refill(lanes_now)
+        else:  # skipped at the iterations where no lane finished
+            refilled = jax.lax.cond(jnp.any(done), refill, lambda x: x, lanes_now)
         (idx, tprev, tnext, y, sstate, cstate, ok, m, save, counts, result, out_counts,
-         out_result, nxt) = jax.lax.cond(jnp.any(done), refill, lambda x: x, lanes_now)
+         out_result, nxt) = refilled
         # (3) One solver step in every lane with nothing left to save.
         go = (idx < N) & ~pending & (tprev < t1) & (result == 0)
         y1, y_error, dense, ss1 = step(eqx.combine(m if batched else dyn, static), tprev,

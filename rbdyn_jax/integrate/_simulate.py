@@ -1,5 +1,6 @@
 """The public solves: `simulate` (one trajectory) and `simulate_batch` (a batch)."""
 
+import math
 import numbers
 
 import diffrax
@@ -15,9 +16,28 @@ from ..models import AbstractRigidBody
 from ._batching import AbstractBatching, Lanes, default_batching
 from ._compile import cacheable, compiled, thrown
 from ._diffeqsolve import solve
+from ._field import solve_dtype
 from ._solution import Trajectory
 
 DEFAULT_TOL = 1e-8  # rtol and atol of the default PIDController
+# The smallest relative tolerance a solve takes, in units of its dtype's machine epsilon:
+# below a few units the step-size controller compares an error estimate made of rounding
+# with a tolerance it cannot resolve, and steps shrink until `max_steps` (float32: 9.5e-7).
+RTOL_EPS = 8
+
+
+def min_rtol(dtype) -> float:
+    """The smallest `rtol` a solve in `dtype` takes: `RTOL_EPS` machine epsilons (9.5e-7
+    in float32, 1.8e-15 in float64)."""
+    return RTOL_EPS * float(np.finfo(np.dtype(dtype)).eps)
+
+
+def default_tolerance(dtype, default_tol: float = DEFAULT_TOL) -> float:
+    """The tolerance a solve in `dtype` takes where none is given: `default_tol`, or, where
+    `dtype` cannot resolve it, the power of ten just above `min_rtol(dtype)` (1e-6 in
+    float32)."""
+    floor = min_rtol(dtype)
+    return default_tol if default_tol >= floor else 10.0 ** math.ceil(math.log10(floor))
 
 
 def _tolerance(tol, name, dtype):
@@ -42,17 +62,20 @@ def make_controller(
     dtype=None,
 ) -> diffrax.AbstractStepSizeController:
     """The step-size controller a solve runs with: `stepsize_controller`, or
-    `diffrax.PIDController(rtol, atol)` (a tolerance not given is `default_tol`); giving
-    both is a `ValueError`. A PID controller's tolerances are checked (positive scalars) and
-    made arrays of `dtype` (JAX's default float for `None`), so that a compiled program
-    taking the controller reuses itself for new values, which may also be traced.
+    `diffrax.PIDController(rtol, atol)` (a tolerance not given is `default_tol`, raised to
+    what `dtype` resolves: `default_tolerance`); giving both is a `ValueError`. A PID
+    controller's tolerances are checked (positive scalars; a concrete `rtol` at least
+    `min_rtol(dtype)`, which refuses rtol < 9.5e-7 in float32) and made arrays of `dtype`
+    (JAX's default float for `None`), so that a compiled program taking the controller
+    reuses itself for new values, which may also be traced.
 
     `simulate` and `simulate_batch` call it on their arguments; call it yourself to hold a
     controller in your own compiled function (as `identify.fit` does)."""
     if stepsize_controller is None:
-        stepsize_controller = diffrax.PIDController(
-            rtol=default_tol if rtol is None else rtol,
-            atol=default_tol if atol is None else atol)
+        tol = default_tolerance(jnp.result_type(float) if dtype is None else dtype,
+                                default_tol)
+        stepsize_controller = diffrax.PIDController(rtol=tol if rtol is None else rtol,
+                                                    atol=tol if atol is None else atol)
     elif rtol is not None or atol is not None:
         raise ValueError("Give the tolerances either as `rtol`/`atol` or inside "
                          "`stepsize_controller`, not both.")
@@ -63,12 +86,19 @@ def make_controller(
         dtype = jnp.result_type(float) if dtype is None else dtype
         tols = (_tolerance(stepsize_controller.rtol, "rtol", dtype),
                 _tolerance(stepsize_controller.atol, "atol", dtype))
+        rtol = stepsize_controller.rtol
+        if not isinstance(rtol, jax.core.Tracer) and float(rtol) < min_rtol(dtype):
+            raise ValueError(
+                f"`rtol` = {float(rtol):g} is finer than {np.dtype(dtype).name} resolves "
+                f"(rtol ≥ {min_rtol(dtype):.2g}, {RTOL_EPS} machine epsilons): the step-size "
+                "controller's error estimate would be rounding. Use a larger rtol, or solve "
+                "in float64 (`jax.config.update('jax_enable_x64', True)`, float64 inputs).")
         stepsize_controller = eqx.tree_at(lambda c: (c.rtol, c.atol), stepsize_controller,
                                           tols)
     return stepsize_controller
 
 
-def _prepare(model, ts, stepsize_controller, rtol, atol, max_steps):
+def _prepare(model, y0, ts, stepsize_controller, rtol, atol, max_steps):
     if not isinstance(model, AbstractRigidBody):
         raise ValueError(f"`model` must be a rigid-body model, got {type(model).__name__}.")
     ts = as_float_array(ts, "ts")
@@ -80,7 +110,8 @@ def _prepare(model, ts, stepsize_controller, rtol, atol, max_steps):
             raise ValueError("`ts` must be finite and strictly increasing.")
     if not isinstance(max_steps, numbers.Integral) or isinstance(max_steps, bool) or max_steps < 1:
         raise ValueError(f"`max_steps` must be a positive int, got {max_steps!r}.")
-    controller = make_controller(stepsize_controller, rtol, atol, dtype=ts.dtype)
+    controller = make_controller(stepsize_controller, rtol, atol,
+                                 dtype=solve_dtype(model, y0, ts))
     return ts, controller, int(max_steps)
 
 
@@ -114,9 +145,12 @@ def simulate(
     - `ts`: strictly increasing output times; the solve runs from `ts[0]` to `ts[-1]`.
     - `solver`, `adjoint`: diffrax objects, passed through unchanged.
     - `stepsize_controller`: a diffrax step-size controller, passed through (its
-      tolerances as arrays); default `diffrax.PIDController(rtol=1e-8, atol=1e-8)`.
+      tolerances as arrays); default `diffrax.PIDController(rtol=1e-8, atol=1e-8)`
+      (1e-6 in float32: `default_tolerance`).
     - `rtol`, `atol`: shorthand for `stepsize_controller=diffrax.PIDController(rtol,
-      atol)` (the other defaulting to 1e-8); positive scalars, which may be traced.
+      atol)` (the other defaulting as above); positive scalars, which may be traced. The
+      solve runs in the dtype of `ts`, the model's arrays and `y0` together; a concrete
+      `rtol` finer than it resolves is refused (`min_rtol`: below 9.5e-7 in float32).
     - `max_steps`: the most steps the solver may take.
     - `dt0`: initial step; `None` takes 0.01 (in the unit of `ts`), what `diffeqsolve`
       takes.
@@ -125,7 +159,8 @@ def simulate(
 
     **Returns:** a `Trajectory`.
     """
-    ts, controller, max_steps = _prepare(model, ts, stepsize_controller, rtol, atol, max_steps)
+    ts, controller, max_steps = _prepare(model, y0, ts, stepsize_controller, rtol, atol,
+                                         max_steps)
     traj = _solved[cacheable(ts, controller)](model, y0, ts, solver, controller, adjoint,
                                               max_steps, dt0)
     return thrown(traj) if throw else traj
@@ -172,14 +207,15 @@ def simulate_batch(
     **Returns:** a `Trajectory` with a leading batch axis on every leaf (including `ts`,
     `stats` and `result`).
     """
-    ts, controller, max_steps = _prepare(model, ts, stepsize_controller, rtol, atol, max_steps)
+    ts, controller, max_steps = _prepare(model, y0s, ts, stepsize_controller, rtol, atol,
+                                         max_steps)
     if batching is None:
         batching = default_batching(solver, controller, adjoint)
     elif not isinstance(batching, AbstractBatching):
         raise ValueError("`batching` must be `rbdyn_jax.Lanes(...)`, `rbdyn_jax.Vmap()` or "
                          f"None, got {type(batching).__name__}.")
     if throw and isinstance(batching, Lanes) and not top_level():
-        batching = Lanes(batching.lanes, devices=1)
+        batching = Lanes(batching.lanes, devices=1, layout=batching.layout)
     traj = batching.solve(model, y0s, ts, solver=solver, controller=controller,
                           adjoint=adjoint, max_steps=max_steps, dt0=dt0,
                           model_axes=model_axes, cacheable=cacheable(ts, controller))
