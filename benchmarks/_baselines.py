@@ -29,6 +29,8 @@ output at ``ts`` by the 4th-order continuous extension (Shampine's interpolant, 
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from scipy.integrate import solve_ivp
 
@@ -54,16 +56,32 @@ P = np.array([
     [0, -282668133 / 205662961, 2019193451 / 616988883, -1453857185 / 822651844],
     [0, 40617522 / 29380423, -110615467 / 29380423, 69997945 / 29380423]])
 
-_PT = tuple(tuple(float(v) for v in row) for row in P)
 _KERNEL = None
 
 
-def _build_kernel():
-    """Compile (once, lazily) the numba right-hand side, single-trajectory solver and the
-    parallel batch driver; returns the batch driver."""
-    import numba
+def solver_functions(dtype, jit) -> dict:
+    """The solver's functions for one trajectory in `dtype`, each decorated with `jit`
+    (``numba.njit`` for the CPU solver of `numba_solve`; ``numba.cuda.jit(device=True)`` for
+    the CUDA kernel of `_cuda.py`). Returns them by name; ``solve_one`` is the entry.
 
-    jit = numba.njit(cache=False, fastmath=False)
+    Every constant is a ``dtype`` value held in the closure (numba freezes it as a typed
+    constant) and the arithmetic holds no bare float literal, which numba would type float64:
+    in float32 every operation is float32."""
+    F = np.dtype(dtype).type
+    zero, one, neg_one, half, neg_half, two = F(0), F(1), F(-1), F(0.5), F(-0.5), F(2)
+    seven, ten, hundred, inf = F(7), F(10), F(100), F(np.inf)
+    fifth, neg_fifth, safety, min_factor = F(0.2), F(-0.2), F(0.9), F(0.2)
+    h_tiny, d_tiny, d2_tiny, h0_scale, h1_scale, h1_min = (F(1e-6), F(1e-5), F(1e-15), F(0.01),
+                                                           F(1e-3), F(1e-6))
+    a21 = F(A21)
+    a31, a32 = F(A31), F(A32)
+    a41, a42, a43 = F(A41), F(A42), F(A43)
+    a51, a52, a53, a54 = F(A51), F(A52), F(A53), F(A54)
+    a61, a62, a63, a64, a65 = F(A61), F(A62), F(A63), F(A64), F(A65)
+    b1, b3, b4, b5, b6 = F(B1), F(B3), F(B4), F(B5), F(B6)
+    e1, e3, e4, e5, e6, e7 = F(E1), F(E3), F(E4), F(E5), F(E6), F(E7)
+    p0, p2, p3, p4, p5, p6 = (tuple(F(v) for v in P[s]) for s in (0, 2, 3, 4, 5, 6))
+    zeros = (zero,) * 7
 
     @jit
     def rhs(code, y, prm):
@@ -78,8 +96,8 @@ def _build_kernel():
         my = hz * wx - hx * wz
         mz = hx * wy - hy * wx
         if code != 0:
-            gx = 2.0 * (qx * qz - qw * qy)
-            gy = 2.0 * (qy * qz + qw * qx)
+            gx = two * (qx * qz - qw * qy)
+            gy = two * (qy * qz + qw * qx)
             gz = qw * qw - qx * qx - qy * qy + qz * qz
             if code == 1:
                 ax, ay, az, s = c0, c1, c2, weight
@@ -94,15 +112,15 @@ def _build_kernel():
         return (I00 * mx + I01 * my + I02 * mz,
                 I10 * mx + I11 * my + I12 * mz,
                 I20 * mx + I21 * my + I22 * mz,
-                -0.5 * (qx * wx + qy * wy + qz * wz),
-                0.5 * (qw * wx + qy * wz - qz * wy),
-                0.5 * (qw * wy + qz * wx - qx * wz),
-                0.5 * (qw * wz + qx * wy - qy * wx))
+                neg_half * (qx * wx + qy * wy + qz * wz),
+                half * (qw * wx + qy * wz - qz * wy),
+                half * (qw * wy + qz * wx - qx * wz),
+                half * (qw * wz + qx * wy - qy * wx))
 
     @jit
     def dot(ks, cs, i):
         """Σ_s cs[s] ks[s][i] over the stage tuples ks."""
-        acc = 0.0
+        acc = zero
         for s in range(len(cs)):
             acc += cs[s] * ks[s][i]
         return acc
@@ -122,65 +140,66 @@ def _build_kernel():
     @jit
     def rms(v, y, z, rtol, atol):
         """sqrt(mean_i (v_i / (atol + rtol max(|y_i|, |z_i|)))²)."""
-        acc = 0.0
+        acc = zero
         for i in range(7):
-            acc += (v[i] / (atol + rtol * max(abs(y[i]), abs(z[i])))) ** 2
-        return np.sqrt(acc / 7)
+            r = v[i] / (atol + rtol * max(abs(y[i]), abs(z[i])))
+            acc += r * r  # numba's x ** 2 is this product
+        return F(math.sqrt(acc / seven))  # F(): the simulator's math.sqrt returns a float
 
     @jit
     def solve_one(code, prm, y0, ts, rtol, atol, max_steps, out):
         """DOPRI5 from ts[0] to ts[-1] for one state y0 (7,), writing out[j] = y(ts[j]);
         returns (steps, status). State and stages are 7-tuples (no allocation per step)."""
         y = (y0[0], y0[1], y0[2], y0[3], y0[4], y0[5], y0[6])
-        zero = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
-        t, tend, nout = ts[0], ts[-1], ts.shape[0]
-        out[0, :] = y0
+        t, tend, nout = ts[0], ts[ts.shape[0] - 1], ts.shape[0]
+        for i in range(7):
+            out[0, i] = y[i]
         k1 = rhs(code, y, prm)
         # Initial step (Hairer's heuristic, as scipy's select_initial_step with order 4).
-        d0, d1 = rms(y, y, zero, rtol, atol), rms(k1, y, zero, rtol, atol)
-        h0 = 1e-6 if (d0 < 1e-5 or d1 < 1e-5) else 0.01 * d0 / d1
+        d0, d1 = rms(y, y, zeros, rtol, atol), rms(k1, y, zeros, rtol, atol)
+        h0 = h_tiny if (d0 < d_tiny or d1 < d_tiny) else h0_scale * d0 / d1
         h0 = min(h0, tend - t)
-        f1 = rhs(code, comb(y, h0, (k1,), (1.0,)), prm)
-        d2 = rms(comb(f1, -1.0, (k1,), (1.0,)), y, zero, rtol, atol) / h0
-        if d1 <= 1e-15 and d2 <= 1e-15:
-            h1 = max(1e-6, h0 * 1e-3)
+        f1 = rhs(code, comb(y, h0, (k1,), (one,)), prm)
+        d2 = rms(comb(f1, neg_one, (k1,), (one,)), y, zeros, rtol, atol) / h0
+        if d1 <= d2_tiny and d2 <= d2_tiny:
+            h1 = max(h1_min, h0 * h1_scale)
         else:
-            h1 = (0.01 / max(d1, d2)) ** 0.2
-        h = min(100 * h0, h1, tend - t)
+            h1 = (h0_scale / max(d1, d2)) ** fifth
+        h = min(hundred * h0, h1, tend - t)
 
         steps, status, j, rejected = 0, 0, 1, False
         while j < nout:
             if steps >= max_steps:
                 status = 1
                 break
-            if h < 10 * abs(np.nextafter(t, np.inf) - t):
+            # F(): under the simulator math.nextafter is float64's (a float32 t then gives 0)
+            if h < ten * abs(F(math.nextafter(t, inf)) - t):
                 status = 2
                 break
             tnew = min(t + h, tend)
             h = tnew - t
-            k2 = rhs(code, comb(y, h, (k1,), (A21,)), prm)
-            k3 = rhs(code, comb(y, h, (k1, k2), (A31, A32)), prm)
-            k4 = rhs(code, comb(y, h, (k1, k2, k3), (A41, A42, A43)), prm)
-            k5 = rhs(code, comb(y, h, (k1, k2, k3, k4), (A51, A52, A53, A54)), prm)
-            k6 = rhs(code, comb(y, h, (k1, k2, k3, k4, k5), (A61, A62, A63, A64, A65)), prm)
-            ynew = comb(y, h, (k1, k3, k4, k5, k6), (B1, B3, B4, B5, B6))
+            k2 = rhs(code, comb(y, h, (k1,), (a21,)), prm)
+            k3 = rhs(code, comb(y, h, (k1, k2), (a31, a32)), prm)
+            k4 = rhs(code, comb(y, h, (k1, k2, k3), (a41, a42, a43)), prm)
+            k5 = rhs(code, comb(y, h, (k1, k2, k3, k4), (a51, a52, a53, a54)), prm)
+            k6 = rhs(code, comb(y, h, (k1, k2, k3, k4, k5), (a61, a62, a63, a64, a65)), prm)
+            ynew = comb(y, h, (k1, k3, k4, k5, k6), (b1, b3, b4, b5, b6))
             k7 = rhs(code, ynew, prm)  # FSAL stage
-            e = comb(zero, h, (k1, k3, k4, k5, k6, k7), (E1, E3, E4, E5, E6, E7))
+            e = comb(zeros, h, (k1, k3, k4, k5, k6, k7), (e1, e3, e4, e5, e6, e7))
             err = rms(e, y, ynew, rtol, atol)
             steps += 1
-            if err <= 1.0:
-                factor = 10.0 if err == 0.0 else min(10.0, 0.9 * err ** -0.2)
+            if err <= one:
+                factor = ten if err == zero else min(ten, safety * err ** neg_fifth)
                 if rejected:
-                    factor = min(1.0, factor)
+                    factor = min(one, factor)
                 ks = (k1, k2, k3, k4, k5, k6, k7)
                 while j < nout and ts[j] <= tnew:
                     if ts[j] == tnew:
                         yo = ynew
                     else:
                         th = (ts[j] - t) / h
-                        yo = comb(y, h, ks, (poly(_PT[0], th), 0.0, poly(_PT[2], th),
-                                             poly(_PT[3], th), poly(_PT[4], th),
-                                             poly(_PT[5], th), poly(_PT[6], th)))
+                        yo = comb(y, h, ks, (poly(p0, th), zero, poly(p2, th), poly(p3, th),
+                                             poly(p4, th), poly(p5, th), poly(p6, th)))
                     for i in range(7):
                         out[j, i] = yo[i]
                     j += 1
@@ -188,9 +207,21 @@ def _build_kernel():
                 h *= factor
                 rejected = False
             else:
-                h *= max(0.2, 0.9 * err ** -0.2)
+                h *= max(min_factor, safety * err ** neg_fifth)
                 rejected = True
         return steps, status
+
+    return {"rhs": rhs, "dot": dot, "comb": comb, "poly": poly, "rms": rms,
+            "solve_one": solve_one}
+
+
+def _build_kernel():
+    """Compile (once, lazily) the single-trajectory solver and the parallel batch driver;
+    returns the batch driver."""
+    import numba
+
+    solve_one = solver_functions(np.float64, numba.njit(cache=False, fastmath=False))[
+        "solve_one"]
 
     @numba.njit(parallel=True, cache=False, fastmath=False)
     def solve_batch(code, prm, y0, ts, rtol, atol, max_steps, out, steps, status):

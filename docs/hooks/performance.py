@@ -211,8 +211,74 @@ def _identify() -> str:
                    "scipy ÷ this"], rows)
 
 
+_GPU_METHODS = {
+    "default": "default, float64",
+    "default f32": "default, float32",
+    "gradient": "gradient (6 parameters)",
+    "lane per trajectory": "`Lanes(N)`: a lane per trajectory",
+    "vmap": "`Vmap()`",
+    "plain vmap": "`jax.vmap(diffeqsolve)`",
+    "cuda f64": "CUDA kernel, float64",
+    "cuda f32": "CUDA kernel, float32",
+}
+
+
+def _gpu_environment() -> str:
+    """The GPU run's own machine and versions (`gpu.json`'s meta): the page's other tables
+    come from the CPU machine of `environment.json`."""
+    m = _load("gpu")["meta"]
+    return (f"- **GPU:** {m['jax_device']} (the CUDA kernel ran on {m['cuda_device']})\n"
+            f"- **Versions:** jax {m['jax']} (CUDA), diffrax {m['diffrax']}, equinox "
+            f"{m['equinox']}")
+
+
+def _gpu() -> str:
+    """One column per batch size, one row per method: trajectories per second and, below,
+    the rate as a fraction of the float64 CUDA kernel's at that size."""
+    rows_in = [r for r in _load("gpu")["rows"] if "traj_per_s" in r]
+    sizes = sorted({r["batch"] for r in rows_in})
+    cell = {(r["method"], r["batch"]): r for r in rows_in}
+    rows = []
+    for method, label in _GPU_METHODS.items():
+        row = [label]
+        for n in sizes:
+            r = cell.get((method, n))
+            if r is None:
+                row.append("—")
+            elif method == "cuda f64":
+                row.append(_n(r["traj_per_s"]))
+            else:
+                row.append(f"{_n(r['traj_per_s'])}<br>{r['ratio_to_cuda_f64']:.3f}×")
+        rows.append(row)
+    rows.append(["gradient ÷ forward, time", *[
+        f"{cell[('gradient', n)]['times_forward']:.2f}" if ("gradient", n) in cell else "—"
+        for n in sizes]])
+    rows.append(["default ÷ `Vmap()`", *[
+        f"{cell[('default', n)]['traj_per_s'] / cell[('vmap', n)]['traj_per_s']:.1f}"
+        if ("vmap", n) in cell else "—" for n in sizes]])
+    for method, label in (("default", "first call (s), default"),
+                          ("gradient", "first call (s), gradient")):
+        rows.append([label, *[f"{cell[(method, n)]['first_call_s']:.1f}"
+                              if (method, n) in cell else "—" for n in sizes]])
+    head = [""] + [f"N = {_n(n)}" for n in sizes]
+    return _table(head, rows)
+
+
+def _gpu_accuracy() -> str:
+    """Steps and errors against the elliptic solution (the first 1000 trajectories)."""
+    rows_in = [r for r in _load("gpu")["rows"] if "max_error" in r and r["batch"] == 1000]
+    rows = [[_GPU_METHODS.get(r["method"], r["method"]), f"{r['mean_steps']:.0f}",
+             str(r["max_steps"]), _e(r["median_error"]), _e(r["max_error"])]
+            for r in rows_in]
+    return _table(["method (N = 1000)", "mean steps", "most steps", "median error",
+                   "largest error"], rows)
+
+
 TABLES = {
     "environment": _environment,
+    "gpu_environment": _gpu_environment,
+    "gpu": _gpu,
+    "gpu_accuracy": _gpu_accuracy,
     "throughput": _throughput,
     "work_precision": _work_precision,
     "gradients": _gradients,
@@ -224,10 +290,11 @@ TABLES = {
 
 
 def _check_versions() -> None:
-    """Every result measured with the versions `environment.json` lists."""
+    """Every CPU result measured with the versions `environment.json` lists (the GPU run's
+    file carries its own, `_gpu_environment`)."""
     versions = _load("environment")["versions"]
     for path in sorted(RESULTS.glob("*.json")):
-        if path.stem == "environment":
+        if path.stem in ("environment", "gpu"):
             continue
         meta = json.loads(path.read_text()).get("meta", {})
         for pkg in ("jax", "diffrax", "equinox"):

@@ -1,0 +1,315 @@
+"""Batched solves on a GPU, side by side in one run: rbdyn_jax's strategies against a
+hand-written CUDA kernel (the yardstick: one thread per trajectory, Dormand–Prince 5(4),
+`_cuda.py`) and against the plain vmapped `diffrax.diffeqsolve`, at 10³–10⁶ trajectories;
+forward solves, gradients and float32. Every rate is also given as a ratio to the kernel's
+float64 rate measured in the same run at the same batch size.
+
+Setting (the throughput benchmark's): torque-free J = [[2, 0.05, 0], [0.05, 3, 0.02],
+[0, 0.02, 4]], ω0 ~ N(0, 1) per axis (seed 0), identity attitude, t ∈ [0, 100], 101 outputs,
+rtol = atol = 1e-8 in float64 and 1e-6 in float32. Rows:
+
+- `default`: `rb.simulate_batch(model, y0s, ts)`, which on a GPU takes the lane solver in its
+  array layout with a lane per trajectory (`rb.Lanes`);
+- `default f32`: the same call on float32 inputs (the solve runs in float32);
+- `gradient`: `jax.jit(jax.grad(loss))` of a batch loss (Σ ω² over the outputs) through
+  the default call w.r.t. the inertia's six log-Cholesky parameters (`rb.with_log_cholesky`);
+  its time is also given as a multiple of the forward call's;
+- `lane per trajectory`: `rb.Lanes(N)`: every trajectory in a lane of its own, no refill
+  (the default refills a third as many lanes on batches over 16,384, at most 131,072; the
+  rows give the lanes it took), and `Lanes(L)` for each count of `--lanes`;
+- `vmap`: `batching=rb.Vmap()` (rbdyn_jax's vmapped `diffeqsolve`);
+- `plain vmap`: `jax.jit(jax.vmap(diffrax.diffeqsolve))` on `_baselines`' right-hand side in
+  `jax.numpy`, no rbdyn_jax (Tsit5, the same controller);
+- `lanes cpu layout` (only with `--cpu-layout-max`): `rb.Lanes(256, layout="cpu")`, the
+  CPU's layout of the lane loop on the GPU;
+- `cuda f64`, `cuda f32`: the kernel alone (device arrays allocated once, launch and
+  synchronise timed).
+
+Each rate is the median of repeated calls after a first call, which is reported apart (it
+includes compilation). Errors: the largest and the median over trajectories of
+max_t |ω − ω_ref| on the first `--ref-max` trajectories, ω_ref the Jacobi elliptic solution
+(`rb.analytic.torque_free_elliptic`). The card is named from JAX's and numba's device queries.
+Results are written after every row (`gpu.json` under `--out`), so a run stopped by
+`--budget` (seconds; later rows are skipped) or killed keeps what it measured.
+
+Run: `python benchmarks/gpu.py [--sizes 1000 10000 100000 1000000] [--grad-max 100000]
+[--vmap-max 100000] [--whole-min 100000] [--lanes L …] [--cpu-layout-max 0]
+[--budget 600] [--out results/benchmarks]`.
+Without a GPU it runs on the CPU (the kernel then needs numba-cuda's simulator,
+`NUMBA_ENABLE_CUDASIM=1`, and only tiny sizes are sensible).
+"""
+
+import argparse
+import pathlib
+import sys
+import time
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+import diffrax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+
+import rbdyn_jax as rb  # noqa: E402
+from rbdyn_jax.integrate._batching import (  # noqa: E402
+    default_lanes,
+    device_memory,
+    lane_bytes,
+)
+
+sys.path.insert(0, str(pathlib.Path(__file__).parent))
+import _baselines  # noqa: E402
+import _cuda  # noqa: E402
+import _report  # noqa: E402
+
+J = np.array([[2.0, 0.05, 0.0], [0.05, 3.0, 0.02], [0.0, 0.02, 4.0]])
+T_END, N_OUT = 100.0, 101
+TOL = {"float64": 1e-8, "float32": 1e-6}
+
+
+def initial_rates(n, seed=0):
+    return np.random.default_rng(seed).normal(size=(n, 3))
+
+
+def states(w0, dtype):
+    q = np.tile(np.array([1.0, 0.0, 0.0, 0.0]), (len(w0), 1))
+    return rb.State(jnp.asarray(w0, dtype), jnp.asarray(q, dtype))
+
+
+def elliptic(w0, ts):
+    """ω(t) of the torque-free body in closed form (body axes), float64."""
+    moments, axes = rb.inertia.principal_axes(jnp.asarray(J))
+    sol = jax.jit(jax.vmap(lambda w: rb.analytic.torque_free_elliptic(moments, w, ts)))
+    return np.asarray(sol(jnp.asarray(w0) @ axes) @ axes.T)
+
+
+def errors(omega, ref):
+    m = min(len(omega), len(ref))
+    e = np.max(np.abs(np.asarray(omega[:m], np.float64) - ref[:m]), axis=(1, 2))
+    return {"max_error": float(np.max(e)), "median_error": float(np.median(e))}
+
+
+def timed(fn, repeats):
+    """(last output, first call's seconds, median of `repeats` further calls)."""
+    t0 = time.perf_counter()
+    out = jax.block_until_ready(fn())
+    first = time.perf_counter() - t0
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        out = jax.block_until_ready(fn())
+        times.append(time.perf_counter() - t0)
+    return out, first, float(np.median(times))
+
+
+def rbdyn_forward(w0, ts, dtype, batching):
+    model = rb.RigidBody(jnp.asarray(J, dtype))
+    y0s, ts = states(w0, dtype), jnp.asarray(ts, dtype)
+    tol = TOL[np.dtype(dtype).name]
+    return lambda: rb.simulate_batch(model, y0s, ts, rtol=tol, atol=tol, batching=batching)
+
+
+def rbdyn_gradient(w0, ts):
+    body = rb.RigidBody(jnp.asarray(J))
+    y0s, ts = states(w0, np.float64), jnp.asarray(ts)
+    theta = rb.inertia.to_log_cholesky(jnp.asarray(J))
+
+    def loss(th):
+        tr = rb.simulate_batch(rb.with_log_cholesky(body, th), y0s, ts, rtol=TOL["float64"],
+                               atol=TOL["float64"])
+        return jnp.sum(tr.ys.omega ** 2)
+
+    grad = jax.jit(jax.grad(loss), compiler_options=rb.COMPILER_OPTIONS)
+    return lambda: grad(theta)
+
+
+def plain_vmap(w0, ts):
+    """`jax.jit(jax.vmap(diffeqsolve))` without rbdyn_jax: `_baselines`' right-hand side in
+    `jax.numpy`, Tsit5, the same controller."""
+    Jj = jnp.asarray(J)
+    f = _baselines._numpy_rhs(_baselines.MODELS["torque_free"], Jj, jnp.linalg.inv(Jj), None,
+                              None, None, xp=jnp)
+    ts = jnp.asarray(ts)
+
+    def solve(y0):
+        sol = diffrax.diffeqsolve(
+            diffrax.ODETerm(lambda t, y, args: f(t, y)), diffrax.Tsit5(), ts[0], ts[-1], None,
+            y0, saveat=diffrax.SaveAt(ts=ts), max_steps=16_384,
+            stepsize_controller=diffrax.PIDController(rtol=TOL["float64"],
+                                                      atol=TOL["float64"]))
+        return sol.ys, sol.stats["num_steps"]
+
+    y0s = jnp.concatenate([jnp.asarray(w0), jnp.tile(jnp.array([1.0, 0.0, 0.0, 0.0]),
+                                                     (len(w0), 1))], axis=1)
+    fn = jax.jit(jax.vmap(solve))
+    return lambda: fn(y0s)
+
+
+def cuda_kernel(w0, ts, dtype):
+    """The yardstick: the kernel alone on device arrays, and a reader of its outputs."""
+    cuda = _cuda._import_cuda()
+    tol = TOL[np.dtype(dtype).name]
+    solver = _cuda.CudaSolver("torque_free", {"inertia": J}, ts, tol, tol, dtype=dtype)
+    y0 = np.concatenate([w0, np.tile([1.0, 0.0, 0.0, 0.0], (len(w0), 1))], axis=1)
+    y0 = cuda.to_device(y0.astype(dtype))
+    out, steps, status = solver.outputs(len(w0))
+
+    def run():
+        solver(y0, out, steps, status)
+        cuda.synchronize()
+
+    def read():
+        return out.copy_to_host()[..., :3], steps.copy_to_host(), status.copy_to_host()
+
+    return run, read
+
+
+def rate_row(method, n, dtype, first, t, omega, steps, ok, ref):
+    return {"method": method, "batch": n, "dtype": np.dtype(dtype).name,
+            "traj_per_s": n / t, "seconds": t, "first_call_s": first,
+            "mean_steps": float(np.mean(steps)), "max_steps": int(np.max(steps)),
+            "all_successful": bool(ok), **errors(omega, ref)}
+
+
+def measure(method, n, w0, ts, ref, repeats):
+    """One row: the method's rate, first call, steps and errors at batch size `n`."""
+    if method in ("default", "default f32", "vmap", "lanes cpu layout", "lane per trajectory"
+                  ) or method.startswith("Lanes("):
+        dtype = np.float32 if method == "default f32" else np.float64
+        batching = {"vmap": rb.Vmap(), "lanes cpu layout": rb.Lanes(256, layout="cpu"),
+                    "lane per trajectory": rb.Lanes(n)}.get(method)
+        if method.startswith("Lanes("):
+            batching = rb.Lanes(int(method[6:-1]))
+        tr, first, t = timed(rbdyn_forward(w0, ts, dtype, batching), repeats)
+        row = rate_row(method, n, dtype, first, t, tr.ys.omega, tr.stats["num_steps"],
+                       np.all(np.asarray(tr.result._value) == 0), ref)
+        if method.startswith("default"):  # the lanes the default took
+            y0s = states(w0, dtype)
+            row["lanes"] = default_lanes(n, len(jax.devices()), jax.devices()[0].platform,
+                                         lane_bytes(y0s),
+                                         device_memory(jax.devices()[0]))
+        return row
+    if method == "plain vmap":
+        (ys, steps), first, t = timed(plain_vmap(w0, ts), repeats)
+        return rate_row(method, n, np.float64, first, t, ys[..., :3], steps,
+                        np.all(np.isfinite(np.asarray(ys))), ref)
+    if method == "gradient":
+        g, first, t = timed(rbdyn_gradient(w0, ts), repeats)
+        return {"method": method, "batch": n, "dtype": "float64", "traj_per_s": n / t,
+                "seconds": t, "first_call_s": first,
+                "all_successful": bool(np.all(np.isfinite(np.asarray(g))))}
+    if method in ("cuda f64", "cuda f32"):
+        dtype = np.float32 if method == "cuda f32" else np.float64
+        run, read = cuda_kernel(w0, ts, dtype)
+        _, first, t = timed(run, repeats)
+        omega, steps, status = read()
+        return rate_row(method, n, dtype, first, t, omega, steps, np.all(status == 0), ref)
+    raise ValueError(method)
+
+
+def plan(sizes, grad_max, vmap_max, cpu_layout_max, whole_min, lanes=()):
+    """(method, n) in the order measured: the yardstick first at each size, then the rest."""
+    rows = []
+    for n in sizes:
+        rows += [("cuda f64", n), ("default", n), ("cuda f32", n), ("default f32", n)]
+        if n <= grad_max:
+            rows.append(("gradient", n))
+        if n >= whole_min:
+            rows.append(("lane per trajectory", n))
+            rows += [(f"Lanes({L})", n) for L in lanes if L < n]
+        if n <= vmap_max:
+            rows += [("vmap", n), ("plain vmap", n)]
+        if n <= cpu_layout_max:
+            rows.append(("lanes cpu layout", n))
+    return rows
+
+
+def device_names():
+    d = jax.devices()[0]
+    names = {"jax_device": f"{d.device_kind} ({d.platform})"}
+    try:
+        cuda = _cuda._import_cuda()
+        names["cuda_device"] = str(cuda.get_current_device().name.decode()
+                                   if isinstance(cuda.get_current_device().name, bytes)
+                                   else cuda.get_current_device().name)
+    except Exception as e:  # no CUDA driver (and no simulator): the kernel rows will fail
+        names["cuda_device"] = f"unavailable: {type(e).__name__}"
+    return names
+
+
+def main(sizes, grad_max, vmap_max, cpu_layout_max, whole_min, lanes, ref_max, budget, out):
+    t_start = time.perf_counter()
+    ts = np.linspace(0.0, T_END, N_OUT)
+    meta = {"t_end": T_END, "n_out": N_OUT, "tol": TOL, "sizes": sizes, **device_names()}
+    print(f"device: {meta['jax_device']}; CUDA yardstick on: {meta['cuda_device']}")
+    rows, refs = [], {}
+    for method, n in plan(sizes, grad_max, vmap_max, cpu_layout_max, whole_min, lanes):
+        if time.perf_counter() - t_start > budget:
+            rows.append({"method": method, "batch": n, "skipped": "budget"})
+            print(f"{method:>19} {n:>8}  skipped (over --budget {budget:.0f} s)")
+            continue
+        w0 = initial_rates(n)
+        if n not in refs:
+            refs[n] = elliptic(w0[:ref_max], jnp.asarray(ts))
+        repeats = 3 if n <= 100_000 else 1
+        try:
+            row = measure(method, n, w0, ts, refs[n], repeats)
+        except Exception as e:  # recorded, and the run goes on (out of memory, say)
+            row = {"method": method, "batch": n, "failed": f"{type(e).__name__}: {e}"[:500]}
+        yard = next((r for r in rows if r["method"] == "cuda f64" and r["batch"] == n
+                     and "traj_per_s" in r), None)
+        if yard is not None and "traj_per_s" in row:
+            row["ratio_to_cuda_f64"] = row["traj_per_s"] / yard["traj_per_s"]
+        fwd = next((r for r in rows if r["method"] == "default" and r["batch"] == n
+                    and "seconds" in r), None)
+        if method == "gradient" and fwd is not None and "seconds" in row:
+            row["times_forward"] = row["seconds"] / fwd["seconds"]
+        rows.append(row)
+        print_row(row)
+        _report.write_json(out, "gpu", meta, rows)
+    print(f"wrote {pathlib.Path(out) / 'gpu.json'} ({time.perf_counter() - t_start:.0f} s)")
+    return rows
+
+
+HEAD = (f"{'method':>19} {'batch':>8} {'dtype':>7} | {'traj/s':>10} {'/cuda f64':>9} | "
+        f"{'first s':>7} {'call s':>8} | {'steps':>6} {'max':>6} | {'max err':>8} "
+        f"{'med err':>8} | note")
+
+
+def print_row(r, _printed=[]):  # noqa: B006 (print the header once)
+    if not _printed:
+        print(HEAD)
+        print("-" * len(HEAD))
+        _printed.append(True)
+    if "traj_per_s" not in r:
+        print(f"{r['method']:>19} {r['batch']:>8}  {r.get('failed', r.get('skipped'))}")
+        return
+    ratio = f"{r['ratio_to_cuda_f64']:>9.2e}" if "ratio_to_cuda_f64" in r else f"{'':>9}"
+    steps = (f"{r['mean_steps']:>6.0f} {r['max_steps']:>6}" if "mean_steps" in r
+             else f"{'':>6} {'':>6}")
+    err = (f"{r['max_error']:>8.1e} {r['median_error']:>8.1e}" if "max_error" in r
+           else f"{'':>8} {'':>8}")
+    note = f"{r['times_forward']:.2f}× forward" if "times_forward" in r else ""
+    if not r.get("all_successful", True):
+        note += " (not all successful)"
+    print(f"{r['method']:>19} {r['batch']:>8} {r['dtype']:>7} | {r['traj_per_s']:>10.4g} "
+          f"{ratio} | {r['first_call_s']:>7.2f} {r['seconds']:>8.4f} | {steps} | {err} | "
+          f"{note}", flush=True)
+
+
+if __name__ == "__main__":
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--sizes", type=int, nargs="+", default=[1000, 10_000, 100_000, 1_000_000])
+    p.add_argument("--grad-max", type=int, default=100_000)
+    p.add_argument("--vmap-max", type=int, default=100_000)
+    p.add_argument("--cpu-layout-max", type=int, default=0)
+    p.add_argument("--whole-min", type=int, default=100_000)
+    p.add_argument("--lanes", type=int, nargs="*", default=[])
+    p.add_argument("--ref-max", type=int, default=1000)
+    p.add_argument("--budget", type=float, default=600.0)
+    p.add_argument("--out", default="results/benchmarks")
+    a = p.parse_args()
+    main(a.sizes, a.grad_max, a.vmap_max, a.cpu_layout_max, a.whole_min, a.lanes, a.ref_max,
+         a.budget, a.out)
