@@ -1,18 +1,17 @@
 """The CUDA yardstick (`benchmarks/_cuda.py`) against the numba CPU solver
-(`benchmarks/_baselines.py`), without a GPU: numba-cuda's simulator runs the kernel as Python
-threads, in a subprocess (``NUMBA_ENABLE_CUDASIM`` is read when numba is imported, and this
-process may have imported it already).
+(`benchmarks/_baselines.py`), without a GPU: numba-cuda's simulator runs the kernel as Python,
+one thread at a time, in a subprocess (``NUMBA_ENABLE_CUDASIM`` is read when numba is
+imported, and this process may have imported it already).
 
-Proven here, for the three models: in float64 the kernel takes the same steps with the same
-status and returns the same bits as `numba_solve` (same algorithm, same order of operations,
-and the simulator's Python floats are IEEE doubles without FMA contraction), so any slip
-shows: a sign flipped in the right-hand side moved the outputs by ~4, one coefficient of the
-tableau off by 1e-7 relative by ~3e-8 (the coefficients' values are `_baselines`', imported;
-its own tests check its accuracy). In float32 the result agrees with float64's to what the
-tolerance allows, with similar step counts. That every operation is float32 is proven by
-typing the same device functions with numba's CPU compiler (no variable is float64), since
-the simulator cannot see it: under NumPy's promotion rules a float64 literal does not
-promote a float32 scalar there, while numba would promote it.
+Both run the same solver functions (`_baselines.solver_functions`), whose accuracy the
+throughput benchmark's test checks against the elliptic solution and against scipy. Proven
+here, for the three models: the kernel's launch, indexing and per-dtype build give, in
+float64, the same steps with the same status and the same bits as `numba_solve` (the
+simulator's Python floats are IEEE doubles without FMA contraction); in float32 the result
+agrees with float64's to what the tolerance allows, with similar step counts; that every
+operation is float32 is proven by typing the same functions with numba's CPU compiler (no
+variable is float64), since the simulator cannot see it: under NumPy's promotion rules a
+float64 literal does not promote a float32 scalar there, while numba would promote it.
 
 `test_gpu_matches_numba` runs the compiled kernel on a real GPU (skipped without one).
 """
