@@ -1,5 +1,5 @@
 """Small vector helpers shared by the pure-function layers (rotation, dynamics, torques,
-frames), below every public module: it imports only jax.numpy and jaxtyping.
+frames), below every public module: it imports only JAX and jaxtyping.
 
 The products are written out on a vector's three components, kept as separate arrays
 (`split`), instead of `jnp.cross` / `jnp.matmul` / `jnp.einsum`: XLA:CPU runs a batched
@@ -13,8 +13,14 @@ Also the parsing of an Euler-angle sequence string (`parse_seq`), shared by ever
 that validates a `seq`.
 """
 
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array
+
+# The precision of every matrix product rbdyn_jax writes as one (`einsum`, `matmul`): at
+# JAX's default, NVIDIA GPUs since Ampere multiply float32 in TF32 (10-bit mantissas, ~1e-3
+# relative), which a float32 solve's 1e-6 cannot afford. No effect on a CPU or in float64.
+HIGHEST = jax.lax.Precision.HIGHEST
 
 # ---------------------------------------------------------------------------------------
 # vectors as their components

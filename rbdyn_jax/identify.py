@@ -851,8 +851,9 @@ def _fit_checks_as_nan(*args) -> _Optimum:
     Levenberg–Marquardt rejects. The program then holds no host callback, so JAX's
     persistent compilation cache stores it, and rbdyn_jax's cache of traced programs its
     trace (`_traces`; a later process with the cache configured loads it instead of tracing
-    the fit again)."""
-    with checks_as_nan(jitted=MODE_DEPENDENT_JITS):
+    the fit again). Its matrix products (the Gauss–Newton normal equations, the covariance)
+    are traced at full precision: at JAX's default a GPU multiplies float32 in TF32."""
+    with checks_as_nan(jitted=MODE_DEPENDENT_JITS), jax.default_matmul_precision("highest"):
         return _fit_program(*args)
 
 

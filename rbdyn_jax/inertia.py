@@ -19,6 +19,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from ._checks import check_batch, check_trailing, holds_now, sqrt_eps
 from ._custom_types import BoolArray, Matrix, MatrixLike, Scalar, Vector, VectorLike
+from ._vector import HIGHEST
 
 LogCholesky = Float[Array, "*batch 6"]
 LogCholeskyLike = Float[ArrayLike, "*batch 6"]
@@ -108,9 +109,10 @@ def from_principal(moments: VectorLike, axes: MatrixLike | None = None) -> Matri
     bad = jnp.any(~(planar_moments >= -tol * scale), axis=-1)
     moments = eqx.error_if(moments, bad, "`moments` " + _NOT_PHYSICAL)
     c = jax.lax.stop_gradient(axes)
-    not_orthonormal = ~(_max_abs(_transpose(c) @ c - _eye_like(c)) <= tol)
+    not_orthonormal = ~(_max_abs(jnp.matmul(_transpose(c), c, precision=HIGHEST)
+                                 - _eye_like(c)) <= tol)
     axes = eqx.error_if(axes, not_orthonormal, "`axes` must be orthonormal (CᵀC = I).")
-    return jnp.einsum("...ij,...j,...kj->...ik", axes, moments, axes)
+    return jnp.einsum("...ij,...j,...kj->...ik", axes, moments, axes, precision=HIGHEST)
 
 
 def from_point_masses(
@@ -148,7 +150,8 @@ def from_point_masses(
         ndim = max(about.ndim, positions.ndim)
         positions = _align(positions, ndim) - _align(about, ndim)
     masses = eqx.error_if(masses, jnp.any(masses < 0, axis=-1), "`masses` must be non-negative.")
-    return from_planar(jnp.einsum("...n,...ni,...nj->...ij", masses, positions, positions))
+    return from_planar(jnp.einsum("...n,...ni,...nj->...ij", masses, positions, positions,
+                                  precision=HIGHEST))
 
 
 def planar(J: MatrixLike) -> Matrix:
@@ -258,7 +261,7 @@ def moment_about(J: MatrixLike, axis: VectorLike) -> Scalar:
     norm = jnp.linalg.norm(axis, axis=-1, keepdims=True)
     axis = eqx.error_if(axis, norm[..., 0] == 0, "`axis` must be non-zero.")
     n = axis / norm
-    return jnp.einsum("...i,...ij,...j->...", n, J, n)
+    return jnp.einsum("...i,...ij,...j->...", n, J, n, precision=HIGHEST)
 
 
 def kinetic_energy(J: MatrixLike, omega: VectorLike) -> Scalar:
@@ -275,7 +278,7 @@ def kinetic_energy(J: MatrixLike, omega: VectorLike) -> Scalar:
     """
     J = check_trailing(J, (3, 3), "J")
     omega = check_trailing(omega, (3,), "omega")
-    return 0.5 * jnp.einsum("...i,...ij,...j->...", omega, J, omega)
+    return 0.5 * jnp.einsum("...i,...ij,...j->...", omega, J, omega, precision=HIGHEST)
 
 
 def angular_momentum(J: MatrixLike, omega: VectorLike) -> Vector:
@@ -292,7 +295,7 @@ def angular_momentum(J: MatrixLike, omega: VectorLike) -> Vector:
     """
     J = check_trailing(J, (3, 3), "J")
     omega = check_trailing(omega, (3,), "omega")
-    return jnp.einsum("...ij,...j->...i", J, omega)
+    return jnp.einsum("...ij,...j->...i", J, omega, precision=HIGHEST)
 
 
 def is_physical(J: MatrixLike) -> BoolArray:

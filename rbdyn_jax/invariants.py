@@ -20,6 +20,7 @@ from jaxtyping import Array, Float
 
 from . import rotation
 from ._checks import sqrt_eps
+from ._vector import HIGHEST
 from .frames import Inertial
 from .integrate import Trajectory
 from .models import AbstractRigidBody, RelativeRigidBody
@@ -43,7 +44,7 @@ def _kinematics(model: AbstractRigidBody, traj: Trajectory):
 
 
 def _quad(J, v):
-    return jnp.einsum("...i,ij,...j->...", v, J, v)
+    return jnp.einsum("...i,ij,...j->...", v, J, v, precision=HIGHEST)
 
 
 @_over_batch
@@ -79,7 +80,7 @@ def angular_momentum_inertial(model: AbstractRigidBody, traj: Trajectory) -> Flo
     if kin.quat_inertial is None:
         raise ValueError("`angular_momentum_inertial` needs the attitude; the Poisson form "
                          "only carries γ.")
-    L_body = jnp.einsum("ij,nj->ni", model.inertia, kin.omega)
+    L_body = jnp.einsum("ij,nj->ni", model.inertia, kin.omega, precision=HIGHEST)
     return rotation.quat_rotate(kin.quat_inertial, L_body)
 
 
@@ -89,7 +90,7 @@ def area_integral(model: AbstractRigidBody, traj: Trajectory) -> Float[Array, " 
     under torques symmetric about it (heavy top, gravity gradient;
     docs/physics.md#torque-and-integrals)."""
     kin = _kinematics(model, traj)
-    return jnp.einsum("ij,nj,ni->n", model.inertia, kin.omega, kin.gamma)
+    return jnp.einsum("ij,nj,ni->n", model.inertia, kin.omega, kin.gamma, precision=HIGHEST)
 
 
 @_over_batch

@@ -30,7 +30,7 @@ from ._custom_types import (
     Vector,
     VectorLike,
 )
-from ._vector import cross, parse_seq, split
+from ._vector import HIGHEST, cross, parse_seq, split
 
 # Second angles closer than this to the singular set are treated as gimbal lock by
 # `quat_to_euler`; the same value as scipy's `Rotation.as_euler`.
@@ -489,7 +489,7 @@ def dcm_derivative(R: MatrixLike, omega: VectorLike) -> Matrix:
     """
     R = check_trailing(R, (3, 3), "R")
     R, W = _broadcast(R, skew(omega), trailing=(2, 2))
-    return R @ W
+    return jnp.matmul(R, W, precision=HIGHEST)
 
 
 def omega_from_dcm(R: MatrixLike, R_dot: MatrixLike) -> Vector:
@@ -503,7 +503,7 @@ def omega_from_dcm(R: MatrixLike, R_dot: MatrixLike) -> Vector:
     R, R_dot = _broadcast(R, R_dot, trailing=(2, 2))
     l = jnp.swapaxes(R, -1, -2)
     l_dot = jnp.swapaxes(R_dot, -1, -2)
-    return vee(-l_dot @ jnp.swapaxes(l, -1, -2))
+    return vee(-jnp.matmul(l_dot, jnp.swapaxes(l, -1, -2), precision=HIGHEST))
 
 
 def poisson(gamma: VectorLike, omega: VectorLike) -> Vector:

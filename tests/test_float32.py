@@ -13,14 +13,17 @@ import subprocess
 import sys
 import textwrap
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import equations
 
 import rbdyn_jax as rb
 from rbdyn_jax.integrate import default_tolerance, min_rtol
 
+HIGHEST = jax.lax.Precision.HIGHEST
 J = np.array([[2.0, 0.05, 0.0], [0.05, 3.0, 0.02], [0.0, 0.02, 4.0]])
 N, T_END, N_OUT = 32, 20.0, 21
 
@@ -123,3 +126,50 @@ def test_identification_in_float32(child):
 
 def test_the_suite_runs_in_float64():
     assert jax.config.jax_enable_x64
+
+
+def full_precision(jaxpr) -> tuple[int, list]:
+    """The number of `dot_general`s in a jaxpr (and its sub-jaxprs), and those of them not
+    asking for full precision."""
+    dots = [e for e in equations(jaxpr) if e.primitive.name == "dot_general"]
+    return len(dots), [e for e in dots if e.params["precision"] != (HIGHEST, HIGHEST)]
+
+
+def test_matrix_products_ask_for_full_precision(monkeypatch):
+    """At JAX's default precision NVIDIA GPUs multiply float32 matrices in TF32 (~1e-3
+    relative), which a float32 solve at 1e-6 cannot afford: every matrix product rbdyn_jax
+    writes as one asks for full precision (on a CPU, or in float64, the same program).
+    Checked on the inertia, invariants and rotation functions, and on the whole program of
+    `identify.fit` (its normal equations and covariance), traced as `fit` calls it."""
+    J32 = jnp.asarray(np.diag([1.0, 2.0, 3.0]), jnp.float32)
+    w = jnp.ones((5, 3), jnp.float32)
+    tr = rb.Trajectory(ts=jnp.zeros(5, jnp.float32),
+                       ys=rb.State(w, jnp.tile(jnp.array([1.0, 0, 0, 0], jnp.float32), (5, 1))),
+                       stats={}, result=rb.RESULTS.successful)
+    for fn, args in [
+        (rb.inertia.kinetic_energy, (J32, w)),
+        (rb.inertia.moment_about, (J32, w[0])),
+        (rb.inertia.from_principal, (jnp.ones(3, jnp.float32),)),
+        (lambda m, t: rb.invariants.energy(m, t), (rb.RigidBody(J32), tr)),
+        (lambda m, t: rb.invariants.angular_momentum_inertial(m, t), (rb.RigidBody(J32), tr)),
+        (rb.rotation.dcm_derivative, (jnp.eye(3, dtype=jnp.float32), w[0])),
+    ]:
+        count, default = full_precision(jax.make_jaxpr(fn)(*args))
+        assert count and not default, fn
+    from rbdyn_jax import identify
+
+    traced = []
+    run = identify._run
+
+    def recording(*args):
+        traced.append(eqx.filter_make_jaxpr(identify._fit_checks_as_nan)(*args)[0])
+        return run(*args)
+
+    monkeypatch.setattr(identify, "_run", recording)
+    ts = jnp.linspace(0.0, 1.0, 6)
+    y0 = rb.State(jnp.array([0.3, -0.2, 1.5]), jnp.array([1.0, 0.0, 0.0, 0.0]))
+    observed = rb.simulate(rb.RigidBody(jnp.asarray(J)), y0, ts).ys.omega
+    identify.fit(rb.RigidBody(jnp.asarray(J) * 1.1),
+                 identify.Observations(ts, omega=observed[None], sigma_omega=1e-3), steps=2)
+    count, default = full_precision(traced[0])
+    assert count and not default
