@@ -30,7 +30,13 @@ CPU, before JAX computes anything; `import rbdyn_jax` calls it (one device per c
 """
 
 from .._xla import COMPILER_OPTIONS as COMPILER_OPTIONS, configure_xla as configure_xla
-from ._batching import AbstractBatching as AbstractBatching, Lanes as Lanes, Vmap as Vmap
+from ._batching import (
+    AbstractBatching as AbstractBatching,
+    Lanes as Lanes,
+    Vmap as Vmap,
+    default_lanes as default_lanes,
+    device_memory as device_memory,
+)
 from ._field import MODE_DEPENDENT_JITS as MODE_DEPENDENT_JITS
 from ._simulate import (
     default_tolerance as default_tolerance,
@@ -47,6 +53,6 @@ from ._solution import (
 )
 
 __all__ = ["COMPILER_OPTIONS", "RESULTS", "AbstractBatching", "Lanes", "Trajectory", "Vmap",
-           "configure_xla", "default_tolerance", "make_controller", "min_rtol",
-           "result_code", "result_names",
-           "simulate", "simulate_batch"]
+           "configure_xla", "default_lanes", "default_tolerance", "device_memory",
+           "make_controller", "min_rtol", "result_code", "result_names", "simulate",
+           "simulate_batch"]

@@ -185,9 +185,15 @@ def device_memory(device) -> int | None:
 
 def default_lanes(n: int, devices: int, platform: str = "cpu", per_lane: int = 0,
                   memory: int | None = None) -> int:
-    """The lane count per device for `n` trajectories over `devices` devices of
-    `platform`; on an accelerator, `per_lane` bytes a trajectory's state and `memory` the
-    device's (`lane_bytes`, `device_memory`)."""
+    """The lanes per device `Lanes()` takes for `n` trajectories over `devices` devices of
+    `platform` (a device's `.platform`: "cpu", "gpu", …).
+
+    On a CPU, about two trajectories a lane, at least 8 and at most 64 with XLA's loops
+    compiled whole (256 without). On an accelerator, a lane per trajectory of a device's
+    share up to 16,384, then a third of the share (refilled), at most 131,072, and at most
+    what fits a quarter of `memory` (the device's bytes, `device_memory`; 8 GiB assumed for
+    `None`) at 64 copies of `per_lane` bytes a lane (a trajectory's state and model
+    arrays; 0 leaves memory out)."""
     share = math.ceil(n / devices)
     if default_layout(platform) == "array":
         budget = MEMORY_SHARE * (memory or FALLBACK_MEMORY)
