@@ -4,7 +4,9 @@
 summaries, sample time histories of the body rates and nutation angle, sample polhodes on their
 kinetic-energy ellipsoids (docs/physics.md#torque-free-motion; hodographs of ω_r for relative
 motion, docs/physics.md#balancing-transport-moment), and the counts per status code. Only
-successful trajectories (`status == 0`) enter the first three.
+successful trajectories (`status == 0`) enter the first three. The time histories and polhodes
+are drawn from the states the store keeps: every trajectory's, every K-th one's (over
+`sampled_trajectory`), or none (a summaries-only store: those two figures are skipped).
 
 matplotlib and xarray are imported inside `plot_sweep`, so this module imports without them.
 Figures are built as `matplotlib.figure.Figure` on an Agg canvas, never through `pyplot`, so no
@@ -29,6 +31,31 @@ def _successful(ds) -> np.ndarray:
     **Returns:** a sorted `int64` array of positions.
     """
     return np.flatnonzero(np.asarray(ds["status"].values) == 0)
+
+
+def _stored_states(ds, ok: np.ndarray, n_sample: int):
+    """The states of the first `n_sample` successful trajectories the store keeps them for:
+    `(labels, omega, quat, inertia, title)`, their trajectory indices, arrays, and the
+    figure's title (how many of how many); `None` when there are none (a summaries-only
+    store, or no sampled trajectory succeeded).
+
+    A store keeping every K-th trajectory's states has them over the dimension
+    `sampled_trajectory`, whose coordinate holds the trajectory indices."""
+    if "omega" not in ds or "quat" not in ds:
+        return None
+    if "sampled_trajectory" not in ds["omega"].dims:
+        kept, which, pick = ok, "successful", {"trajectory": ok[:n_sample]}
+        labels = np.asarray(ds["trajectory"].values)[ok[:n_sample]]
+    else:
+        indices = np.asarray(ds["sampled_trajectory"].values)
+        kept = np.flatnonzero(np.asarray(ds["status"].sel(trajectory=indices).values) == 0)
+        which, pick = "successful sampled", {"sampled_trajectory": kept[:n_sample]}
+        labels = indices[kept[:n_sample]]
+    if not len(kept):
+        return None
+    omega, quat = (np.asarray(ds[k].isel(pick).values, dtype=float) for k in ("omega", "quat"))
+    inertia = np.asarray(ds["inertia"].sel(trajectory=labels).values, dtype=float)
+    return labels, omega, quat, inertia, f"{len(labels)} of {len(kept)} {which} trajectories"
 
 
 def _nutation_deg(quat: np.ndarray) -> np.ndarray:
@@ -198,7 +225,10 @@ def plot_sweep(path, out_dir=None, *, n_sample: int = 8) -> list[pathlib.Path]:
     - `status.png`: the number of trajectories per status code that occurs (and for 0, always),
       named from the `flag_meanings` of `status`.
 
-    When no trajectory succeeded only `status.png` is written.
+    When no trajectory succeeded only `status.png` is written. `trajectories.png` and
+    `polhodes.png` draw the states the store keeps: of the first successful trajectories, or
+    of the first successful sampled ones in a store keeping every K-th trajectory's states
+    (`sampled_trajectory`); they are skipped for a store that keeps none.
 
     **Raises:** `ImportError` without matplotlib or xarray; `ValueError` if `n_sample < 1`.
     """
@@ -238,20 +268,15 @@ def plot_sweep(path, out_dir=None, *, n_sample: int = 8) -> list[pathlib.Path]:
                 _draw_summaries(fig, ds, ok, names)
                 save(fig, "summaries.png")
 
-            sample = ok[:n_sample]
-            labels = ds["trajectory"].values[sample]
+        states = _stored_states(ds, ok, n_sample) if len(ok) else None
+        if states is not None:
+            labels, omega, quat, inertia, title = states
             time = np.asarray(ds["time"].values, dtype=float)
-            omega = np.asarray(ds["omega"].isel(trajectory=sample).values, dtype=float)
-            quat = np.asarray(ds["quat"].isel(trajectory=sample).values, dtype=float)
-            inertia = np.asarray(ds["inertia"].isel(trajectory=sample).values, dtype=float)
-
-            fig = _new_figure(
-                prefix + f"{len(sample)} of {len(ok)} successful trajectories", (8, 9)
-            )
+            fig = _new_figure(prefix + title, (8, 9))
             _draw_trajectories(fig, time, omega, quat, labels, relative)
             save(fig, "trajectories.png")
 
-            n_poly = min(4, len(sample))
+            n_poly = min(4, len(labels))
             rows, cols = _grid(n_poly, 2)
             if relative:
                 title, surface = (

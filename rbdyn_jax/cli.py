@@ -1,10 +1,11 @@
 """The `rbdyn` command: the only layer that prints (the library below it returns values).
 
 - `rbdyn sweep SCENARIO --n N --out PATH [--chunk C] [--seed S] [--devices D]
-  [--resume | --overwrite] [--scheduler ADDRESS | --workers K]`: a Monte Carlo sweep of a
-  scenario (a TOML file or a shipped name, `rbdyn scenarios`) streamed to a zarr store, in
-  this process or as tasks on a Dask cluster, with a progress bar and a summary table
-  (`rbdyn_jax.sweep`). Exits 3 if some trajectories failed, 4 if all did.
+  [--trajectories {all,none,K}] [--dtype {float64,float32}] [--resume | --overwrite]
+  [--scheduler ADDRESS | --workers K]`: a Monte Carlo sweep of a scenario (a TOML file or
+  a shipped name, `rbdyn scenarios`) streamed to a zarr store, in this process (on its
+  devices: CPU cores or GPUs) or as tasks on a Dask cluster, with a progress bar and a
+  summary table (`rbdyn_jax.sweep`). Exits 3 if some trajectories failed, 4 if all did.
 - `rbdyn export STORE OUT.nc [--overwrite]`: a sweep store as a netCDF-4 file.
 - `rbdyn plot PATH [--out DIR]`: PNGs of a sweep (summary histograms, sample
   trajectories, polhodes on their energy ellipsoids, status counts).
@@ -205,6 +206,23 @@ def _cluster(args):
     return Client(cluster), cluster
 
 
+def _devices_text(devices) -> str:
+    """`1 × NVIDIA H100 80GB HBM3 (gpu)`, or `2 × cpu devices`: the devices a sweep runs on."""
+    kind, platform = devices[0].device_kind, devices[0].platform
+    if kind.lower() == platform:
+        return f"{len(devices)} × {platform} device{'s' if len(devices) > 1 else ''}"
+    return f"{len(devices)} × {kind} ({platform})"
+
+
+def _states_text(trajectories) -> str:
+    """What a store keeps of the states, for `trajectories` = "all", "none" or K."""
+    if trajectories == "all":
+        return "states of every trajectory"
+    if trajectories == "none":
+        return "no states (summaries only)"
+    return f"states of one trajectory in {trajectories}"
+
+
 def sweep_command(args) -> int:
     if args.scheduler is not None or args.workers is not None:
         try:
@@ -236,19 +254,31 @@ def sweep_command(args) -> int:
     except ScenarioError as e:
         print(f"rbdyn sweep: invalid scenario: {e}", file=sys.stderr)
         return 2
+    try:
+        scenario = scenario.with_settings(dtype=args.dtype, trajectories=args.trajectories)
+    except ScenarioError as e:  # a float32 sweep of a scenario whose rtol is finer, say
+        given = " ".join(f"--{k} {v}" for k, v in (("dtype", args.dtype),
+                                                   ("trajectories", args.trajectories))
+                         if v is not None)
+        print(f"rbdyn sweep: the scenario cannot run with {given}: {e}", file=sys.stderr)
+        return 2
+    if scenario.dtype == "float32":
+        # Float32 throughout (its arrays are float32 explicitly): no 64-bit types needed,
+        # and a float32 sweep gives the same bits with them on or off.
+        jax.config.update("jax_enable_x64", False)
     client, cluster = _cluster(args)
     print(f"rbdyn sweep: {scenario.name} — {scenario.description}")
     if client is None:
         devices = jax.devices()
         n_dev = args.devices if args.devices is not None else len(devices)
-        where = f"on {n_dev} {devices[0].platform} device(s)"
+        where = f"on {_devices_text(devices[:n_dev])}"
     else:
         n_dev = args.devices
         workers = len(client.scheduler_info()["workers"])
         where = (f"as Dask tasks on {workers} worker(s) at {client.scheduler.address}, "
                  + ("each on all its devices" if n_dev is None else f"{n_dev} device(s) each"))
-    print(f"  {args.n} trajectories in chunks of {args.chunk} {where}, {args.lanes} lanes "
-          f"per solver loop, seed {args.seed}, → {args.out}")
+    print(f"  {args.n} trajectories {where}, seed {args.seed}, {scenario.dtype}, "
+          f"{_states_text(scenario.trajectories)} → {args.out}")
     bar = tqdm(total=args.n, unit="traj", unit_scale=True, dynamic_ncols=True,
                desc="solving (first chunk compiles)", file=sys.stderr)
 
@@ -276,8 +306,10 @@ def sweep_command(args) -> int:
     bar.close()
     elapsed = time.perf_counter() - t0
     stats = sweep.summarize(path)
+    attrs = sweep.open_dataset(path).attrs
     print_summary(stats)
-    print(f"\nwrote {path} in {elapsed:.1f} s (open with xarray.open_zarr({str(path)!r}));"
+    print(f"\nwrote {path} in {elapsed:.1f} s {where}, in chunks of {attrs['chunk']} with "
+          f"{attrs['lanes']} lanes per device (open with xarray.open_zarr({str(path)!r}));"
           f" plots: rbdyn plot {path}")
     failed = stats["n"] - stats["status"].get("successful", 0)
     if failed:
@@ -307,6 +339,13 @@ def plot_command(args) -> int:
     files = plot_sweep(args.path, args.out)
     for f in files:
         print(f"wrote {f}")
+    import xarray as xr
+
+    with xr.open_zarr(args.path, consolidated=False) as ds:
+        if "omega" not in ds:
+            print("note: no trajectories.png or polhodes.png: the store keeps no states (a "
+                  'sweep with trajectories = "none"); sweep with --trajectories all or K '
+                  "to plot them")
     return 0
 
 
@@ -368,10 +407,18 @@ def load_observations(path: str, *, sigma_omega=None, sigma_quat=None, trajector
         import xarray as xr
 
         ds = xr.open_zarr(p) if (p / ".zgroup").exists() else xr.open_dataset(p)
+        if "omega" not in ds and "quat" not in ds:
+            raise ValueError(f"{path} holds no ω or attitude to fit (a sweep store keeping no "
+                             "states: sweep with --trajectories all or K)")
+        # A sweep keeping every K-th trajectory's states has them over `sampled_trajectory`.
+        dim = "sampled_trajectory" if "sampled_trajectory" in ds.dims else "trajectory"
         if "status" in ds:
-            ds = ds.isel(trajectory=np.nonzero(ds.status.values == 0)[0])
+            status = ds.status.values
+            if dim == "sampled_trajectory":
+                status = ds.status.sel(trajectory=ds.sampled_trajectory.values).values
+            ds = ds.isel({dim: np.nonzero(status == 0)[0]})
         if trajectories is not None:
-            ds = ds.isel(trajectory=slice(0, trajectories))
+            ds = ds.isel({dim: slice(0, trajectories)})
         fields["ts"] = ds["time"].values
         for name in ("omega", "quat"):
             if name in ds:
@@ -568,6 +615,15 @@ def fit_command(args) -> int:
     return 0
 
 
+def _trajectories_arg(text: str) -> str | int:
+    """`--trajectories`: `all`, `none` or a positive integer K."""
+    if text in ("all", "none"):
+        return text
+    if text.isdigit() and int(text) >= 1:
+        return int(text)
+    raise argparse.ArgumentTypeError(f"expected all, none or a positive integer K, got {text!r}")
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The `rbdyn` command's argument parser: every subcommand and option (the CLI
     reference of the documentation is generated from it)."""
@@ -580,14 +636,26 @@ def build_parser() -> argparse.ArgumentParser:
     p_sweep.add_argument("scenario", help="scenario TOML file or shipped name (rbdyn scenarios)")
     p_sweep.add_argument("--n", type=int, required=True, help="number of trajectories")
     p_sweep.add_argument("--out", required=True, help="output zarr store (a directory)")
-    p_sweep.add_argument("--chunk", type=int, default=1024,
-                         help="trajectories solved and written at a time (default 1024)")
+    p_sweep.add_argument("--chunk", type=int, default=None,
+                         help="trajectories solved and written at a time (default: 1024 on "
+                              "CPU; on a GPU the largest power of two its memory holds, at "
+                              "most 2^20 per device)")
     p_sweep.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p_sweep.add_argument("--devices", type=int, default=None,
                          help="devices to shard over (default all; on CPU, one per core); "
                               "with --workers/--scheduler, per worker")
-    p_sweep.add_argument("--lanes", type=int, default=64,
-                         help="lanes per device in the solver loop (default 64)")
+    p_sweep.add_argument("--lanes", type=int, default=None,
+                         help="lanes per device in the solver loop (default: 64 on CPU; on a "
+                              "GPU those simulate_batch takes for a device's share of a chunk: "
+                              "all of a share up to 16384, else a third, at most 131072)")
+    p_sweep.add_argument("--trajectories", type=_trajectories_arg, default=None,
+                         metavar="{all,none,K}",
+                         help="whose states the store keeps: all, none (the summaries, status, "
+                              "num_steps and inertia only) or every K-th trajectory (default: "
+                              "the scenario's [outputs] trajectories, else all)")
+    p_sweep.add_argument("--dtype", choices=("float64", "float32"), default=None,
+                         help="the precision the sweep computes and stores in (default: the "
+                              "scenario's [solver] dtype, else float64)")
     store = p_sweep.add_mutually_exclusive_group()
     store.add_argument("--resume", action="store_true",
                        help="finish an interrupted run in --out")

@@ -34,7 +34,7 @@ from . import inertia as _inertia, invariants, rotation
 from ._catalogue import SCENARIO_DIR as SCENARIO_DIR, list_scenarios as list_scenarios
 from ._vector import parse_seq
 from .frames import CircularOrbit, ConstantRate, EulerAngleFrame, HarmonicAngles, Inertial
-from .integrate import RESULTS, Trajectory
+from .integrate import RESULTS, Trajectory, default_tolerance, min_rtol
 from .models import RelativeRigidBody, RigidBody
 from .state import State
 from .torques import (
@@ -137,7 +137,9 @@ class UniformSO3(AbstractDistribution):
         return jnp.where(q[0] < 0, -q, q)
 
     def centre(self):
-        return jnp.array([1.0, 0.0, 0.0, 0.0])
+        # A NumPy array of the dtype, made a JAX array of the default float where float64
+        # is off: no warning for a dtype JAX does not have.
+        return jnp.asarray(np.array([1.0, 0.0, 0.0, 0.0], np.dtype(self.dtype)))
 
 
 class EulerAttitude(AbstractDistribution):
@@ -188,6 +190,23 @@ DISTRIBUTIONS: dict[str, type[AbstractDistribution]] = {
 
 def _path_key(key, path: str):
     return jax.random.fold_in(key, zlib.crc32(path.encode()) & 0x7FFFFFFF)
+
+
+def _as_dtype(tree, dtype):
+    """`tree` with every floating array in `dtype`. JAX computes in float32 only where every
+    input is float32 (a float64 array, with float64 enabled, promotes the whole solve), so
+    a float32 scenario's distributions, models and states are cast to it explicitly;
+    concrete arrays through NumPy (no JAX program for the cast)."""
+    dtype = np.dtype(dtype)
+
+    def cast(x):
+        if not eqx.is_array(x) or not jnp.issubdtype(x.dtype, jnp.floating) or x.dtype == dtype:
+            return x
+        if isinstance(x, jax.core.Tracer):
+            return x.astype(dtype)
+        return jnp.asarray(np.asarray(x).astype(dtype))
+
+    return jax.tree_util.tree_map(cast, tree)
 
 
 # ----------------------------------------------------------------------------------------
@@ -314,6 +333,15 @@ def _attitude(x, path) -> AbstractDistribution:
     if degrees:  # every leaf (value, mean, std, low, high) is an angle
         angles = jax.tree_util.tree_map(lambda a: a * (np.pi / 180.0), angles)
     return EulerAttitude(angles, seq)
+
+
+def _trajectories(x, path) -> str | int:
+    if isinstance(x, str) and x in ("all", "none"):
+        return x
+    if isinstance(x, int) and not isinstance(x, bool) and x >= 1:
+        return x
+    raise _fail(path, '"all", "none" or a positive integer K (the states of trajectories '
+                "0, K, 2K, …)", x)
 
 
 def _inertia_spec(x, path) -> DispersedInertia:
@@ -542,6 +570,7 @@ SUMMARIES: dict[str, Summary] = {
                              lambda m, tr: jnp.max(jnp.linalg.norm(tr.ys.omega, axis=-1))),
 }
 SOLVERS = ("Tsit5", "Dopri5", "Dopri8")
+_DTYPES = ("float64", "float32")
 
 
 # ----------------------------------------------------------------------------------------
@@ -555,9 +584,12 @@ class Scenario:
 
     `dists` is the pytree of distributions (key path → distribution module); the structure
     (model kind, torque and frame kinds, `static` settings by key path, summaries) is
-    static. The file format is documented in docs/scenarios.md (the shipped examples are
-    `rbdyn_jax/scenarios/*.toml`); `TORQUES`,
-    `FRAMES`, `DISTRIBUTIONS` and `SUMMARIES` list the accepted kinds.
+    static. `dtype` (`[solver] dtype`, "float64" or "float32") is the dtype of every array
+    it makes: its distributions, output times, draws and built models; `trajectories`
+    (`[outputs] trajectories`: "all", "none" or K) whose states a sweep stores. The file
+    format is documented in docs/scenarios.md (the shipped examples are
+    `rbdyn_jax/scenarios/*.toml`); `TORQUES`, `FRAMES`, `DISTRIBUTIONS` and `SUMMARIES` list
+    the accepted kinds.
     """
 
     name: str
@@ -574,7 +606,9 @@ class Scenario:
     rtol: float
     atol: float
     max_steps: int
+    dtype: str
     summaries: tuple[str, ...]
+    trajectories: str | int
     source: dict
 
     TOP = {"name", "description", "model", "initial", "time", "solver", "outputs"}
@@ -657,16 +691,26 @@ class Scenario:
             raise _fail("time.n", "an integer ≥ 2 (output times, linspace(t0, t1, n))",
                         tt["n"])
 
-        s = _table(d.get("solver", {}), "solver", {"method", "rtol", "atol", "max_steps"})
+        s = _table(d.get("solver", {}), "solver",
+                   {"method", "rtol", "atol", "max_steps", "dtype"})
         method = s.get("method", "Tsit5")
         if method not in SOLVERS:
             raise _fail("solver.method", f"one of {list(SOLVERS)}", method)
-        rtol = float(_number(s.get("rtol", 1e-8), "solver.rtol", positive=True))
-        atol = float(_number(s.get("atol", 1e-8), "solver.atol", positive=True))
+        dtype = s.get("dtype", "float64")
+        if not isinstance(dtype, str) or dtype not in _DTYPES:
+            raise _fail("solver.dtype", '"float64" or "float32"', dtype)
+        default_tol = default_tolerance(dtype)  # 1e-8, or 1e-6 in float32
+        rtol = float(_number(s.get("rtol", default_tol), "solver.rtol", positive=True))
+        if rtol < min_rtol(dtype):  # the step-size control would compare with rounding
+            raise _fail("solver.rtol", f"a number ≥ {min_rtol(dtype):.2g} with dtype = "
+                        f'"{dtype}" (8 machine epsilons of {dtype}: a finer tolerance is '
+                        "below its rounding)", rtol)
+        atol = float(_number(s.get("atol", default_tol), "solver.atol", positive=True))
         max_steps = int(_number(s.get("max_steps", 16384), "solver.max_steps", integer=True,
                                 positive=True))
 
-        o = _table(d.get("outputs", {}), "outputs", {"summaries"})
+        o = _table(d.get("outputs", {}), "outputs", {"summaries", "trajectories"})
+        trajectories = _trajectories(o.get("trajectories", "all"), "outputs.trajectories")
         summaries = o.get("summaries", ["max_nutation", "min_abs_omega", "max_abs_omega"])
         if not isinstance(summaries, list) or not all(isinstance(x, str) for x in summaries):
             raise _fail("outputs.summaries", f"a list of names from {sorted(SUMMARIES)}",
@@ -677,12 +721,35 @@ class Scenario:
         if len(set(summaries)) != len(summaries):
             raise _fail("outputs.summaries", "no repeated names", summaries)
 
+        if dtype != "float64":
+            dists = {p: UniformSO3(jnp.float32) if isinstance(v, UniformSO3)
+                     else _as_dtype(v, dtype) for p, v in dists.items()}
         sc = cls(name=name, description=description, kind=kind, torques=tuple(kinds),
                  frame=frame, static=static, dists=dists, t0=t0, t1=t1, n_times=n_times,
-                 solver=method, rtol=rtol, atol=atol, max_steps=max_steps,
-                 summaries=tuple(summaries), source=json.loads(json.dumps(dict(d))))
+                 solver=method, rtol=rtol, atol=atol, max_steps=max_steps, dtype=dtype,
+                 summaries=tuple(summaries), trajectories=trajectories,
+                 source=json.loads(json.dumps(dict(d))))
         sc._check_summaries()
         return sc
+
+    def with_settings(self, *, dtype: str | None = None,
+                      trajectories: str | int | None = None) -> Scenario:
+        """This scenario with `[solver] dtype` and/or `[outputs] trajectories` set to the
+        values given (`None` keeps the scenario's): its source with those keys replaced,
+        validated again, so that a bad value, or a `solver.rtol` finer than the new dtype
+        resolves, is a `ScenarioError` naming the key. The source, which a sweep store
+        keeps, then holds the values the scenario runs with. Returns `self` when nothing
+        changes."""
+        source = json.loads(json.dumps(self.source))
+        changed = False
+        for table, key, value in (("solver", "dtype", dtype),
+                                  ("outputs", "trajectories", trajectories)):
+            # By type too: `True == 1`, and a bool must reach the validation (which refuses it).
+            if value is not None and (value != getattr(self, key)
+                                      or type(value) is not type(getattr(self, key))):
+                source.setdefault(table, {})[key] = value
+                changed = True
+        return Scenario.from_dict(source, default_name=self.name) if changed else self
 
     # -- solver settings -----------------------------------------------------------------
 
@@ -700,16 +767,17 @@ class Scenario:
 
     @property
     def ts(self) -> np.ndarray:
-        return np.linspace(self.t0, self.t1, self.n_times)
+        """The output times, `linspace(t0, t1, n)` in the scenario's dtype."""
+        return np.linspace(self.t0, self.t1, self.n_times, dtype=self.dtype)
 
     def nominal(self) -> dict[str, jax.Array]:
         """The centre of every distribution (its mean, median or fixed value)."""
         return {path: dist.centre() for path, dist in self.dists.items()}
 
     def build(self, values: Mapping[str, jax.Array]) -> tuple[eqx.Module, State]:
-        """The model and initial state for one set of drawn `values` (key path → value).
-        Every torque and frame kind is looked up in `TORQUES` / `FRAMES`: an unregistered
-        one raises a `ScenarioError`."""
+        """The model and initial state for one set of drawn `values` (key path → value), in
+        the scenario's dtype. Every torque and frame kind is looked up in `TORQUES` /
+        `FRAMES`: an unregistered one raises a `ScenarioError`."""
         torque = None
         for i, kind in enumerate(self.torques):
             tq = self._make(TORQUES, kind, f"model.torques[{i}]", values)
@@ -717,9 +785,14 @@ class Scenario:
         J = values["model.inertia"]
         y0 = State(omega=values["initial.omega"], quat=values["initial.attitude"])
         if self.kind == "rigid_body":
-            return RigidBody(J, torque), y0
-        frame = self._make(FRAMES, self.frame, "model.frame", values)
-        return RelativeRigidBody(J, frame, torque), y0
+            model = RigidBody(J, torque)
+        else:
+            frame = self._make(FRAMES, self.frame, "model.frame", values)
+            model = RelativeRigidBody(J, frame, torque)
+        if self.dtype == "float64":
+            return model, y0
+        # The defaults the classes fill in (a frame's zero coefficients, …) in the dtype too.
+        return _as_dtype((model, y0), self.dtype)
 
     def _make(self, registry, kind, path, values) -> eqx.Module:
         """The object of `kind` at `path` from its drawn `values` and static settings."""

@@ -8,13 +8,17 @@ its key path), so a trajectory's sample does not depend on the chunking, the dev
 workers or the other random quantities. A chunk is solved by one compiled program: each
 device takes its part with `jax.shard_map` (no collectives inside the solver loop) and
 runs it through the lane solver (`simulate_batch(..., batching=Lanes(lanes, devices=1))`)
-in fixed blocks of 8 × `lanes` trajectories: `lanes` trajectories step together, and a
-lane whose trajectory has finished takes the next one of its block at once. Because the
-block shape is fixed and every drawn quantity enters as a runtime argument (the output
-times and tolerances, the same for every trajectory, are constants of the program), the
-results are **bitwise identical for any chunk size, any number of devices and any number
-of Dask workers** at a given `lanes` (tested at 4, 16 and 64 lanes; at 8, with XLA's while
-loops compiled whole, a trajectory's last bits can depend on its lane within the block).
+in blocks: `lanes` trajectories step together, and a lane whose trajectory has finished
+takes the next one of its block at once. On a CPU a block is 8 × `lanes` trajectories (1024
+and 64 by default); on a GPU a device solves its whole share in one block, through the lanes
+`simulate_batch` takes for a batch that size, and the chunk is sized from the device's
+memory (`chunking`). On a CPU, because the block shape is fixed and every drawn quantity
+enters as a runtime argument (the output times and tolerances, the same for every
+trajectory, are constants of the program), the results are **bitwise identical for any
+chunk size, any number of devices and any number of Dask workers** at a given `lanes`
+(tested at 4, 16 and 64 lanes; at 8, with XLA's while loops compiled whole, a trajectory's
+last bits can depend on its lane within the block). On a GPU they are so for a given chunk
+and lanes.
 
 In this process (the default) the chunks are solved one after the other. With
 `client=dask.distributed.Client(...)` every chunk is a task (`solve_chunk`): a worker
@@ -26,14 +30,19 @@ with dimensions `trajectory × time × axis|quat_component` and CF-style metadat
 `long_name`, `description` on every variable, labelled coordinates, `status` meanings as
 `flag_values`/`flag_meanings`): `omega`, `quat`, `inertia` (`trajectory × row × col`),
 `status` (a `RESULTS` code per trajectory; −1 = not run yet), `num_steps`, and one
-variable per summary. `status` is written last in a chunk, so a run that is killed keeps
-every finished chunk and `run(..., resume=True)` solves exactly the trajectories still
-marked −1. An existing store is replaced only with `overwrite=True`. `to_netcdf` exports a
-store to a netCDF-4 file.
+variable per summary. The scenario's `trajectories` chooses whose states (`omega`, `quat`)
+are kept: all, none (the summaries and the drawn inertia only, about 100 bytes a
+trajectory), or every K-th trajectory's over the dimension `sampled_trajectory`; the
+program is the same, so the other variables hold the same bits whatever is kept. Its
+`dtype` (float64, or float32) is what the sweep samples, solves, summarises and stores in.
+`status` is written last in a chunk, so a run that is killed keeps every finished chunk and
+`run(..., resume=True)` solves exactly the trajectories still marked −1. An existing store
+is replaced only with `overwrite=True`. `to_netcdf` exports a store to a netCDF-4 file.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import os
@@ -53,10 +62,13 @@ from jax.sharding import NamedSharding, PartitionSpec as P
 from . import _traces
 from ._checks import checks_as_nan
 from ._plots import plots_dir
+from ._xla import jit
 from .integrate import (
     MODE_DEPENDENT_JITS,
     RESULTS,
     Lanes,
+    default_lanes,
+    device_memory,
     result_code,
     result_names,
     simulate_batch,
@@ -111,12 +123,35 @@ def _solve_block(scenario: Scenario, dists, key, idx, lanes):
     return {
         **out,
         "status": status.astype(jnp.int32),
-        "num_steps": traj.stats["num_steps"].astype(jnp.int64),
+        "num_steps": traj.stats["num_steps"].astype(_index_dtype()),
         **{k: jnp.where(good, v, jnp.nan) for k, v in summ.items()},
     }
 
 
-_PER_LANE = 8  # trajectories per lane in one lane-solver block (a block: 8 × lanes)
+_PER_LANE = 8  # trajectories per lane in one CPU block (a block: 8 × lanes)
+_STATES = ("omega", "quat")  # the variables `trajectories` keeps all, some or none of
+
+
+def _index_dtype():
+    """Integers in the program: int64 with 64-bit types enabled, else int32."""
+    return jax.dtypes.canonicalize_dtype(np.int64)
+
+
+def _quantum(platform: str, lanes: int) -> int:
+    """What a device's share of a chunk is a multiple of: its blocks of 8 × `lanes` on a
+    CPU, where a device runs its share through the same block program one block after the
+    other; one trajectory on an accelerator, where one block takes the whole share at once
+    (through `lanes` lanes, refilled)."""
+    return _PER_LANE * lanes if platform == "cpu" else 1
+
+
+def _program_source(sc: Scenario) -> str:
+    """The JSON text of the scenario's source less `outputs.trajectories`, the key of its
+    chunk program: which states a store keeps is chosen after the solve, so stores keeping
+    all, some or none of them run one program and hold the same bits."""
+    source = json.loads(json.dumps(sc.source))
+    source.get("outputs", {}).pop("trajectories", None)
+    return json.dumps(source, sort_keys=True)
 
 
 # The scenarios of this process's runners by their source's JSON text (`_Runner`).
@@ -133,26 +168,41 @@ def _chunk_program(source: str, lanes: int, mesh, idx, dists, key) -> dict:
     validated, and a failing trajectory is reported in `status`), so the program holds no
     host callback and can be stored."""
     sc = _SCENARIOS[source]
+    quantum = _quantum(mesh.devices.flat[0].platform, lanes)
 
     def per_device(idx, dists, key):
-        # Fixed blocks of _PER_LANE × lanes trajectories, one after the other: the
-        # block's program is then the same for every chunk size and device count, so
-        # the results are bitwise identical across them (a lane-solver loop over the
-        # whole share compiles differently for each share size and rounds differently).
-        # Fixed blocks also avoid a hang in the XLA runtime (all threads asleep) that
-        # one loop over a large share (2048 on 2 XLA:CPU host devices) runs into.
+        block = idx.shape[0] if quantum == 1 else quantum
+        # On a CPU, fixed blocks, one after the other: the block's program is then the same
+        # for every chunk size and device count, so the results are bitwise identical
+        # across them (a lane-solver loop over the whole share compiles differently for
+        # each share size and rounds differently). Fixed blocks also avoid a hang in the
+        # XLA runtime (all threads asleep) that one loop over a large share (2048 on 2
+        # XLA:CPU host devices) runs into. On an accelerator, one block: the device's
+        # whole share through `lanes` lanes, refilled.
         out = jax.lax.map(lambda b: _solve_block(sc, dists, key, b, lanes),
-                          idx.reshape(-1, _PER_LANE * lanes))
+                          idx.reshape(-1, block))
         return jax.tree_util.tree_map(lambda x: x.reshape((-1,) + x.shape[2:]), out)
 
     # No collectives inside the solver loop: each device runs its own while loops.
     sharded = jax.shard_map(per_device, mesh=mesh, in_specs=(P("batch"), P(), P()),
                             out_specs=P("batch"), check_vma=False)
-    with checks_as_nan(jitted=MODE_DEPENDENT_JITS):
+    # A float32 sweep's matrix products (the energies' `einsum`s, …) in full float32: at
+    # JAX's default precision, NVIDIA GPUs since Ampere take them in TF32 (a 10-bit
+    # mantissa), errors of 1e-4 in a float32 sweep's energy drifts where float32 gives 1e-6.
+    precision = (jax.default_matmul_precision("highest") if sc.dtype == "float32"
+                 else contextlib.nullcontext())
+    with checks_as_nan(jitted=MODE_DEPENDENT_JITS), precision:
         return sharded(idx, dists, key)
 
 
 _solve_chunk = _traces.cached(_chunk_program)
+
+
+@jit
+def _take(states, pos):
+    """The rows `pos` of each array of `states`: a K store's sampled states, gathered on the
+    device so that only they are copied to the host."""
+    return [x[pos] for x in states]
 
 
 @dataclasses.dataclass
@@ -163,7 +213,7 @@ class _Runner:
     lanes: int
     devices: list
     chunk: int
-    source: str  # the scenario's source as JSON text (`_chunk_program`)
+    source: str  # the scenario's program source (`_program_source`, `_chunk_program`)
     mesh: Any = dataclasses.field(init=False)
 
     def __post_init__(self):
@@ -173,23 +223,44 @@ class _Runner:
 
     @property
     def size(self) -> int:
-        """The padded chunk: a multiple of _PER_LANE × lanes × devices."""
-        quantum = _PER_LANE * self.lanes * len(self.devices)
+        """The padded chunk: a multiple of the block (`_block`) × devices."""
+        quantum = _quantum(self.devices[0].platform, self.lanes) * len(self.devices)
         return -(-self.chunk // quantum) * quantum
+
+    @property
+    def every(self) -> int | None:
+        """K of a store keeping every K-th trajectory's states, else `None`."""
+        keep = self.scenario.trajectories
+        return keep if isinstance(keep, int) else None
 
     def launch(self, idx: np.ndarray, key) -> dict:
         """Start solving the trajectories `idx` (≤ chunk of them) and return at once: JAX
-        dispatches the program and hands back its outputs before they are computed."""
+        dispatches the program and hands back its outputs before they are computed. The
+        states the store does not keep are dropped on the device."""
         n = len(idx)  # padded with copies of the last index (solved, then dropped)
         full = np.concatenate([idx, np.full(self.size - n, idx[-1], idx.dtype)])
+        full = full.astype(_index_dtype())
         arr = jax.make_array_from_callback(
             (self.size,), NamedSharding(self.mesh, P("batch")), lambda i: full[i])
-        return _solve_chunk(self.source, self.lanes, self.mesh, arr, self.scenario.dists, key)
+        out = dict(_solve_chunk(self.source, self.lanes, self.mesh, arr,
+                                self.scenario.dists, key))
+        states = [out.pop(k) for k in _STATES]
+        if self.scenario.trajectories == "all":
+            out.update(zip(_STATES, states))
+        elif self.every is not None:
+            # At most ceil(size / K) multiples of K among ≤ size consecutive indices: a
+            # fixed number of rows, so the gather compiles once.
+            pos = np.flatnonzero(idx % self.every == 0)
+            pos = np.concatenate([pos, np.zeros(-(-self.size // self.every) - pos.size,
+                                                pos.dtype)]).astype(_index_dtype())
+            out.update(zip(_STATES, _take(states, pos)))
+        return out
 
-    @staticmethod
-    def collect(out: dict, n: int) -> dict[str, np.ndarray]:
-        """The outputs of `launch` for its `n` trajectories (waits for them)."""
-        return {k: np.asarray(v)[:n] for k, v in out.items()}
+    def collect(self, out: dict, idx: np.ndarray) -> dict[str, np.ndarray]:
+        """The outputs of `launch` for its trajectories `idx` (waits for them)."""
+        sampled = idx.size if self.every is None else int(np.sum(idx % self.every == 0))
+        return {k: np.asarray(v)[:sampled if k in _STATES else idx.size]
+                for k, v in out.items()}
 
 
 _RUNNERS: dict[tuple, _Runner] = {}
@@ -198,13 +269,108 @@ _RUNNERS: dict[tuple, _Runner] = {}
 def _runner(sc: Scenario, lanes: int, devices: tuple, chunk: int) -> _Runner:
     """A compiled runner, reused by later runs of the same scenario and layout (a resumed
     or repeated run in the same process compiles nothing)."""
-    quantum = _PER_LANE * lanes * len(devices)  # the compiled shape: the padded chunk
-    source = json.dumps(sc.source, sort_keys=True)
-    key = (source, lanes, devices, -(-chunk // quantum))
+    quantum = _quantum(devices[0].platform, lanes) * len(devices)  # the compiled shape
+    source = _program_source(sc)
+    key = (source, sc.trajectories, lanes, devices, -(-chunk // quantum))
     if key not in _RUNNERS:
         _RUNNERS.clear()  # keep one
         _RUNNERS[key] = _Runner(sc, lanes, list(devices), chunk, source)
     return _RUNNERS[key]
+
+
+# ----------------------------------------------------------------------------------------
+# Chunk size and lanes
+# ----------------------------------------------------------------------------------------
+
+CPU_CHUNK, CPU_LANES = 1024, 64  # the defaults on a CPU
+# On an accelerator: a chunk's share of one device at most 2²⁰ trajectories, their
+# footprint within half the device's memory (8 GiB assumed where it does not say), and a
+# stored zarr chunk of at most 1 GiB (Blosc compresses at most 2 GiB at once).
+MAX_SHARE, MEMORY_SHARE, FALLBACK_MEMORY, MAX_STORED_CHUNK = 1 << 20, 0.5, 8 << 30, 1 << 30
+# Copies of a trajectory's state and drawn values the lane solver holds per lane: the
+# Runge–Kutta stages, the dense output, the step's temporaries.
+LANE_COPIES = 64
+
+
+def trajectory_bytes(sc: Scenario) -> tuple[int, int]:
+    """`(device, stored)` bytes of one trajectory of `sc` for `chunking`.
+
+    `device`: its footprint on the device while a chunk is solved. The lane solver saves
+    every trajectory's states on the device whatever the store keeps (the summaries are
+    computed from them), the program's outputs hold them again, and the outputs of the
+    chunk before wait there while this one is solved: three copies of the outputs (n_times
+    × 7 states, the 9 inertia components and the summaries in the scenario's dtype,
+    `status` and `num_steps`), and `LANE_COPIES` of its state and drawn values in its lane.
+
+    `stored`: its bytes in the largest stored zarr chunk, uncompressed: `quat` (n_times × 4
+    values) in a store keeping every trajectory's states, 1/K of that keeping every K-th,
+    and `inertia` (9 values) keeping none."""
+    item = np.dtype(sc.dtype).itemsize
+    values = jax.eval_shape(lambda k: sc.sample(sc.dists, k, 0), jax.random.key(0))
+    drawn = sum(int(np.prod(v.shape)) for v in values.values())
+    states = sc.n_times * 7 * item
+    outputs = states + (9 + len(sc.summaries)) * item + 4 + 8
+    quat = sc.n_times * 4 * item
+    if sc.trajectories == "all":
+        stored = quat
+    elif sc.trajectories == "none":
+        stored = 9 * item
+    else:
+        stored = max(-(-quat // sc.trajectories), 9 * item)
+    return 3 * outputs + LANE_COPIES * (7 + drawn) * item, stored
+
+
+def _power_of_two(x: int, up: bool = False) -> int:
+    """The largest power of two ≤ `x` (≥ `x` with `up`), for `x` ≥ 1."""
+    return 1 << (x - 1).bit_length() if up else 1 << (x.bit_length() - 1)
+
+
+def chunking(n: int, *, platform: str, devices: int, memory: int | None,
+             trajectory_bytes: tuple[int, int], chunk: int | None = None,
+             lanes: int | None = None, every: int | None = None) -> tuple[int, int]:
+    """The `(chunk, lanes)` a sweep of `n` trajectories runs with on `devices` devices of
+    `platform` with `memory` bytes each (`None`: not known), given the `chunk` and `lanes`
+    asked for (`None`: chosen here) and `trajectory_bytes` (`trajectory_bytes(scenario)`).
+
+    - On a CPU: `chunk` 1024 and 64 `lanes`; each device solves its share in blocks of 8 ×
+      `lanes`, one after the other.
+    - On an accelerator (a GPU): a device solves its share of the chunk in one block,
+      through `lanes` lanes, refilled: by default those `simulate_batch` takes for a batch
+      of that size (`rbdyn_jax.integrate.default_lanes`: a lane per trajectory up to
+      16,384, then a third of the share, at most 131,072). The chunk's footprint (below)
+      counts a lane's working set for every trajectory, so the lanes fit. The
+      chunk, when not given, is `devices` × the largest power of two that keeps a share's
+      footprint (`trajectory_bytes[0]` a trajectory) within `MEMORY_SHARE` of `memory`
+      (`FALLBACK_MEMORY` when not known), is at most `MAX_SHARE` (2²⁰), and keeps a
+      stored zarr chunk (`trajectory_bytes[1]` a trajectory) within `MAX_STORED_CHUNK`
+      (1 GiB); and no larger than `n` needs (a power of two ≥ `n / devices`).
+    - With `every` = K (a store keeping every K-th trajectory's states) and K < chunk, the
+      chunk is rounded down to a multiple of K, so that each chunk's sampled states fill
+      whole zarr chunks of chunk / K rows (a Dask task then never shares one with another).
+
+    A pure function of its arguments, so that the rule is tested anywhere."""
+    device, stored = trajectory_bytes
+    if chunk is None:
+        if platform == "cpu":
+            chunk = CPU_CHUNK
+        else:
+            fits = min(MAX_SHARE, int(MEMORY_SHARE * (memory or FALLBACK_MEMORY)) // device,
+                       MAX_STORED_CHUNK // (stored * devices))
+            share = min(_power_of_two(max(1, fits)), _power_of_two(-(-n // devices), up=True))
+            chunk = share * devices
+    if every is not None and every < chunk:
+        chunk -= chunk % every
+    if lanes is None:
+        lanes = CPU_LANES if platform == "cpu" else default_lanes(-(-chunk // devices), 1,
+                                                                   platform)
+    return chunk, lanes
+
+
+def _devices_info(devices: int | None) -> tuple[str, int, int | None]:
+    """`(platform, count, memory)` of the first `devices` (default all) of this process's
+    `jax.local_devices()`: a Dask worker's, asked before the store is made."""
+    local = jax.local_devices()
+    return local[0].platform, len(local) if devices is None else devices, device_memory(local[0])
 
 
 # ----------------------------------------------------------------------------------------
@@ -231,6 +397,9 @@ _COORDS = {
     "time": ("s", "time", "output time"),
     "trajectory": ("1", "trajectory index",
                    "index i of the trajectory, drawn from fold_in(key(seed), i)"),
+    "sampled_trajectory": ("1", "sampled trajectory index",
+                           "index i of a trajectory whose states are stored (every K-th: i = "
+                           "0, K, 2K, ...); its other variables are at trajectory = i"),
 }
 _LABELS = {
     "axis": (["x", "y", "z"], "body axis", "component along a body axis"),
@@ -299,34 +468,51 @@ class _Location:
 
 
 def _create_store(loc: _Location, sc: Scenario, n: int, chunk: int, seed: int, lanes: int):
+    """A new store for `n` trajectories of `sc` in chunks of `chunk`: every variable and
+    coordinate with its metadata, `status` −1 everywhere, the global attributes."""
     import zarr
 
     from ._version import __version__
 
     g = loc.group("w")
-    shapes = {"omega": (n, sc.n_times, 3), "quat": (n, sc.n_times, 4), "inertia": (n, 3, 3),
-              "status": (n,), "num_steps": (n,)}
+    every = sc.trajectories if isinstance(sc.trajectories, int) else None
+    sampled = n if every is None else -(-n // every)  # rows of the states
+    rows = {"omega": sampled, "quat": sampled}
+    shapes = {"omega": (sc.n_times, 3), "quat": (sc.n_times, 4), "inertia": (3, 3)}
     dtypes = {"status": "int32", "num_steps": "int64"}
     meanings = status_meanings()
-    for name in [*_VARIABLES, *sc.summaries]:
+    names = [v for v in _VARIABLES if v not in _STATES or sc.trajectories != "none"]
+    for name in [*names, *sc.summaries]:
         if name in _VARIABLES:
             dims, units, long_name, description = _VARIABLES[name]
         else:
             summary = SUMMARIES[name]
             dims, units, long_name, description = (("trajectory",), summary.units, name,
                                                    summary.description)
-        shape = shapes.get(name, (n,))
-        dtype = dtypes.get(name, "float64")
-        a = g.create_array(name, shape=shape, chunks=(min(chunk, n),) + shape[1:], dtype=dtype,
-                           fill_value=None if dtype != "float64" else np.nan)
+        length, chunk_rows = rows.get(name, n), chunk
+        if every is not None and name in _STATES:
+            # A chunk of trajectories holds chunk / K sampled ones (`chunking` makes the
+            # chunk a multiple of K, or K is larger and it holds at most one).
+            dims, chunk_rows = ("sampled_trajectory", *dims[1:]), max(1, chunk // every)
+            description += (f"; stored for one trajectory in {every}: trajectories 0, "
+                            f"{every}, {2 * every}, ... (the coordinate sampled_trajectory)")
+        shape = (length, *shapes.get(name, ()))
+        dtype = dtypes.get(name, sc.dtype)
+        a = g.create_array(name, shape=shape, chunks=(min(chunk_rows, length),) + shape[1:],
+                           dtype=dtype, fill_value=np.nan if dtype == sc.dtype else None)
         a.attrs.update({"_ARRAY_DIMENSIONS": list(dims), "units": units,
                         "long_name": long_name, "description": description})
     g["status"].attrs.update({"flag_values": list(meanings),
                               "flag_meanings": " ".join(meanings.values())})
-    coords = {"time": sc.ts, "trajectory": None,  # the index: written a block at a time
-              **{k: np.asarray(v[0]) for k, v in _LABELS.items()}}
+    # The indices (their lengths here) are written a block at a time below.
+    indices = {"trajectory": n, **({"sampled_trajectory": sampled} if every else {})}
+    labels = {k: v for k, v in _LABELS.items()  # those of the variables it holds
+              if sc.trajectories != "none" or k not in ("axis", "quat_component")}
+    coords = {"time": sc.ts, **{k: None for k in indices},
+              **{k: np.asarray(v[0]) for k, v in labels.items()}}
     for name, values in coords.items():
-        shape, dtype = ((n,), np.int64) if values is None else (values.shape, values.dtype)
+        shape, dtype = ((indices[name],), np.int64) if values is None else (values.shape,
+                                                                            values.dtype)
         a = g.create_array(name, shape=shape, chunks=(min(shape[0], 1 << 20),), dtype=dtype,
                            fill_value=None)
         if values is not None:
@@ -340,6 +526,9 @@ def _create_store(loc: _Location, sc: Scenario, n: int, chunk: int, seed: int, l
         stop = min(start + (1 << 20), n)  # not a fill value) and the trajectory index
         g["status"][start:stop] = _NOT_RUN
         g["trajectory"][start:stop] = np.arange(start, stop)
+    for start in range(0, sampled if every else 0, 1 << 20):
+        stop = min(start + (1 << 20), sampled)
+        g["sampled_trajectory"][start:stop] = every * np.arange(start, stop)
     # Attribute values are strings and numbers only, so that netCDF can hold them too.
     g.attrs.update({
         "title": f"rbdyn_jax Monte Carlo sweep: {sc.name}",
@@ -352,6 +541,8 @@ def _create_store(loc: _Location, sc: Scenario, n: int, chunk: int, seed: int, l
         "n_trajectories": n,
         "chunk": chunk,
         "lanes": lanes,
+        "trajectories": sc.trajectories,
+        "dtype": sc.dtype,
         "summaries": " ".join(sc.summaries),
         "rbdyn_jax_conventions": CONVENTIONS,
         "rbdyn_jax_version": __version__,
@@ -362,39 +553,51 @@ def _create_store(loc: _Location, sc: Scenario, n: int, chunk: int, seed: int, l
     return g
 
 
-def _check_resumable(loc: _Location, sc: Scenario, n: int, seed: int, lanes: int):
-    g = loc.group("r")
-    want = {"scenario": json.dumps(sc.source), "n_trajectories": n, "seed": seed,
-            "lanes": lanes}
+def _check_resumable(loc: _Location, sc: Scenario, n: int, seed: int,
+                     lanes: int | None) -> int:
+    """Refuse a store this run cannot continue; the lanes to continue it with: the store's,
+    which `lanes` must equal when given."""
+    attrs = loc.group("r").attrs
+    lanes = attrs.get("lanes") if lanes is None else lanes
+    want = {"trajectories": sc.trajectories, "dtype": sc.dtype, "n_trajectories": n,
+            "seed": seed, "lanes": lanes, "scenario": sc.source}
     for k, v in want.items():
-        if g.attrs.get(k) != v:
-            raise ValueError(f"cannot resume {loc.url}: its {k} is {g.attrs.get(k)!r}, this run's "
-                             f"is {v!r}; use a new --out or drop --resume.")
+        have = attrs.get(k)
+        if k == "scenario":  # compared as data (the order of its keys does not matter)
+            same, v = json.loads(have or "null") == v, json.dumps(v)
+        else:
+            same = have == v
+        if not same:
+            raise ValueError(f"cannot resume {loc.url}: its {k} is {have!r}, this run's is "
+                             f"{v!r}; use a new --out or drop --resume.")
+    return lanes
 
 
-def _prepare_store(loc: _Location, sc: Scenario, n, chunk, seed, lanes, resume,
-                   overwrite) -> None:
-    """Check a store to resume, or make a new one. An existing store is replaced only when
-    asked. A local store is built beside its path and renamed into place, so a store at the
-    path is always initialised (every status −1) and a kill at any moment leaves something
-    `resume` can finish; at a URL it is built in place, its consolidated metadata last (a
-    kill before that leaves no store `resume` would take)."""
+def _prepare_store(loc: _Location, sc: Scenario, n: int, seed: int, resume: bool,
+                   overwrite: bool, layout: Callable[[], tuple[int, int]],
+                   lanes: int | None) -> int:
+    """Check a store to resume, or make a new one with the `(chunk, lanes)` of `layout()`;
+    the lanes the run solves with. An existing store is replaced only when asked. A local
+    store is built beside its path and renamed into place, so a store at the path is always
+    initialised (every status −1) and a kill at any moment leaves something `resume` can
+    finish; at a URL it is built in place, its consolidated metadata last (a kill before
+    that leaves no store `resume` would take)."""
     if resume and overwrite:
         raise ValueError("give at most one of `resume` and `overwrite`.")
     if loc.is_store():
         if resume:
-            _check_resumable(loc, sc, n, seed, lanes)
-            return
+            return _check_resumable(loc, sc, n, seed, lanes)
         if not overwrite:
             raise FileExistsError(
                 f"{loc.url} already holds a sweep store: pass --overwrite (overwrite=True) "
                 f"to replace it and its plots, or --resume (resume=True) to finish it.")
     elif not loc.is_empty():
         raise ValueError(f"{loc.url} exists and is not a sweep store; choose another --out.")
+    chunk, lanes = layout()
     if loc.is_url:
         loc.remove()
         _create_store(loc, sc, n, chunk, seed, lanes)
-        return
+        return lanes
     path = pathlib.Path(loc.url)
     tmp = path.with_name(path.name + ".partial")
     shutil.rmtree(tmp, ignore_errors=True)
@@ -403,16 +606,20 @@ def _prepare_store(loc: _Location, sc: Scenario, n, chunk, seed, lanes, resume,
         shutil.rmtree(plots_dir(path), ignore_errors=True)
     shutil.rmtree(path, ignore_errors=True)
     os.replace(tmp, path)
+    return lanes
 
 
-def _write(g, idx: np.ndarray, out: dict[str, np.ndarray]) -> None:
+def _write(g, idx: np.ndarray, out: dict[str, np.ndarray], every: int | None) -> None:
     """Write the solved trajectories `idx` (ascending) into the store, one write per
-    contiguous run (a partly finished chunk has several); `status` last, which marks them
-    done."""
-    runs = np.split(np.arange(idx.size), np.nonzero(np.diff(idx) != 1)[0] + 1)
+    contiguous run of rows (a partly finished chunk has several); `status` last, which
+    marks them done. With `every` = K, the states are those of the multiples of K in `idx`,
+    at rows i / K."""
     for name in [*(k for k in out if k != "status"), "status"]:
-        for r in runs:
-            g[name][int(idx[r[0]]):int(idx[r[-1]]) + 1] = out[name][r[0]:r[-1] + 1]
+        rows = idx[idx % every == 0] // every if every and name in _STATES else idx
+        if not rows.size:
+            continue
+        for r in np.split(np.arange(rows.size), np.nonzero(np.diff(rows) != 1)[0] + 1):
+            g[name][int(rows[r[0]]):int(rows[r[-1]]) + 1] = out[name][r[0]:r[-1] + 1]
 
 
 # ----------------------------------------------------------------------------------------
@@ -455,16 +662,16 @@ def _launch_region(g, runner: _Runner, key, start: int, stop: int) -> tuple:
     (`_finish_region` waits for them and writes them)."""
     status = g["status"][start:stop]
     idx = start + np.nonzero(status < 0)[0]
-    return start, status, idx, runner.launch(idx, key) if idx.size else None
+    return runner, start, status, idx, runner.launch(idx, key) if idx.size else None
 
 
 def _finish_region(g, launched: tuple) -> tuple[int, int]:
     """Write what `_launch_region` solved; the region's counts of done and of failed
     trajectories afterwards."""
-    start, status, idx, out = launched
+    runner, start, status, idx, out = launched
     if idx.size:
-        res = _Runner.collect(out, idx.size)
-        _write(g, idx, res)
+        res = runner.collect(out, idx)
+        _write(g, idx, res, runner.every)
         status[idx - start] = res["status"]
     return int(np.sum(status >= 0)), int(np.sum(status > 0))
 
@@ -482,12 +689,15 @@ def solve_chunk(store: str, source: dict, name: str, start: int, stop: int, *, s
     into its `store` (`status` last): the task `run(..., client=...)` sends to a Dask worker
     for each store chunk.
 
-    `store` is a local path or a URL fsspec opens with `storage_options`. The task runs in float64
-    (it sets `jax_enable_x64` in its process) on the first `devices` of the process's
-    `jax.local_devices()` (default all). The scenario travels as its `source` dict and is rebuilt
-    here, after float64 is on; the compiled solver is kept for the process's next chunk. A task run
-    again (its worker lost after it wrote) finds its trajectories done and solves nothing; one lost
-    before it wrote `status` solves them again into the same region, with the same bits.
+    `store` is a local path or a URL fsspec opens with `storage_options`. The task turns on
+    64-bit types in its process (`jax_enable_x64`) and runs on the first `devices` of the
+    process's `jax.local_devices()` (default all). The scenario travels as its `source` dict
+    (with the `dtype` and `trajectories` of the run) and is rebuilt here, after 64-bit types
+    are on: a float64 scenario computes in float64, a float32 one in float32 (its arrays
+    are float32 explicitly). `lanes` and `chunk` are the store's. The compiled solver is kept
+    for the process's next chunk. A task run again (its worker lost after it wrote) finds its
+    trajectories done and solves nothing; one lost before it wrote `status` solves them again
+    into the same region, with the same bits.
 
     **Returns:** `(done, failed)`: how many trajectories of `start:stop` are done and how
     many of them failed, once it has finished (the same for a task run again).
@@ -509,10 +719,12 @@ def run(
     n: int,
     out: str | pathlib.Path,
     *,
-    chunk: int = 1024,
+    chunk: int | None = None,
     seed: int = 0,
     devices: int | None = None,
-    lanes: int = 64,
+    lanes: int | None = None,
+    trajectories: str | int | None = None,
+    dtype: str | None = None,
     resume: bool = False,
     overwrite: bool = False,
     client=None,
@@ -524,45 +736,69 @@ def run(
     **Arguments:**
 
     - `scenario`: a `Scenario`, a shipped scenario name or a TOML path.
-    - `n`: number of trajectories; `chunk`: trajectories solved and written at a time, and
-      the store's chunk along `trajectory` (memory ∝ chunk); `seed`: the random seed. Each
-      device solves its share in blocks of 8 × `lanes`, so a chunk is padded to a multiple
-      of 8 × `lanes` × devices (1024 at the defaults on two devices): a smaller chunk
-      solves padding, and is slower per trajectory.
+    - `n`: number of trajectories; `seed`: the random seed.
+    - `chunk`: trajectories solved and written at a time, and the store's chunk along
+      `trajectory` (memory ∝ chunk). `None` (default): 1024 on a CPU; on a GPU the largest
+      power of two whose footprint fits the device's memory, at most 2²⁰ per device
+      (`chunking`, which also rounds a chunk down to a multiple of K for `trajectories` =
+      K). On a CPU each device solves its share in blocks of 8 × `lanes`, so a chunk is
+      padded to a multiple of 8 × `lanes` × devices (1024 at the defaults on two devices):
+      a smaller chunk solves padding, and is slower per trajectory.
     - `devices`: how many devices to shard each chunk over (default all): of this process's
       `jax.devices()`, or with `client` of each worker's.
     - `lanes`: lanes of each device's solver loop (the lane solver of `simulate_batch`; a
-      lane takes the next trajectory as soon as its own has finished). Results are bitwise
-      identical for any `chunk`, `devices` and `client` at the same `lanes`.
-    - `resume`: continue an interrupted run in `out` (same scenario, n, seed, lanes),
-      solving only the trajectories not yet written, in the store's own chunks.
+      lane takes the next trajectory as soon as its own has finished). `None` (default): 64
+      on a CPU; on a GPU those `simulate_batch` takes for a device's share of the chunk,
+      solved in one block (`chunking`). On a CPU results are bitwise identical for any
+      `chunk`, `devices` and `client` at the same `lanes`.
+    - `trajectories`: which trajectories' states (`omega`, `quat`) the store keeps: `"all"`,
+      `"none"` (only the summaries, `status`, `num_steps` and `inertia`), or an integer K
+      (those of trajectories 0, K, 2K, …, over the dimension `sampled_trajectory`); `None`
+      (default): the scenario's `[outputs] trajectories`. The other variables are kept for
+      every trajectory, and hold the same bits whatever is chosen.
+    - `dtype`: `"float64"` or `"float32"`, what the sweep samples, solves, summarises and
+      stores in; `None` (default): the scenario's `[solver] dtype`. A float64 sweep in this
+      process needs `jax_enable_x64`; a float32 one runs with it on or off.
+    - `resume`: continue an interrupted run in `out` (same scenario, n, seed, lanes,
+      trajectories and dtype; `lanes=None` takes the store's), solving only the
+      trajectories not yet written, in the store's own chunks.
     - `overwrite`: replace a sweep store already at `out`, and its plots folder
       (`plots_dir(out)`). Without `resume` or `overwrite` an existing store is refused.
     - `client`: a `dask.distributed.Client`: each chunk is then a task (`solve_chunk`) that
       a worker solves and writes into the store itself, so the store must be where every
       worker reaches it (a shared filesystem, or object storage by URL). A chunk lost with
-      its worker is rerun by Dask. Default: solve in this process.
+      its worker is rerun by Dask. The chunk and lanes are chosen for a worker's devices.
+      Default: solve in this process.
     - `storage_options`: for a URL `out` (`s3://bucket/sweep.zarr`, `gs://…`; any fsspec
       protocol whose package is installed), the options of its fsspec filesystem
       (credentials, endpoint), given to every worker too.
     - `progress`: called with a `Progress` after every chunk.
 
     **Returns:** the store: a `pathlib.Path` (absolute), or the URL as given; open it with
-    `open_dataset(store)`.
+    `open_dataset(store)`. Its attributes record the chunk, lanes, trajectories and dtype
+    the sweep ran with.
 
     **Raises:** `FileExistsError` if `out` holds a sweep store and neither `resume` nor
     `overwrite` is set (the store is left untouched); `ValueError` for invalid arguments,
-    a non-store at `out`, or a store `resume` cannot continue.
+    a non-store at `out`, or a store `resume` cannot continue; `ScenarioError` (a
+    `ValueError`) for a `trajectories` or `dtype` the scenario cannot take, naming its key
+    (`solver.rtol` finer than float32 resolves, say).
     """
     sc = scenario if isinstance(scenario, Scenario) else Scenario.load(scenario)
+    sc = sc.with_settings(dtype=dtype, trajectories=trajectories)
     for name, v in (("n", n), ("chunk", chunk), ("lanes", lanes)):
+        if v is None and name != "n":
+            continue
         if isinstance(v, bool) or not isinstance(v, int | np.integer) or v < 1:
             raise ValueError(f"`{name}` must be a positive integer, got {v!r}.")
     if isinstance(seed, bool) or not isinstance(seed, int | np.integer) or seed < 0:
         raise ValueError(f"`seed` must be a non-negative integer, got {seed!r}.")
     if client is None:
-        if not jax.config.jax_enable_x64:
+        if sc.dtype == "float64" and not jax.config.jax_enable_x64:
             raise ValueError("sweeps run in float64: call "
+                             "`jax.config.update('jax_enable_x64', True)` first.")
+        if n > np.iinfo(_index_dtype()).max:
+            raise ValueError(f"`n` = {n} trajectories need 64-bit indices: call "
                              "`jax.config.update('jax_enable_x64', True)` first.")
         all_devices = jax.devices()
         devices = len(all_devices) if devices is None else devices
@@ -573,8 +809,21 @@ def run(
         raise ValueError(f"`devices` must be a positive integer, got {devices!r}.")
     import zarr
 
+    def layout() -> tuple[int, int]:
+        """The chunk and lanes of a new store, for this process's devices or a worker's."""
+        if client is None:
+            info = (all_devices[0].platform, devices, device_memory(all_devices[0]))
+        elif chunk is None or lanes is None:
+            info = client.submit(_devices_info, devices, pure=False).result()
+        else:
+            info = ("cpu", devices or 1, None)  # both given: only a K rounds the chunk
+        platform, count, memory = info
+        return chunking(n, platform=platform, devices=count, memory=memory,
+                        trajectory_bytes=trajectory_bytes(sc), chunk=chunk, lanes=lanes,
+                        every=sc.trajectories if isinstance(sc.trajectories, int) else None)
+
     loc = _Location.of(out, storage_options)
-    _prepare_store(loc, sc, n, chunk, seed, lanes, resume, overwrite)
+    lanes = _prepare_store(loc, sc, n, seed, resume, overwrite, layout, lanes)
     g = loc.group("r+")
     # One task per zarr chunk of the store (a resumed run keeps the store's chunking, so no
     # two tasks write one zarr chunk).
@@ -737,6 +986,7 @@ def to_netcdf(store: str | pathlib.Path, path: str | pathlib.Path, *,
 
 __all__ = [
     "Progress",
+    "chunking",
     "open_dataset",
     "plots_dir",
     "run",
@@ -744,4 +994,5 @@ __all__ = [
     "status_meanings",
     "summarize",
     "to_netcdf",
+    "trajectory_bytes",
 ]

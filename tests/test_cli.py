@@ -253,12 +253,12 @@ def no_cache(monkeypatch):
 
 
 def _small_toml(path, max_steps=None, omega='{ dist = "normal", mean = [0.1, 1.0, 0.1], '
-                                           'std = 0.3 }'):
+                                           'std = 0.3 }', tol="1e-8"):
     path.write_text(
         'name = "tiny"\n[model]\nkind = "rigid_body"\n[model.inertia]\n'
         'principal = [1.0, 2.0, 2.5]\n'
         f'[initial]\nomega = {omega}\n[time]\nt1 = 4.0\nn = 5\n'
-        '[solver]\nrtol = 1e-8\natol = 1e-8\n'
+        f'[solver]\nrtol = {tol}\natol = {tol}\n'
         + (f"max_steps = {max_steps}\n" if max_steps else "")
         + '[outputs]\nsummaries = ["energy_drift"]\n')
     return path
@@ -287,7 +287,8 @@ def test_sweep_refuses_an_existing_store_and_exports_netcdf(tmp_path, capsys, no
     with pytest.raises(SystemExit):  # argparse: not both
         cli.main([*args, "--overwrite", "--resume"])
     assert cli.main([*args, "--seed", "1", "--overwrite"]) == 0
-    assert xr.open_zarr(out).attrs["seed"] == 1
+    attrs = xr.open_zarr(out).attrs
+    assert attrs["seed"] == 1 and attrs["chunk"] == 1024  # the default on a CPU
     nc = tmp_path / "s.nc"
     assert cli.main(["export", str(out), str(nc)]) == 0
     xr.testing.assert_identical(xr.open_dataset(nc).load(), xr.open_zarr(out).load())
@@ -319,3 +320,55 @@ def test_sweep_exit_status_when_trajectories_fail(tmp_path, capsys, case, no_cac
     else:
         assert code == cli.EXIT_SOME_FAILED == 3 and 0 < np.sum(status != 0) < 40
     assert "raise [solver] max_steps (now" in err
+
+
+@pytest.fixture
+def restore_x64():
+    """`rbdyn sweep --dtype float32` turns 64-bit types off in its process: back on after."""
+    yield
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+
+
+def test_sweep_in_float32_of_no_states_and_its_plots(tmp_path, capsys, no_cache, restore_x64):
+    """`--dtype float32 --trajectories none`: the header names the devices, the precision
+    and what is stored; the run leaves 64-bit types off; the store is float32 with no
+    states, `rbdyn plot` says why it draws none and `rbdyn fit` why it cannot fit it."""
+    import jax
+    import xarray as xr
+
+    toml = _small_toml(tmp_path / "t.toml", tol="1e-6")
+    out = tmp_path / "n.zarr"
+    assert cli.main(["sweep", str(toml), "--n", "16", "--out", str(out), "--lanes", "8",
+                     "--trajectories", "none", "--dtype", "float32"]) == 0
+    assert not jax.config.jax_enable_x64
+    text = capsys.readouterr().out
+    devices = f"on {len(jax.devices())} × cpu device"
+    assert f"16 trajectories {devices}" in text and "float32, no states (summaries only)" in text
+    assert "in chunks of 1024 with 8 lanes per device" in text
+    ds = xr.open_zarr(out)
+    assert (ds.attrs["dtype"], ds.attrs["trajectories"], ds.attrs["lanes"]) == (
+        "float32", "none", 8)
+    assert "omega" not in ds and ds.energy_drift.dtype == np.float32
+    assert cli.main(["plot", str(out)]) == 0
+    assert "note: no trajectories.png or polhodes.png" in capsys.readouterr().out
+    assert cli.main(["fit", str(out), "--model", str(toml), "--out", str(tmp_path)]) == 2
+    assert "holds no ω or attitude to fit" in capsys.readouterr().err
+
+
+def test_sweep_refuses_a_dtype_or_states_the_scenario_cannot_take(tmp_path, capsys, no_cache):
+    """The shipped scenarios' rtol (1e-8, 1e-9) is finer than float32 resolves: exit 2,
+    naming the option and the key; `--trajectories` takes all, none or K ≥ 1."""
+    out = tmp_path / "x.zarr"
+    assert cli.main(["sweep", "torque_free_flip", "--n", "4", "--out", str(out), "--dtype",
+                     "float32"]) == 2
+    err = capsys.readouterr().err
+    assert "--dtype float32" in err and "`solver.rtol`" in err and "9.5e-07" in err
+    assert not out.exists()
+    for bad in ("0", "-3", "some"):
+        with pytest.raises(SystemExit) as e:
+            cli.main(["sweep", "torque_free_flip", "--n", "4", "--out", str(out),
+                      "--trajectories", bad])
+        assert e.value.code == 2
+    assert "expected all, none or a positive integer K" in capsys.readouterr().err

@@ -90,8 +90,10 @@ def make_dataset(status):
     return time, omega, quat, inertia, np.asarray(status, np.int32), summaries
 
 
-def write_store(path, status, *, model_kind="rigid_body", summaries=True):
-    """Write a sweep-layout zarr v3 group at `path`; return `path`."""
+def write_store(path, status, *, model_kind="rigid_body", summaries=True, keep="all"):
+    """Write a sweep-layout zarr v3 group at `path`; return `path`. `keep`: whose states it
+    holds, as a sweep's `trajectories`: "all", "none", or every K-th trajectory's over the
+    dimension `sampled_trajectory`."""
     time, omega, quat, inertia, status, values = make_dataset(status)
     g = zarr.open_group(str(path), mode="w", zarr_format=3)
 
@@ -104,8 +106,13 @@ def write_store(path, status, *, model_kind="rigid_body", summaries=True):
     N = len(status)
     put("trajectory", np.arange(N, dtype=np.int64), ["trajectory"])
     put("time", time, ["time"])
-    put("omega", omega, ["trajectory", "time", "axis"])
-    put("quat", quat, ["trajectory", "time", "quat_component"])
+    if keep == "all":
+        put("omega", omega, ["trajectory", "time", "axis"])
+        put("quat", quat, ["trajectory", "time", "quat_component"])
+    elif keep != "none":
+        put("sampled_trajectory", np.arange(0, N, keep, dtype=np.int64), ["sampled_trajectory"])
+        put("omega", omega[::keep], ["sampled_trajectory", "time", "axis"])
+        put("quat", quat[::keep], ["sampled_trajectory", "time", "quat_component"])
     put("inertia", inertia, ["trajectory", "row", "col"])
     put("status", status, ["trajectory"])
     g["status"].attrs.update({"flag_values": [int(c) for c in STATUS_CODES],
@@ -217,6 +224,34 @@ def test_no_summaries_skips_that_file(tmp_path):
     store = write_store(tmp_path / "s.zarr", [0, 1], summaries=False)
     written = _plots.plot_sweep(store, tmp_path / "out")
     assert [p.name for p in written] == FOUR[1:]
+
+
+def test_a_store_of_no_states_skips_their_plots(tmp_path):
+    store = write_store(tmp_path / "s.zarr", [0, 1, 0], keep="none")
+    written = _plots.plot_sweep(store, tmp_path / "out")
+    assert [p.name for p in written] == ["summaries.png", "status.png"]
+
+
+def test_a_store_of_sampled_states_draws_them(tmp_path, suptitles, monkeypatch):
+    """Every 2nd trajectory's states: the successful sampled ones (0 and 4; 2 failed) are
+    drawn, labelled with their trajectory index, each with its own inertia."""
+    drawn = {}
+    monkeypatch.setattr(_plots, "_draw_polhodes", lambda fig, omega, inertia, labels, *a:
+                        drawn.update(omega=omega, inertia=inertia, labels=labels))
+    store = write_store(tmp_path / "s.zarr", [0, 0, 1, 0, 0, -1], keep=2)
+    written = _plots.plot_sweep(store, tmp_path / "out")
+    assert [p.name for p in written] == FOUR
+    assert "test_scenario: 2 of 2 successful sampled trajectories" in suptitles
+    assert list(drawn["labels"]) == [0, 4]
+    for k, i in enumerate([0, 4]):
+        J, omega, _ = solve(i % len(STARTS))
+        np.testing.assert_array_equal(drawn["inertia"][k], J)
+        np.testing.assert_array_equal(drawn["omega"][k], omega)
+    assert_png(tmp_path / "out" / "trajectories.png")
+    # no sampled trajectory succeeded: no states to draw
+    store = write_store(tmp_path / "f.zarr", [1, 0, 1, 0], keep=2)
+    assert [p.name for p in _plots.plot_sweep(store, tmp_path / "f")] == [
+        "summaries.png", "status.png"]
 
 
 def test_energy_ellipsoid_with_products_of_inertia():

@@ -82,6 +82,15 @@ def minimal(kind: str = "rigid_body", torques=(), frame=None) -> dict:
         (lambda d: d["model"].update(torques=[{"kind": "body"}]), "model.torques[0].moment",
          "missing"),
         (lambda d: d["model"].update(frame={"kind": "inertial"}), "model.frame", "no frame"),
+        (lambda d: d["outputs"].update(trajectories=0), "outputs.trajectories",
+         "positive integer K"),
+        (lambda d: d["outputs"].update(trajectories="some"), "outputs.trajectories",
+         '"all", "none" or'),
+        (lambda d: d["outputs"].update(trajectories=True), "outputs.trajectories", "got True"),
+        (lambda d: d["solver"].update(dtype="float16"), "solver.dtype",
+         '"float64" or "float32"'),
+        (lambda d: d["solver"].update(dtype="float32"), "solver.rtol",
+         '≥ 9.5e-07 with dtype = "float32"'),  # rtol 1e-9: below float32's rounding
     ],
 )
 def test_bad_scenarios_name_the_key(edit, key, words):
@@ -345,3 +354,38 @@ def test_solver_table_gives_the_diffrax_objects():
     d["solver"]["method"] = "Euler"
     with pytest.raises(ScenarioError, match="`solver.method`: expected one of"):
         Scenario.from_dict(d)
+
+
+def test_a_float32_scenario_is_float32_throughout():
+    """`[solver] dtype = "float32"`: the times, every distribution's arrays, the draws and
+    the built models are float32 (so JAX computes in float32 with 64-bit types on), and the
+    tolerances default to 1e-6, the power of ten above float32's finest rtol."""
+    d = small(solver={"dtype": "float32"})
+    d["model"]["torques"] = [{"kind": "gravity_gradient", "eps": 0.01}]
+    d["outputs"]["summaries"] = ["max_abs_omega"]
+    sc = Scenario.from_dict(d)
+    assert (sc.dtype, sc.rtol, sc.atol, sc.ts.dtype) == ("float32", 1e-6, 1e-6, np.float32)
+    leaves = jax.tree_util.tree_leaves(sc.dists)
+    assert leaves and all(x.dtype == jnp.float32 for x in leaves)
+    values = sc.sample(sc.dists, jax.random.key(0), 3)
+    assert all(v.dtype == jnp.float32 for v in values.values())
+    built = jax.tree_util.tree_leaves(sc.build(values))
+    assert all(x.dtype == jnp.float32 for x in built if jnp.issubdtype(x.dtype, jnp.floating))
+    assert sc.nominal()["initial.attitude"].dtype == jnp.float32
+
+
+def test_with_settings_sets_the_dtype_and_the_states_kept():
+    sc = Scenario.load("torque_free_flip")
+    assert sc.with_settings() is sc and sc.with_settings(trajectories="all") is sc
+    sampled = sc.with_settings(trajectories=5)
+    assert (sampled.trajectories, sampled.name) == (5, "torque_free_flip")
+    assert sampled.source["outputs"]["trajectories"] == 5 and "trajectories" not in sc.source[
+        "outputs"]  # the source holds what the scenario runs with
+    with pytest.raises(ScenarioError) as e:  # the shipped rtol, 1e-8, is finer than float32
+        sc.with_settings(dtype="float32")
+    assert "`solver.rtol`" in str(e.value) and "9.5e-07" in str(e.value)
+    assert 'dtype = "float32"' in str(e.value) and "got 1e-08" in str(e.value)
+    d = sc.source
+    d["solver"].update(rtol=1e-6, atol=1e-6)
+    single = Scenario.from_dict(d).with_settings(dtype="float32")
+    assert single.dtype == "float32" and single.source["solver"]["dtype"] == "float32"

@@ -20,7 +20,7 @@ from helpers import assert_same_arrays as assert_same, load_store as load, small
 
 import rbdyn_jax as rb
 from rbdyn_jax import sweep
-from rbdyn_jax.scenario import Scenario, ScenarioError
+from rbdyn_jax.scenario import SUMMARIES, Scenario, ScenarioError
 
 # --------------------------------------------------------------------------------------
 # Running: determinism, dataset, isolation, resume
@@ -367,3 +367,200 @@ def test_summarize_approximates_quantiles_of_a_large_store(failing_run, monkeypa
     # interpolation between the merged quantiles: a few roundings of slack
     assert lo * (1 - 1e-12) <= row["q50"] <= hi * (1 + 1e-12)
     assert row["mean"] == pytest.approx(x.mean(), rel=1e-13)
+
+
+# --------------------------------------------------------------------------------------
+# Stores keeping the states of every trajectory, of every K-th, or of none
+# --------------------------------------------------------------------------------------
+
+PER_TRAJECTORY = ("status", "num_steps", "inertia", "energy_drift", "max_abs_omega",
+                  "first_flip_time")
+
+
+@pytest.mark.parametrize("keep", ["none", 3])
+def test_stores_keeping_some_states_hold_the_full_stores_bits(reference_run, tmp_path, keep):
+    """A store keeping no states, or every 3rd trajectory's, holds bitwise the per-trajectory
+    variables of the full store of the same sweep, and its rows 0, 3, 6, … of the states;
+    xarray opens it, `summarize` and `to_netcdf` read it."""
+    out = sweep.run(Scenario.from_dict(small()), N, tmp_path / "k.zarr", chunk=7, seed=3,
+                    lanes=16, trajectories=keep)
+    ref, got = load(reference_run), load(out)
+    assert_same({k: ref[k] for k in PER_TRAJECTORY}, {k: got[k] for k in PER_TRAJECTORY})
+    ds = xr.open_zarr(out)
+    assert ds.attrs["trajectories"] == keep and ds.attrs["dtype"] == "float64"
+    if keep == "none":
+        assert not {"omega", "quat", "axis", "quat_component"} & set(ds.variables)
+    else:
+        for k in ("omega", "quat"):
+            assert np.array_equal(ref[k][::3], got[k], equal_nan=True), k
+        assert ds.omega.dims == ("sampled_trajectory", "time", "axis")
+        assert ds.quat.dims == ("sampled_trajectory", "time", "quat_component")
+        assert list(ds.sampled_trajectory.values) == [0, 3, 6, 9, 12]
+        coord = ds.sampled_trajectory.attrs
+        assert coord["units"] == "1" and coord["long_name"] and "every K-th" in coord[
+            "description"]
+        assert "one trajectory in 3: trajectories 0, 3, 6" in ds.omega.attrs["description"]
+        # the chunk, rounded down to a multiple of K, holds whole zarr chunks of states
+        assert ds.attrs["chunk"] == 6 and ds.omega.encoding["chunks"][0] == 2
+        np.testing.assert_array_equal(  # selected by trajectory index
+            ds.status.sel(trajectory=ds.sampled_trajectory).values, ref["status"][::3])
+    assert sweep.summarize(out) == sweep.summarize(reference_run)
+    nc = sweep.to_netcdf(out, tmp_path / "k.nc")
+    xr.testing.assert_identical(xr.open_dataset(nc, engine="netcdf4").load(), ds.load())
+
+
+def test_resume_a_store_of_sampled_states(reference_run, tmp_path):
+    """An interrupted store keeping every 3rd trajectory's states is finished by a resumed
+    run into the same bits; a resume asking for other states, or another lanes, is refused,
+    and `lanes=None` takes the store's."""
+    out = tmp_path / "r.zarr"
+
+    def stop(p):
+        if p.done >= 6:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        sweep.run(Scenario.from_dict(small()), N, out, chunk=6, seed=3, lanes=16,
+                  trajectories=3, progress=stop)
+    assert np.sum(zarr.open_group(str(out), mode="r")["status"][:] >= 0) == 6
+    with pytest.raises(ValueError, match="its trajectories is 3, this run's is 'none'"):
+        sweep.run(Scenario.from_dict(small()), N, out, seed=3, lanes=16, trajectories="none",
+                  resume=True)
+    with pytest.raises(ValueError, match="its lanes is 16, this run's is 8"):
+        sweep.run(Scenario.from_dict(small()), N, out, seed=3, lanes=8, trajectories=3,
+                  resume=True)
+    sweep.run(Scenario.from_dict(small(outputs={**small()["outputs"], "trajectories": 3})),
+              N, out, seed=3, resume=True)  # the scenario's own setting, the store's lanes
+    ref, got = load(reference_run), load(out)
+    assert_same({k: ref[k] for k in PER_TRAJECTORY}, {k: got[k] for k in PER_TRAJECTORY})
+    for k in ("omega", "quat"):
+        assert np.array_equal(ref[k][::3], got[k], equal_nan=True), k
+
+
+def test_a_summaries_only_store_costs_under_200_bytes_a_trajectory(tmp_path):
+    """A store keeping no states holds per trajectory the inertia (9 float64, 72 bytes),
+    three summaries (24), `status` (4), `num_steps` (8) and the `trajectory` coordinate
+    (8): 116 bytes before compression. Zarr's compressor takes little off the drawn floats
+    (the symmetric inertia to 68 bytes) and nearly all of the integers; the metadata files,
+    12 kB, are 3 bytes a trajectory at n = 4096. Measured: 95 bytes a trajectory (bound
+    200: what the store holds for every trajectory, not a state among it)."""
+    n = 4096
+    out = sweep.run(Scenario.from_dict(small()), n, tmp_path / "s.zarr", chunk=256, seed=0,
+                    lanes=16, trajectories="none")
+    size = sum(p.stat().st_size for p in out.rglob("*") if p.is_file())
+    assert 80 < size / n < 200, size / n
+
+
+def test_float32_sweep_agrees_with_float64_solves_of_its_draws(tmp_path):
+    """A float32 sweep of gg_axisymmetric at rtol = atol = 1e-6 stores float32 (status and
+    num_steps as ints), gives the same bits with 64-bit types on or off, and agrees with
+    float64 solves of its own draws (its inertia and initial states) at rtol 1e-12.
+
+    A float32 sweep draws from float32 random numbers: the float64 sweep of the same seed
+    draws other values (JAX makes a float64 normal from 64 random bits), so the reference
+    is the float64 solve of the float32 draws. The difference is the tolerance's
+    truncation error over 30 s (measured 1.5e-4 in ω at the last time, as the float64 solve
+    at rtol 1e-6 gives), not float32's round-off (6e-8 a step): the bounds are 3× the
+    measured errors."""
+    import jax
+
+    d = Scenario.load("gg_axisymmetric").source
+    d["solver"].update(rtol=1e-6, atol=1e-6)
+    sc, n = Scenario.from_dict(d), 16
+    out = sweep.run(sc, n, tmp_path / "f32.zarr", chunk=n, lanes=16, seed=1, dtype="float32")
+    with jax.enable_x64(False):
+        off = sweep.run(sc, n, tmp_path / "off.zarr", chunk=n, lanes=16, seed=1,
+                        dtype="float32")
+    names = ("omega", "quat", "inertia", "status", "num_steps", *sc.summaries)
+    assert_same(load(out, names), load(off, names))
+    ds = xr.open_zarr(out).load()
+    assert ds.attrs["dtype"] == "float32" and ds.time.dtype == np.float32
+    assert {ds[k].dtype for k in ("omega", "quat", "inertia", *sc.summaries)} == {
+        np.dtype(np.float32)}
+    assert (ds.status.dtype, ds.num_steps.dtype) == (np.int32, np.int64)
+    assert np.all(ds.status.values == 0)
+    # the float64 reference: the scenario's models built on the stored draws
+    values = {k: jnp.broadcast_to(v, (n, *v.shape)) for k, v in sc.nominal().items()}
+    values.update({"model.inertia": ds.inertia.values.astype(np.float64),
+                   "initial.omega": ds.omega.values[:, 0].astype(np.float64),
+                   "initial.attitude": ds.quat.values[:, 0].astype(np.float64)})
+    models, y0s = jax.vmap(sc.build)({k: jnp.asarray(v) for k, v in values.items()})
+    ts = sc.ts.astype(np.float64)
+    exact = rb.simulate_batch(models, y0s, ts, model_axes=0, rtol=1e-12, atol=1e-12)
+    w, w32 = np.asarray(exact.ys.omega), ds.omega.values.astype(np.float64)
+    err = np.linalg.norm(w32 - w, axis=-1) / np.linalg.norm(w, axis=-1)
+    assert err[:, -1].max() < 5e-4 and err.max() < 5e-4, err.max()
+    for name, bound in (("max_nutation", 4e-5), ("min_abs_omega", 4e-5),
+                        ("max_abs_omega", 3e-5)):  # measured 1.3e-5, 1.1e-5, 8.8e-6
+        ref = np.asarray(jax.vmap(SUMMARIES[name].fn)(models, exact))
+        assert np.max(np.abs(ds[name].values - ref)) < bound, name
+    # the energy drift at rtol 1e-6 (the exact one is ~1e-12): measured 3e-6
+    assert ds.energy_drift.values.max() < 1e-5
+
+
+def test_a_float32_program_takes_its_matrix_products_in_full_float32():
+    """JAX's default precision takes a float32 matrix product in TF32 (a 10-bit mantissa)
+    on recent NVIDIA GPUs: every `dot_general` of a float32 sweep's program asks for the
+    highest precision instead (on a CPU the program runs the same either way)."""
+    import jax
+    from helpers import equations
+
+    d = Scenario.load("gg_axisymmetric").source
+    d["solver"].update(rtol=1e-6, atol=1e-6, dtype="float32")
+    sc = Scenario.from_dict(d)
+    runner = sweep._runner(sc, 16, tuple(jax.devices()), 16)
+    jaxpr = jax.make_jaxpr(lambda i, dists, key: sweep._chunk_program(
+        runner.source, runner.lanes, runner.mesh, i, dists, key))(
+        jnp.arange(runner.size), sc.dists, jax.random.key(0))
+    dots = [e for e in equations(jaxpr) if e.primitive.name == "dot_general"]
+    assert dots and all(e.params["precision"] == (jax.lax.Precision.HIGHEST,) * 2
+                        for e in dots)
+
+
+def test_chunking_on_a_cpu_and_on_a_gpu():
+    """The rule: 1024 and 64 lanes on a CPU; on a GPU a power of two of trajectories per
+    device, within half its memory, 2²⁰ and a 1 GiB stored zarr chunk, through the lanes
+    `simulate_batch` takes for a share (`default_lanes`: all of a small share, a third of a
+    larger one, at most 2¹⁷)."""
+    tb = (25_000, 2_592)  # bytes a trajectory: on the device, in the largest stored chunk
+    chunking = sweep.chunking
+    assert chunking(10**6, platform="cpu", devices=2, memory=None, trajectory_bytes=tb) == (
+        1024, 64)
+    assert chunking(10**6, platform="cpu", devices=2, memory=None, trajectory_bytes=tb,
+                    chunk=300) == (300, 64)
+    gpu = {"platform": "gpu", "devices": 1, "memory": 60 * 10**9}
+    # 1.2 M fit the memory, but a 2²⁰ chunk of quat (2592 bytes each) is 2.7 GB: 2¹⁸
+    assert chunking(10**8, **gpu, trajectory_bytes=tb) == (1 << 18, -(-(1 << 18) // 3))
+    # no states stored: the cap of 2²⁰; a smaller device: its memory (0.5 × 16e9 / 25e3)
+    assert chunking(10**8, **gpu, trajectory_bytes=(25_000, 72)) == (1 << 20, 1 << 17)
+    assert chunking(10**8, **{**gpu, "memory": 16 * 10**9},
+                    trajectory_bytes=(25_000, 72)) == (1 << 18, -(-(1 << 18) // 3))
+    # memory not known: 8 GiB; two devices: a share each
+    assert chunking(10**8, **{**gpu, "memory": None}, trajectory_bytes=(25_000, 72)) == (
+        1 << 17, -(-(1 << 17) // 3))
+    assert chunking(10**8, **{**gpu, "devices": 2}, trajectory_bytes=(25_000, 72)) == (
+        1 << 21, 1 << 17)
+    # no more than n needs; a small share (a chunk given, say): a lane per trajectory
+    assert chunking(1000, **gpu, trajectory_bytes=tb) == (1024, 1024)
+    assert chunking(1000, **{**gpu, "devices": 2}, trajectory_bytes=tb) == (1024, 512)
+    assert chunking(10**8, **{**gpu, "devices": 2}, trajectory_bytes=tb, chunk=5001) == (
+        5001, 2501)
+    assert chunking(10**8, **gpu, trajectory_bytes=(10**12, 72)) == (1, 1)  # at least one
+    # every K-th trajectory's states: the chunk a multiple of K, when K is smaller
+    assert chunking(10**6, platform="cpu", devices=2, memory=None, trajectory_bytes=tb,
+                    every=10) == (1020, 64)
+    assert chunking(10**6, platform="cpu", devices=2, memory=None, trajectory_bytes=tb,
+                    every=3000) == (1024, 64)
+    assert chunking(10**8, **gpu, trajectory_bytes=(25_000, 72), every=1000) == (
+        1048000, 1 << 17)
+
+
+def test_trajectory_bytes_of_the_default_scenario():
+    """torque_free_flip, float64: 81 × 7 states (4536 bytes), 9 inertia components and 4
+    summaries (104), status and num_steps (12) three times over, and 64 lane copies of its
+    7 state and 16 drawn values (11,776); its quat, 81 × 4 × 8 = 2592 bytes, when stored."""
+    sc = Scenario.load("torque_free_flip")
+    assert sweep.trajectory_bytes(sc) == (3 * (4536 + 104 + 12) + 11_776, 2592)
+    assert sweep.trajectory_bytes(sc.with_settings(trajectories="none"))[1] == 72
+    assert sweep.trajectory_bytes(sc.with_settings(trajectories=100))[1] == 72
+    assert sweep.trajectory_bytes(sc.with_settings(trajectories=10))[1] == 260

@@ -91,6 +91,38 @@ def test_cli_on_a_running_scheduler(client, reference, tmp_path, capsys):
     assert_same(load(reference), load(out))
 
 
+@pytest.mark.parametrize("keep", ["none", 8])
+def test_workers_keep_the_states_asked_for(client, reference, tmp_path, keep):
+    """Tasks writing a store of no states (the chunk chosen for a worker's devices: 1024 on
+    its CPU), or of every 8th trajectory's (two rows of states a task, in zarr chunks of
+    their own): the in-process full store's bits."""
+    chunk = None if keep == "none" else 16
+    out = sweep.run(Scenario.from_dict(small()), N, tmp_path / "k.zarr", chunk=chunk, seed=3,
+                    lanes=16, trajectories=keep, client=client)
+    assert zarr.open_group(str(out), mode="r").attrs["chunk"] == (chunk or 1024)
+    ref, got = load(reference), load(out)
+    names = [k for k in ref if k not in ("omega", "quat")]
+    assert_same({k: ref[k] for k in names}, {k: got[k] for k in names})
+    if keep == "none":
+        assert "omega" not in got and "quat" not in got
+    else:
+        for k in ("omega", "quat"):
+            assert np.array_equal(ref[k][::8], got[k], equal_nan=True), k
+
+
+def test_workers_solve_a_float32_sweep_in_float32(client, tmp_path):
+    """A task turns on 64-bit types in its worker; a float32 scenario still computes there
+    in float32, and gives the bits of the in-process run with 64-bit types off."""
+    import jax
+
+    sc = Scenario.from_dict(small(solver={"rtol": 1e-6, "atol": 1e-6, "dtype": "float32"}))
+    with jax.enable_x64(False):
+        ref = sweep.run(sc, N, tmp_path / "ref.zarr", chunk=N, seed=3, lanes=16)
+    out = sweep.run(sc, N, tmp_path / "d.zarr", chunk=50, seed=3, lanes=16, client=client)
+    assert_same(load(ref), load(out))
+    assert zarr.open_group(str(out), mode="r")["omega"].dtype == np.float32
+
+
 def _executing(dask_worker) -> int:
     return len(dask_worker.state.executing)
 
