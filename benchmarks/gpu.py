@@ -53,11 +53,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import rbdyn_jax as rb  # noqa: E402
-from rbdyn_jax.integrate._batching import (  # noqa: E402
-    default_lanes,
-    device_memory,
-    lane_bytes,
-)
+from rbdyn_jax.integrate import default_lanes, device_memory  # noqa: E402
 
 sys.path.insert(0, str(pathlib.Path(__file__).parent))
 import _baselines  # noqa: E402
@@ -186,10 +182,9 @@ def measure(method, n, w0, ts, ref, repeats):
         row = rate_row(method, n, dtype, first, t, tr.ys.omega, tr.stats["num_steps"],
                        np.all(np.asarray(tr.result._value) == 0), ref)
         if method.startswith("default"):  # the lanes the default took
-            y0s = states(w0, dtype)
+            per_lane = 7 * np.dtype(dtype).itemsize  # the state (ω, q) of a trajectory
             row["lanes"] = default_lanes(n, len(jax.devices()), jax.devices()[0].platform,
-                                         lane_bytes(y0s),
-                                         device_memory(jax.devices()[0]))
+                                         per_lane, device_memory(jax.devices()[0]))
         return row
     if method == "plain vmap":
         (ys, steps), first, t = timed(plain_vmap(w0, ts), repeats)
@@ -230,10 +225,8 @@ def device_names():
     d = jax.devices()[0]
     names = {"jax_device": f"{d.device_kind} ({d.platform})"}
     try:
-        cuda = _cuda._import_cuda()
-        names["cuda_device"] = str(cuda.get_current_device().name.decode()
-                                   if isinstance(cuda.get_current_device().name, bytes)
-                                   else cuda.get_current_device().name)
+        name = _cuda._import_cuda().get_current_device().name
+        names["cuda_device"] = name.decode() if isinstance(name, bytes) else str(name)
     except Exception as e:  # no CUDA driver (and no simulator): the kernel rows will fail
         names["cuda_device"] = f"unavailable: {type(e).__name__}"
     return names

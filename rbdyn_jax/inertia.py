@@ -437,4 +437,6 @@ def _from_log_cholesky(theta, xp=jnp):
         ],
         axis=-2,
     )
-    return _from_planar(L @ _transpose(L, xp), xp)
+    LLt = (jnp.matmul(L, _transpose(L), precision=HIGHEST) if xp is jnp
+           else L @ _transpose(L, xp))
+    return _from_planar(LLt, xp)

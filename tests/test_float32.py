@@ -154,6 +154,7 @@ def test_matrix_products_ask_for_full_precision(monkeypatch):
         (rb.inertia.kinetic_energy, (J32, w)),
         (rb.inertia.moment_about, (J32, w[0])),
         (rb.inertia.from_principal, (jnp.ones(3, jnp.float32),)),
+        (rb.inertia.from_log_cholesky, (jnp.zeros(6, jnp.float32),)),
         (lambda m, t: rb.invariants.energy(m, t), (rb.RigidBody(J32), tr)),
         (lambda m, t: rb.invariants.angular_momentum_inertial(m, t), (rb.RigidBody(J32), tr)),
         (rb.rotation.dcm_derivative, (jnp.eye(3, dtype=jnp.float32), w[0])),

@@ -215,8 +215,7 @@ def unrolled_step(solver, term, t0, t1, y0, args, f0):
     dt = t1 - t0
     c = (tab.c1, *(float(x) for x in tab.c))
 
-    def combine(weights, ks):
-        out = y0
+    def combine(out, weights, ks):  # out + Σ wⱼ kⱼ over the nonzero weights
         for w, k in zip(weights, ks):
             if w != 0:
                 out = jax.tree_util.tree_map(lambda o, x, w=float(w): o + w * x, out, k)
@@ -229,19 +228,12 @@ def unrolled_step(solver, term, t0, t1, y0, args, f0):
         if i == 0 and tab.fsal:
             fi = f0
         else:
-            y_stage = y0 if i == 0 else combine(tab.a_lower[i - 1], ks)
+            y_stage = y0 if i == 0 else combine(y0, tab.a_lower[i - 1], ks)
             ti = t1 if c[i] == 1 else t0 + c[i] * dt
             fi = term.vf(ti, y_stage, args)
         ks.append(term.prod(fi, control))
-    if tab.ssal:
-        y1 = y_stage
-    else:
-        y1 = combine(tab.b_sol, ks)
-    zero = jax.tree_util.tree_map(jnp.zeros_like, y0)
-    y_error = zero
-    for w, k in zip(tab.b_error, ks):
-        if w != 0:
-            y_error = jax.tree_util.tree_map(lambda o, x, w=float(w): o + w * x, y_error, k)
+    y1 = y_stage if tab.ssal else combine(y0, tab.b_sol, ks)
+    y_error = combine(jax.tree_util.tree_map(jnp.zeros_like, y0), tab.b_error, ks)
     k = jax.tree_util.tree_map(lambda *x: jnp.stack(x), *ks)
     return y1, y_error, dict(y0=y0, y1=y1, k=k), fi if tab.fsal else None
 
@@ -358,7 +350,7 @@ def lane_loop(system: AbstractLaneSystem, y0s, ts, controller, *, solver, max_st
                 False)
         return y1, y_error, dense, None if sstate is None else sstate[1]
 
-    def write(buf, index, vals, mask):  # rows of lanes where `mask` (the others: row N)
+    def write(buf, index, vals, mask):  # only the lanes where `mask` write
         if array:
             return scatter_rows(buf, index, vals, mask)
         return write_rows(buf, (jnp.where(mask, index[0], N), *index[1:]), vals)
