@@ -25,7 +25,7 @@ In this process (the default) the chunks are solved one after the other. With
 solves it and writes its own region of the store, so nothing but two counts per chunk
 passes through the scheduler; a chunk lost with its worker is run again by Dask.
 
-The store is zarr (format 2, consolidated metadata; `xarray.open_zarr(path)` reads it),
+The store is zarr (format 3, consolidated metadata; `xarray.open_zarr(path)` reads it),
 with dimensions `trajectory × time × axis|quat_component` and CF-style metadata (`units`,
 `long_name`, `description` on every variable, labelled coordinates, `status` meanings as
 `flag_values`/`flag_meanings`): `omega`, `quat`, `inertia` (`trajectory × row × col`),
@@ -36,8 +36,12 @@ trajectory), or every K-th trajectory's over the dimension `sampled_trajectory`;
 program is the same, so the other variables hold the same bits whatever is kept. Its
 `dtype` (float64, or float32) is what the sweep samples, solves, summarises and stores in.
 `status` is written last in a chunk, so a run that is killed keeps every finished chunk and
-`run(..., resume=True)` solves exactly the trajectories still marked −1. An existing store
-is replaced only with `overwrite=True`. `to_netcdf` exports a store to a netCDF-4 file.
+`run(..., resume=True)` solves exactly the trajectories still marked −1. Where nothing is
+written the store reads as not solved (fill values NaN and −1), every chunk is written and
+carries a CRC32C checksum: `verify` lists the chunks a store lost or whose bytes changed,
+the readers refuse such a store, and `resume` solves their trajectories again. An existing
+store is replaced only with `overwrite=True`. `to_netcdf` exports a store to a netCDF-4
+file.
 """
 
 from __future__ import annotations
@@ -442,7 +446,7 @@ class _Location:
     def group(self, mode: str):
         import zarr
 
-        return zarr.open_group(self.url, mode=mode, zarr_format=2,
+        return zarr.open_group(self.url, mode=mode, zarr_format=3,
                                storage_options=self.options if self.is_url else None)
 
     def fs(self):
@@ -452,10 +456,14 @@ class _Location:
         return fsspec.core.url_to_fs(self.url, **self.options)
 
     def is_store(self) -> bool:
-        """Whether a whole sweep store is here (its consolidated metadata, written last
-        when a store is made, is there)."""
+        """Whether a sweep store is here: its group's metadata holds the consolidated
+        metadata of its arrays, written last when a store is made."""
         fs, root = self.fs()
-        return fs.isfile(f"{root}/.zgroup") and fs.isfile(f"{root}/.zmetadata")
+        try:
+            meta = json.loads(fs.cat_file(f"{root}/zarr.json"))
+        except (OSError, ValueError):
+            return False
+        return meta.get("node_type") == "group" and bool(meta.get("consolidated_metadata"))
 
     def is_empty(self) -> bool:
         fs, root = self.fs()
@@ -470,8 +478,6 @@ class _Location:
 def _create_store(loc: _Location, sc: Scenario, n: int, chunk: int, seed: int, lanes: int):
     """A new store for `n` trajectories of `sc` in chunks of `chunk`: every variable and
     coordinate with its metadata, `status` −1 everywhere, the global attributes."""
-    import zarr
-
     from ._version import __version__
 
     g = loc.group("w")
@@ -498,10 +504,9 @@ def _create_store(loc: _Location, sc: Scenario, n: int, chunk: int, seed: int, l
                             f"{every}, {2 * every}, ... (the coordinate sampled_trajectory)")
         shape = (length, *shapes.get(name, ()))
         dtype = dtypes.get(name, sc.dtype)
-        a = g.create_array(name, shape=shape, chunks=(min(chunk_rows, length),) + shape[1:],
-                           dtype=dtype, fill_value=np.nan if dtype == sc.dtype else None)
-        a.attrs.update({"_ARRAY_DIMENSIONS": list(dims), "units": units,
-                        "long_name": long_name, "description": description})
+        a = _create_array(g, name, shape, (min(chunk_rows, length),) + shape[1:], dtype,
+                          np.nan if dtype == sc.dtype else _NOT_RUN, dims)
+        a.attrs.update({"units": units, "long_name": long_name, "description": description})
     g["status"].attrs.update({"flag_values": list(meanings),
                               "flag_meanings": " ".join(meanings.values())})
     # The indices (their lengths here) are written a block at a time below.
@@ -511,24 +516,20 @@ def _create_store(loc: _Location, sc: Scenario, n: int, chunk: int, seed: int, l
     coords = {"time": sc.ts, **{k: None for k in indices},
               **{k: np.asarray(v[0]) for k, v in labels.items()}}
     for name, values in coords.items():
-        shape, dtype = ((indices[name],), np.int64) if values is None else (values.shape,
-                                                                            values.dtype)
-        a = g.create_array(name, shape=shape, chunks=(min(shape[0], 1 << 20),), dtype=dtype,
-                           fill_value=None)
-        if values is not None:
-            a[:] = values
+        if values is None:
+            shape, dtype, fill = (indices[name],), np.int64, _NOT_RUN
+        else:
+            shape, dtype = values.shape, (str if values.dtype.kind == "U" else values.dtype)
+            fill = "" if dtype is str else np.nan
+        a = _create_array(g, name, shape, (min(shape[0], _COORD_CHUNK),), dtype, fill, (name,))
         units, long_name, description = (_COORDS[name] if name in _COORDS
                                          else (None, *_LABELS[name][1:]))
-        a.attrs.update({"_ARRAY_DIMENSIONS": [name], "long_name": long_name,
-                        "description": description,
+        a.attrs.update({"long_name": long_name, "description": description,
                         **({"units": units} if units else {})})
-    for start in range(0, n, 1 << 20):  # a block at a time: status −1 (not run: written,
-        stop = min(start + (1 << 20), n)  # not a fill value) and the trajectory index
-        g["status"][start:stop] = _NOT_RUN
-        g["trajectory"][start:stop] = np.arange(start, stop)
-    for start in range(0, sampled if every else 0, 1 << 20):
-        stop = min(start + (1 << 20), sampled)
-        g["sampled_trajectory"][start:stop] = every * np.arange(start, stop)
+    _write_coordinates(g, sc)
+    # status −1 (not run) written, so that every status chunk is in the store.
+    for start in range(0, n, _COORD_CHUNK):
+        _filled(g, "status")[start:start + _COORD_CHUNK] = _NOT_RUN
     # Attribute values are strings and numbers only, so that netCDF can hold them too.
     g.attrs.update({
         "title": f"rbdyn_jax Monte Carlo sweep: {sc.name}",
@@ -549,8 +550,58 @@ def _create_store(loc: _Location, sc: Scenario, n: int, chunk: int, seed: int, l
         "jax_version": jax.__version__,
         "complete": 0,
     })
-    zarr.consolidate_metadata(g.store)
+    _consolidate(g)
     return g
+
+
+_COORD_CHUNK = 1 << 20  # the chunk of the index coordinates; rows written at a time
+
+
+def _create_array(g, name: str, shape: tuple, chunks: tuple, dtype, fill, dims: tuple):
+    """An array of the store: `fill` (NaN, −1 or "") wherever nothing is written, every
+    chunk checksummed (CRC32C after compression), so that a chunk whose bytes changed is
+    found by `verify` and fails when read."""
+    from zarr.codecs import BloscCodec, Crc32cCodec
+
+    return g.create_array(name, shape=shape, chunks=chunks, dtype=dtype, fill_value=fill,
+                          dimension_names=list(dims),
+                          compressors=[BloscCodec(cname="zstd", clevel=5), Crc32cCodec()])
+
+
+def _filled(g, name: str):
+    """The store's array `name` to write to: a chunk is written even when it holds only the
+    fill value (NaN, −1), so that a chunk the store lacks is one it lost."""
+    return g[name].with_config({"write_empty_chunks": True})
+
+
+def _write_coordinates(g, sc: Scenario) -> None:
+    """Write the store's coordinates: the output times, the axis labels and the trajectory
+    indices (a block at a time)."""
+    for name, (labels, *_) in _LABELS.items():
+        if name in g:
+            _filled(g, name)[:] = np.asarray(labels, dtype=object)
+    _filled(g, "time")[:] = sc.ts
+    n = g["trajectory"].shape[0]
+    for start in range(0, n, _COORD_CHUNK):
+        stop = min(start + _COORD_CHUNK, n)
+        _filled(g, "trajectory")[start:stop] = np.arange(start, stop)
+    if "sampled_trajectory" in g:
+        every, sampled = sc.trajectories, g["sampled_trajectory"].shape[0]
+        for start in range(0, sampled, _COORD_CHUNK):
+            stop = min(start + _COORD_CHUNK, sampled)
+            _filled(g, "sampled_trajectory")[start:stop] = every * np.arange(start, stop)
+
+
+def _consolidate(g) -> None:
+    """Consolidate the store's metadata into its group's (what `xarray.open_zarr` reads
+    first, and what marks a made store). Zarr warns that format 3 does not specify it yet;
+    zarr-python and xarray read it."""
+    import zarr
+
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="Consolidated metadata is currently not",
+                                category=UserWarning)
+        zarr.consolidate_metadata(g.store)
 
 
 def _check_resumable(loc: _Location, sc: Scenario, n: int, seed: int,
@@ -584,6 +635,9 @@ def _prepare_store(loc: _Location, sc: Scenario, n: int, seed: int, resume: bool
     that leaves no store `resume` would take)."""
     if resume and overwrite:
         raise ValueError("give at most one of `resume` and `overwrite`.")
+    if resume and not loc.is_store():
+        raise FileNotFoundError(f"there is no sweep store at {loc.url} to resume: drop "
+                                "--resume (resume=False) to start one.")
     if loc.is_store():
         if resume:
             return _check_resumable(loc, sc, n, seed, lanes)
@@ -619,7 +673,243 @@ def _write(g, idx: np.ndarray, out: dict[str, np.ndarray], every: int | None) ->
         if not rows.size:
             continue
         for r in np.split(np.arange(rows.size), np.nonzero(np.diff(rows) != 1)[0] + 1):
-            g[name][int(rows[r[0]]):int(rows[r[-1]]) + 1] = out[name][r[0]:r[-1] + 1]
+            _filled(g, name)[int(rows[r[0]]):int(rows[r[-1]]) + 1] = out[name][r[0]:r[-1] + 1]
+
+
+# ----------------------------------------------------------------------------------------
+# Verifying and repairing
+# ----------------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class Damage:
+    """A chunk of a store's `variable` that is `"missing"` (not in the store though it was
+    written) or `"damaged"` (its bytes fail their checksum or do not decode; `error` says
+    how): the `chunk`-th along the variable's first dimension, holding the results of
+    `trajectories` (empty for the time and label coordinates)."""
+
+    variable: str
+    chunk: int
+    problem: str
+    trajectories: range
+    error: str = ""
+
+    def __str__(self) -> str:
+        t = self.trajectories
+        held = (f"trajectories {t.start}..{t[-1]}" + (f" every {t.step}" if t.step > 1 else "")
+                if len(t) else "no trajectory's results")
+        return (f"{self.variable} chunk {self.chunk}: {self.problem} ({held})"
+                + (f": {self.error}" if self.error else ""))
+
+
+@dataclasses.dataclass(frozen=True)
+class Verification:
+    """What `verify` found in a store: its `missing` and `damaged` chunks (`Damage`), how
+    many of its `n` trajectories are not solved yet (`not_run`, counting those whose
+    status chunk is missing or damaged), and whether its metadata say it `complete`."""
+
+    store: str
+    n: int
+    missing: tuple[Damage, ...]
+    damaged: tuple[Damage, ...]
+    not_run: int
+
+    @property
+    def whole(self) -> bool:
+        """No chunk missing or damaged (trajectories may remain to be solved)."""
+        return not self.missing and not self.damaged
+
+    @property
+    def complete(self) -> bool:
+        """Whole, and every trajectory solved."""
+        return self.whole and self.not_run == 0
+
+    @property
+    def trajectories(self) -> np.ndarray:
+        """The indices of the trajectories whose results a missing or damaged chunk held,
+        ascending: those `run(..., resume=True)` solves again."""
+        held = [np.asarray(d.trajectories) for d in (*self.missing, *self.damaged)]
+        return np.unique(np.concatenate([np.zeros(0, np.int64), *held]).astype(np.int64))
+
+    def __str__(self) -> str:
+        lines = [f"{self.store}: {self.n} trajectories"]
+        for d in (*self.missing, *self.damaged):
+            lines.append(f"  {d}")
+        if not self.whole:
+            lines.append(f"damaged: {len(self.missing)} missing and {len(self.damaged)} "
+                         f"damaged chunk(s), holding the results of "
+                         f"{self.trajectories.size} trajectories; `rbdyn sweep ... --resume` "
+                         "(run(..., resume=True)) solves those again and rewrites the "
+                         "chunks")
+        elif self.not_run:
+            lines.append(f"whole, incomplete: {self.not_run} of {self.n} trajectories not "
+                         "solved yet; finish with `rbdyn sweep ... --resume`")
+        else:
+            lines.append("whole and complete: every chunk present and intact")
+        return "\n".join(lines)
+
+
+class StoreDamagedError(ValueError):
+    """A sweep store has missing or damaged chunks (`verify` lists them)."""
+
+
+def _held(a, name: str, chunk: int, n: int, every: int | None) -> range:
+    """The trajectories whose results chunk `chunk` of the store's array `a` holds."""
+    rows = a.chunks[0]
+    start, stop = chunk * rows, min((chunk + 1) * rows, a.shape[0])
+    dim = a.metadata.dimension_names[0]
+    if dim == "trajectory" and name != "trajectory":
+        return range(start, stop)
+    if dim == "sampled_trajectory" and name != "sampled_trajectory":
+        return range(start * every, min((stop - 1) * every + 1, n), every)
+    return range(0)
+
+
+def _inspect(loc: _Location, g, read: bool = True) -> Verification:
+    """`verify`'s findings for the store `g` at `loc`; with `read=False` only whether each
+    chunk is there (a listing and `status`), without reading the others."""
+    fs, root = loc.fs()
+    prefix = root.rstrip("/") + "/"
+    present = {f[len(prefix):] if f.startswith(prefix) else f for f in fs.find(root)}
+    status_array = g["status"]
+    n, every = status_array.shape[0], g.attrs.get("trajectories")
+    every = every if isinstance(every, int) else None
+    status = np.full(n, _NOT_RUN, np.int64)  # not solved where unknown
+    missing, damaged = [], []
+    names = ["status", *sorted(k for k in g.array_keys() if k != "status")]
+    for name in names:
+        a = g[name]
+        if f"{name}/zarr.json" not in present:
+            missing.append(Damage(name, -1, "missing metadata", range(0)))
+            continue
+        rows = a.chunks[0]
+        for i in range(-(-a.shape[0] // rows)):
+            held = _held(a, name, i, n, every)
+            key = f"{name}/{a.metadata.encode_chunk_key((i,) + (0,) * (a.ndim - 1))}"
+            per_trajectory = len(held) > 0
+            if key not in present:
+                # Data are written only where solved: missing where a trajectory it holds
+                # is marked solved. Status and coordinates are written when a store is made.
+                if not per_trajectory or name == "status" or np.any(status[held] >= 0):
+                    missing.append(Damage(name, i, "missing", held))
+                continue
+            if read or name == "status":
+                try:
+                    block = a.blocks[i]
+                except Exception as e:  # a failed checksum, a truncated or garbled chunk
+                    damaged.append(Damage(name, i, "damaged", held,
+                                          f"{type(e).__name__}: {e}"))
+                    continue
+                if name == "status":
+                    status[held] = block
+    return Verification(loc.url, n, tuple(missing), tuple(damaged),
+                        int(np.sum(status < 0)))
+
+
+def verify(store: str | pathlib.Path, *, storage_options: dict | None = None) -> Verification:
+    """Check every chunk of the sweep store `store` (a path or a URL): that it is there and
+    that its bytes pass their checksum (CRC32C) and decode.
+
+    A store's `status` chunks and coordinates are written when it is made; a data
+    variable's chunk is written when the trajectories it holds are solved, so it is
+    missing when one of them is marked solved and the chunk is not there. Reads the whole
+    store once.
+
+    **Returns:** a `Verification`: its `missing` and `damaged` chunks with the
+    trajectories each holds, `not_run`, and `whole` / `complete`. `run(..., resume=True)`
+    solves again exactly `Verification.trajectories` and those not run, after which the
+    store is bitwise equal to an uninterrupted run's.
+
+    **Raises:** `ValueError` if `store` is not a sweep store.
+    """
+    loc = _Location.of(store, storage_options)
+    if not loc.is_store():
+        raise ValueError(f"{store} is not a sweep store.")
+    return _inspect(loc, loc.group("r"))
+
+
+def _refuse_damaged(found: Verification) -> None:
+    """Raise `StoreDamagedError` for a store that is not whole."""
+    if not found.whole:
+        raise StoreDamagedError(
+            f"{found.store} is damaged: {len(found.missing)} missing and {len(found.damaged)} "
+            f"damaged chunk(s), holding the results of {found.trajectories.size} "
+            f"trajectories (first: {(*found.missing, *found.damaged)[0]}). List them with "
+            f"`rbdyn verify {found.store}`; `rbdyn sweep ... --resume` repairs the store.")
+
+
+def _warn_incomplete(found: Verification) -> None:
+    if found.not_run:
+        warnings.warn(f"{found.store} is incomplete: {found.not_run} of {found.n} trajectories "
+                      "not solved yet (NaN, status -1); finish with `rbdyn sweep ... "
+                      "--resume`.", IncompleteStoreWarning, stacklevel=3)
+
+
+class IncompleteStoreWarning(UserWarning):
+    """A sweep store read before all its trajectories were solved."""
+
+
+def check(store: str | pathlib.Path, *, storage_options: dict | None = None) -> Verification:
+    """Refuse a sweep store with missing chunks or damaged `status` chunks
+    (`StoreDamagedError`, naming `rbdyn verify` and `--resume`) and warn
+    (`IncompleteStoreWarning`) when trajectories remain to be solved; what `summarize`,
+    `to_netcdf` and `rbdyn plot` do before reading. Lists the store and reads `status`
+    only: a changed byte elsewhere is found when its chunk is read (its checksum fails),
+    and by `verify`."""
+    loc = _Location.of(store, storage_options)
+    if not loc.is_store():
+        raise ValueError(f"{store} is not a sweep store.")
+    found = _inspect(loc, loc.group("r"), read=False)
+    _refuse_damaged(found)
+    _warn_incomplete(found)
+    return found
+
+
+@contextlib.contextmanager
+def _reading(store, storage_options):
+    """Turn an error reading the store into `StoreDamagedError` when `verify` finds the
+    store damaged (a chunk whose checksum fails, say)."""
+    try:
+        yield
+    except Exception as e:
+        try:
+            found = verify(store, storage_options=storage_options)
+        except Exception:
+            raise e from None
+        if found.whole:
+            raise
+        try:
+            _refuse_damaged(found)
+        except StoreDamagedError as damaged:
+            raise damaged from e
+
+
+def _repair(loc: _Location, g, sc: Scenario) -> Verification:
+    """Make a store `resume` can finish: delete its damaged chunks (they then read as not
+    solved: NaN, status −1), mark the trajectories of every missing or damaged chunk not
+    run, and rewrite a damaged coordinate. The store is marked incomplete first, so a kill
+    at any moment leaves a store `verify` and `resume` take again."""
+    found = _inspect(loc, g)
+    if found.whole:
+        return found
+    if any(d.chunk < 0 for d in found.missing):
+        names = ", ".join(d.variable for d in found.missing if d.chunk < 0)
+        raise StoreDamagedError(f"cannot resume {loc.url}: the metadata of {names} are "
+                                "missing; run the sweep again with --overwrite.")
+    g.attrs["complete"] = 0
+    _consolidate(g)
+    fs, root = loc.fs()
+    for d in found.damaged:
+        a = g[d.variable]
+        fs.rm(f"{root}/{d.variable}/"
+              f"{a.metadata.encode_chunk_key((d.chunk,) + (0,) * (a.ndim - 1))}")
+    if any(not len(d.trajectories) or d.variable in ("trajectory", "sampled_trajectory")
+           for d in (*found.missing, *found.damaged)):
+        _write_coordinates(g, sc)
+    idx = found.trajectories
+    if idx.size:
+        _filled(g, "status").oindex[idx] = _NOT_RUN
+    return found
 
 
 # ----------------------------------------------------------------------------------------
@@ -807,7 +1097,6 @@ def run(
                              f"got {devices!r}.")
     elif devices is not None and (isinstance(devices, bool) or devices < 1):
         raise ValueError(f"`devices` must be a positive integer, got {devices!r}.")
-    import zarr
 
     def layout() -> tuple[int, int]:
         """The chunk and lanes of a new store, for this process's devices or a worker's."""
@@ -825,6 +1114,8 @@ def run(
     loc = _Location.of(out, storage_options)
     lanes = _prepare_store(loc, sc, n, seed, resume, overwrite, layout, lanes)
     g = loc.group("r+")
+    if resume:  # missing and damaged chunks marked not run, to be solved again
+        _repair(loc, g, sc)
     # One task per zarr chunk of the store (a resumed run keeps the store's chunking, so no
     # two tasks write one zarr chunk).
     chunk = g["status"].chunks[0]
@@ -857,7 +1148,7 @@ def run(
         _run_on_dask(client, todo, report, loc.url, sc, seed=seed, lanes=lanes, chunk=chunk,
                      devices=devices, storage_options=loc.options or None)
     g.attrs["complete"] = 1
-    zarr.consolidate_metadata(g.store)
+    _consolidate(g)
     return loc.url if loc.is_url else pathlib.Path(loc.url)
 
 
@@ -909,6 +1200,13 @@ def summarize(store: str | pathlib.Path, quantiles=(0.05, 0.5, 0.95), *,
     **Returns:** `{"n", "status": {name: count}, "summaries": {name: {count, mean, std,
     min, qNN…, max}}, "scenario", "complete"}`.
     """
+    found = check(store, storage_options=storage_options)
+    with _reading(store, storage_options):
+        stats = _summarize(store, quantiles, rows, storage_options)
+    return {**stats, "complete": stats["complete"] and found.complete}
+
+
+def _summarize(store, quantiles, rows, storage_options) -> dict:
     import dask
     import dask.array as da
 
@@ -962,8 +1260,7 @@ def to_netcdf(store: str | pathlib.Path, path: str | pathlib.Path, *,
     `overwrite`; `ValueError` if `store` is not a sweep store.
     """
     path = pathlib.Path(path)
-    if not _Location.of(store, storage_options).is_store():
-        raise ValueError(f"{store} is not a sweep store.")
+    check(store, storage_options=storage_options)
     if path.exists() and not overwrite:
         raise FileExistsError(f"{path} exists: pass --overwrite (overwrite=True) to replace it.")
     ds = open_dataset(store, storage_options=storage_options, chunks={})
@@ -977,7 +1274,8 @@ def to_netcdf(store: str | pathlib.Path, path: str | pathlib.Path, *,
     status.attrs["flag_values"] = np.asarray(status.attrs["flag_values"], status.dtype)
     tmp = path.with_name(path.name + ".partial")
     try:
-        ds.to_netcdf(tmp, engine="netcdf4", format="NETCDF4")
+        with _reading(store, storage_options):
+            ds.to_netcdf(tmp, engine="netcdf4", format="NETCDF4")
         os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)
@@ -985,7 +1283,12 @@ def to_netcdf(store: str | pathlib.Path, path: str | pathlib.Path, *,
 
 
 __all__ = [
+    "Damage",
+    "IncompleteStoreWarning",
     "Progress",
+    "StoreDamagedError",
+    "Verification",
+    "check",
     "chunking",
     "open_dataset",
     "plots_dir",
@@ -995,4 +1298,5 @@ __all__ = [
     "summarize",
     "to_netcdf",
     "trajectory_bytes",
+    "verify",
 ]

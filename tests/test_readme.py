@@ -21,4 +21,4 @@ def test_readme_python_blocks_run(tmp_path, monkeypatch):
     g = next(ns["g"] for ns in spaces if "g" in ns)
     assert np.all(np.isfinite(np.asarray(g))) and g.shape == (6,)
     # the sweep snippet wrote its store where it said
-    assert (tmp_path / "results" / "readme_sweep.zarr" / ".zgroup").exists()
+    assert (tmp_path / "results" / "readme_sweep.zarr" / "zarr.json").exists()
