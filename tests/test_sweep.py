@@ -442,7 +442,7 @@ def test_a_summaries_only_store_costs_under_200_bytes_a_trajectory(tmp_path):
     three summaries (24), `status` (4), `num_steps` (8) and the `trajectory` coordinate
     (8): 116 bytes before compression. Zarr's compressor takes little off the drawn floats
     (the symmetric inertia to 68 bytes) and nearly all of the integers; the metadata files,
-    12 kB, are 3 bytes a trajectory at n = 4096. Measured: 95 bytes a trajectory (bound
+    24 kB, are 6 bytes a trajectory at n = 4096. Measured: 92 bytes a trajectory (bound
     200: what the store holds for every trajectory, not a state among it)."""
     n = 4096
     out = sweep.run(Scenario.from_dict(small()), n, tmp_path / "s.zarr", chunk=256, seed=0,
