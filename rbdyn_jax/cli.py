@@ -7,6 +7,8 @@
   devices: CPU cores or GPUs) or as tasks on a Dask cluster, with a progress bar and a
   summary table (`rbdyn_jax.sweep`). Exits 3 if some trajectories failed, 4 if all did.
 - `rbdyn export STORE OUT.nc [--overwrite]`: a sweep store as a netCDF-4 file.
+- `rbdyn verify STORE`: every chunk of a sweep store there and intact (its checksum), or
+  the missing and damaged ones with the trajectories they hold (`--resume` repairs them).
 - `rbdyn plot PATH [--out DIR]`: PNGs of a sweep (summary histograms, sample
   trajectories, polhodes on their energy ellipsoids, status counts).
 - `rbdyn fit DATA --model SCENARIO [--free inertia,k] [--out PATH]`: identify the
@@ -15,6 +17,10 @@
 - `rbdyn scenarios`: the shipped scenarios.
 - `rbdyn demo`: the shipped default body, one trajectory, printed.
 - `rbdyn --version`: the installed version.
+
+A command ends with one message, never a traceback: status 2 for a user's error (a bad
+option, scenario or path), 5 for a damaged store, 6 for a fit that did not converge, 7
+for `rbdyn verify` of an incomplete store, 130 on Ctrl-C (the `EXIT_*` constants).
 
 XLA starts with the flags `import rbdyn_jax` sets (`rbdyn_jax.configure_xla`: one CPU
 device per core, since one XLA CPU device uses about one core for these solves, and while
@@ -27,10 +33,18 @@ empty to turn this off).
 
 import argparse
 import os
+import shlex
 import sys
 import time
+import warnings
 
 from ._version import __version__
+
+EXIT_USAGE = 2  # a usage error, an invalid scenario or data, a path that cannot be written
+EXIT_DAMAGED = 5  # a store with missing or damaged chunks (`rbdyn verify` lists them)
+EXIT_INCOMPLETE = 7  # `rbdyn verify`: a whole store with trajectories not solved yet
+EXIT_INTERRUPTED = 130  # Ctrl-C (128 + SIGINT)
+LOG_EVERY = 5.0  # seconds between progress lines when stderr is not a terminal
 
 
 def _default_body():
@@ -169,6 +183,7 @@ def _compilation_cache(jax) -> None:
 
 EXIT_SOME_FAILED = 3  # `rbdyn sweep`: some trajectories failed (the rest are written)
 EXIT_ALL_FAILED = 4  # `rbdyn sweep`: every trajectory failed
+EXIT_NOT_CONVERGED = 6  # `rbdyn fit`: the fit did not converge (its files are written)
 
 
 def _hints(status: dict[str, int], scenario) -> list[str]:
@@ -244,8 +259,6 @@ def sweep_command(args) -> int:
 
     jax.config.update("jax_enable_x64", True)
     _compilation_cache(jax)
-    from tqdm import tqdm
-
     from . import sweep
     from .scenario import Scenario, ScenarioError
 
@@ -279,31 +292,26 @@ def sweep_command(args) -> int:
                  + ("each on all its devices" if n_dev is None else f"{n_dev} device(s) each"))
     print(f"  {args.n} trajectories {where}, seed {args.seed}, {scenario.dtype}, "
           f"{_states_text(scenario.trajectories)} → {args.out}")
-    bar = tqdm(total=args.n, unit="traj", unit_scale=True, dynamic_ncols=True,
-               desc="solving (first chunk compiles)", file=sys.stderr)
-
-    def progress(p: "sweep.Progress") -> None:
-        if bar.n == 0 and p.done > p.solved_now:  # resumed: count the finished ones
-            bar.update(p.done - p.solved_now)
-        bar.set_description("solving")
-        bar.set_postfix(failed=p.failed)
-        bar.update(p.solved_now)
-
+    progress, close = _progress_reporter(args.n)
     t0 = time.perf_counter()
     try:
         path = sweep.run(scenario, args.n, args.out, chunk=args.chunk, seed=args.seed,
                          devices=n_dev, lanes=args.lanes, resume=args.resume,
                          overwrite=args.overwrite, client=client, progress=progress)
-    except (ValueError, FileExistsError) as e:
-        bar.close()
-        print(f"rbdyn sweep: {e}", file=sys.stderr)
-        return 2
+    except KeyboardInterrupt:
+        close()
+        print(f"\nrbdyn sweep: interrupted: {_solved_text(sweep, args)}", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except (ValueError, OSError) as e:  # FileExistsError, FileNotFoundError, ...
+        close()
+        print(f"rbdyn sweep: {_error_text(e, args.out)}", file=sys.stderr)
+        return EXIT_DAMAGED if isinstance(e, sweep.StoreDamagedError) else EXIT_USAGE
     finally:
         if client is not None:
             client.close()
         if cluster is not None:
             cluster.close()
-    bar.close()
+    close()
     elapsed = time.perf_counter() - t0
     stats = sweep.summarize(path)
     attrs = sweep.open_dataset(path).attrs
@@ -321,32 +329,148 @@ def sweep_command(args) -> int:
     return 0
 
 
+def _progress_reporter(total: int):
+    """`(progress, close)` for `sweep.run`: a progress bar on a terminal; elsewhere (a log, a
+    pipe) a line every `LOG_EVERY` seconds and one at the end."""
+    if sys.stderr.isatty():
+        from tqdm import tqdm
+
+        bar = tqdm(total=total, unit="traj", unit_scale=True, dynamic_ncols=True,
+                   desc="solving (first chunk compiles)", file=sys.stderr)
+
+        def progress(p) -> None:
+            if bar.n == 0 and p.done > p.solved_now:  # resumed: count the finished ones
+                bar.update(p.done - p.solved_now)
+            bar.set_description("solving")
+            bar.set_postfix(failed=p.failed)
+            bar.update(p.solved_now)
+
+        return progress, bar.close
+    print("solving (the first chunk compiles)", file=sys.stderr, flush=True)
+    last = [time.perf_counter()]
+
+    def line(p) -> None:
+        now = time.perf_counter()
+        if now - last[0] >= LOG_EVERY or p.done == p.total:
+            last[0] = now
+            print(f"solved {p.done} of {p.total} ({100 * p.done / p.total:.0f} %), "
+                  f"{p.failed} failed, {p.elapsed:.1f} s", file=sys.stderr, flush=True)
+
+    return line, lambda: None
+
+
+def _resume_command(args) -> str:
+    """The command that finishes the sweep `args` started: the same, with --resume."""
+    argv = [a for a in args.argv if a != "--overwrite"]
+    return shlex.join(["rbdyn", *argv, *([] if "--resume" in argv else ["--resume"])])
+
+
+def _solved_text(sweep, args) -> str:
+    """`N of M solved; finish with ...` for an interrupted sweep, N read from its store."""
+    import numpy as np
+    import zarr
+
+    try:
+        done = int(np.sum(zarr.open_group(args.out, mode="r")["status"][:] >= 0))
+    except Exception:  # no store made yet
+        return "no store was made; run the command again."
+    return f"{done} of {args.n} solved; finish with `{_resume_command(args)}`"
+
+
+def _error_text(e: Exception, path: str) -> str:
+    """The message of a user-caused error: an OS error on `path` as `cannot write PATH:
+    reason`, any other as it is."""
+    if isinstance(e, OSError) and e.errno is not None:
+        return f"cannot write {path}: {e.strerror}"
+    return str(e)
+
+
+def _store_problem(sweep, command: str, store: str) -> int | None:
+    """Refuse a store that is not one or is damaged (the exit status), warn on an incomplete
+    one (`sweep.check`); `None` when the command may read it."""
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", sweep.IncompleteStoreWarning)
+            sweep.check(store)
+    except sweep.StoreDamagedError as e:
+        print(f"rbdyn {command}: {e}", file=sys.stderr)
+        return EXIT_DAMAGED
+    except (ValueError, OSError) as e:
+        print(f"rbdyn {command}: {_error_text(e, store)}", file=sys.stderr)
+        return EXIT_USAGE
+    for w in caught:
+        print(f"rbdyn {command}: warning: {w.message}", file=sys.stderr)
+    return None
+
+
 def export_command(args) -> int:
     from . import sweep
 
+    if (code := _store_problem(sweep, "export", args.store)) is not None:
+        return code
     try:
-        path = sweep.to_netcdf(args.store, args.out, overwrite=args.overwrite)
-    except (ValueError, FileExistsError) as e:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", sweep.IncompleteStoreWarning)  # said above
+            path = sweep.to_netcdf(args.store, args.out, overwrite=args.overwrite)
+    except sweep.StoreDamagedError as e:
         print(f"rbdyn export: {e}", file=sys.stderr)
-        return 2
+        return EXIT_DAMAGED
+    except (ValueError, OSError) as e:
+        print(f"rbdyn export: {_error_text(e, args.out)}", file=sys.stderr)
+        return EXIT_USAGE
     print(f"wrote {path} (open with xarray.open_dataset({str(path)!r}))")
     return 0
 
 
 def plot_command(args) -> int:
+    from . import sweep
     from ._plots import plot_sweep
 
-    files = plot_sweep(args.path, args.out)
+    if (code := _store_problem(sweep, "plot", args.path)) is not None:
+        return code
+    try:
+        with sweep._reading(args.path, None):
+            files = plot_sweep(args.path, args.out)
+    except sweep.StoreDamagedError as e:
+        print(f"rbdyn plot: {e}", file=sys.stderr)
+        return EXIT_DAMAGED
+    except OSError as e:
+        print(f"rbdyn plot: {_error_text(e, args.out or args.path)}", file=sys.stderr)
+        return EXIT_USAGE
     for f in files:
         print(f"wrote {f}")
     import xarray as xr
 
-    with xr.open_zarr(args.path, consolidated=False) as ds:
+    with xr.open_zarr(args.path) as ds:
         if "omega" not in ds:
             print("note: no trajectories.png or polhodes.png: the store keeps no states (a "
                   'sweep with trajectories = "none"); sweep with --trajectories all or K '
                   "to plot them")
     return 0
+
+
+def verify_command(args) -> int:
+    from . import sweep
+
+    try:
+        found = sweep.verify(args.store)
+    except (ValueError, OSError) as e:
+        print(f"rbdyn verify: {_error_text(e, args.store)}", file=sys.stderr)
+        return EXIT_USAGE
+    print(found)
+    if found.complete:
+        return 0
+    from ._catalogue import catalogue
+
+    attrs = sweep.open_dataset(args.store).attrs
+    name = attrs["scenario_name"]
+    scenario = name if name in catalogue() else "SCENARIO.toml"  # the file it was run from
+    seed = [] if attrs["seed"] == 0 else ["--seed", str(attrs["seed"])]
+    print("finish it with: " + shlex.join([
+        "rbdyn", "sweep", scenario, "--n", str(attrs["n_trajectories"]), *seed,
+        "--trajectories", str(attrs["trajectories"]), "--dtype", attrs["dtype"],
+        "--out", str(args.store), "--resume"]))
+    return EXIT_DAMAGED if not found.whole else EXIT_INCOMPLETE
 
 
 def load_observations(path: str, *, sigma_omega=None, sigma_quat=None, trajectories=None,
@@ -406,7 +530,7 @@ def load_observations(path: str, *, sigma_omega=None, sigma_quat=None, trajector
     else:
         import xarray as xr
 
-        ds = xr.open_zarr(p) if (p / ".zgroup").exists() else xr.open_dataset(p)
+        ds = xr.open_zarr(p) if p.is_dir() else xr.open_dataset(p)
         if "omega" not in ds and "quat" not in ds:
             raise ValueError(f"{path} holds no ω or attitude to fit (a sweep store keeping no "
                              "states: sweep with --trajectories all or K)")
@@ -478,6 +602,116 @@ def _get_path(obj, path):
     return obj
 
 
+def _compile_meter(jax):
+    """A context in which JAX's own reports are counted: `tracing_s`, the seconds spent
+    tracing, lowering and compiling programs in this process (a program loaded from JAX's
+    persistent cache is not compiled: its time is not counted), and `loaded`, the programs
+    loaded from the caches (JAX's persistent cache, rbdyn_jax's traced programs)."""
+    import contextlib
+
+    from . import _traces
+
+    meter = {"tracing_s": 0.0, "loaded": 0, "hit": False}
+    work = ("/jax/core/compile/jaxpr_trace_duration",
+            "/jax/core/compile/jaxpr_to_mlir_module_duration")
+
+    def event(name, **_):
+        if name == "/jax/compilation_cache/cache_hits":  # inside the compile event below
+            meter["loaded"] += 1
+            meter["hit"] = True
+
+    def duration(name, seconds, **_):
+        if name == "/jax/core/compile/backend_compile_duration":
+            if not meter["hit"]:
+                meter["tracing_s"] += seconds
+            meter["hit"] = False
+        elif name in work:
+            meter["tracing_s"] += seconds
+
+    @contextlib.contextmanager
+    def metering():
+        hits = _traces.stats["hits"]
+        jax.monitoring.register_event_listener(event)
+        jax.monitoring.register_event_duration_secs_listener(duration)
+        try:
+            yield meter
+        finally:
+            jax.monitoring.unregister_event_listener(event)
+            jax.monitoring.unregister_event_duration_listener(duration)
+            meter["loaded"] += _traces.stats["hits"] - hits
+
+    return metering()
+
+
+def _time_text(elapsed: float, meter: dict) -> str:
+    """`4.7 s (3.9 s of it tracing and compiling)`, `0.5 s (program loaded from the cache)`:
+    what the fit's time held, as `_compile_meter` measured it."""
+    parts = []
+    if meter["loaded"]:
+        parts.append("program loaded from the cache")
+    if meter["tracing_s"] >= 0.5:  # not the small programs around a loaded one
+        parts.append(f"{meter['tracing_s']:.1f} s of it tracing and compiling")
+    return f"{elapsed:.1f} s" + (f" ({', '.join(parts)})" if parts else "")
+
+
+def _finer(horizons: tuple[float, ...]) -> str:
+    """More, shorter stages than `horizons`: half the first, and a stage between each two."""
+    h = [horizons[0] / 2, horizons[0]]
+    for a, b in zip(horizons, horizons[1:]):
+        h += [(a + b) / 2, b]
+    return ",".join(f"{x:g}" for x in h)
+
+
+def _fit_hints(args, res, horizons, params, K) -> list[str]:
+    """What to try after a fit that did not converge, for what its result shows."""
+    import numpy as np
+
+    loss, decrement = float(res.loss), float(res.decrement)
+    hints = []
+    if not np.isfinite(loss):
+        hints.append("the model could not be solved at the starting point (the loss is not "
+                     "finite): start nearer the truth (see the last point)")
+    elif decrement >= 1e-2 * loss:  # Gauss–Newton: a step would still lower the loss much
+        hints.append(f"the loss ({loss:.4g}) is still falling (a Gauss–Newton step would "
+                     f"lower it by up to {decrement:.3g}): more steps, --steps "
+                     f"{max(2 * args.steps, 30)}")
+    else:
+        hints.append(f"the loss stalled at {loss:.4g} (a further step would lower it by at "
+                     f"most {decrement:.3g}), a local minimum that more steps do not leave")
+    if horizons == (1.0,):
+        hints.append("fit growing parts of the records, each stage starting from the last: "
+                     "--horizons 0.25,0.5,1 (a long or chaotic record fitted whole stalls in a "
+                     "local minimum)")
+    else:
+        hints.append(f"start from a shorter part of the records, in more stages: --horizons "
+                     f"{_finer(horizons)}")
+    if "inertia" in params and args.scale is None and not res.scale_identified:
+        hints.append("the data fix J only up to scale: fix it with --scale trace=V or --scale "
+                     "moment=AXIS:V")
+    if res.ill_determined > (0 if res.scale_identified and args.scale is None else 1):
+        hints.append(f"{res.ill_determined} direction(s) of the parameters are ill-determined: "
+                     "free fewer of them (--free), or fit more data")
+    if args.trajectories is not None:
+        hints.append(f"fit more records, if the data hold more than the {K} fitted: "
+                     f"--trajectories {2 * K}, or leave --trajectories out for all of them")
+    hints.append(f"start nearer the truth: the fit starts from the nominal values of the "
+                 f"[model] of {args.model} and the first observed states; give --model a "
+                 "scenario file whose [model] values are closer (`rbdyn scenarios` names the "
+                 "shipped files to copy)")
+    return hints
+
+
+def _fit_verdict(args, res, horizons, params, K) -> int:
+    """0 for a converged fit; else `EXIT_NOT_CONVERGED`, with what to try on stderr."""
+    if res.converged:
+        return 0
+    print("rbdyn fit: the fit did not converge: the values above are where it stopped, not a "
+          "fit of the data. To try:", file=sys.stderr)
+    for hint in _fit_hints(args, res, horizons, params, K):
+        print(f"  - {hint}", file=sys.stderr)
+    return EXIT_NOT_CONVERGED
+
+
 def fit_command(args) -> int:
     import json
     import pathlib
@@ -531,24 +765,31 @@ def fit_command(args) -> int:
     print(f"rbdyn fit: {K} trajectories × {n} samples from {args.data}; model "
           f"{scenario.name} ({', '.join(scenario.torques) or 'no torque'}); free: "
           f"{', '.join(params)}")
-    t0 = time.perf_counter()
-    horizons = None
-    if args.horizons:
-        try:
-            horizons = tuple(float(x) for x in args.horizons.split(","))
-        except ValueError:
-            print("rbdyn fit: --horizons is a comma list such as 0.25,0.5,1", file=sys.stderr)
-            return 2
     try:
-        res = identify.fit(model, data, params=params, torque_where=where, scale=scale,
-                           steps=args.steps, horizons=horizons)
+        horizons = tuple(float(x) for x in args.horizons.split(","))
+    except ValueError:
+        print("rbdyn fit: --horizons is a comma list such as 0.25,0.5,1", file=sys.stderr)
+        return 2
+    t0 = time.perf_counter()
+    try:
+        with _compile_meter(jax) as meter:
+            res = identify.fit(model, data, params=params, torque_where=where, scale=scale,
+                               steps=args.steps,
+                               horizons=None if horizons == (1.0,) else horizons)
     except ValueError as e:
         print(f"rbdyn fit: {e}", file=sys.stderr)
         return 2
     elapsed = time.perf_counter() - t0
     lh = np.asarray(res.loss_history)
-    print(f"  loss {lh[0]:.6g} → {lh[-1]:.6g} in {args.steps} steps, "
-          f"converged: {res.converged}, {elapsed:.1f} s (with compilation)")
+    if horizons == (1.0,):
+        print(f"  loss {lh[0]:.6g} → {lh[-1]:.6g} in at most {args.steps} step"
+              f"{'s' if args.steps > 1 else ''}, "
+              f"converged: {res.converged}, {_time_text(elapsed, meter)}")
+    else:
+        print(f"  horizons {', '.join(f'{h:g}' for h in horizons)} of each record, at most "
+              f"{args.steps} step{'s' if args.steps > 1 else ''} each: loss {lh[-1]:.6g} over "
+              "the whole record, "
+              f"converged: {res.converged}, {_time_text(elapsed, meter)}")
     report: dict = {"converged": bool(res.converged), "loss": float(res.loss),
                     "notes": list(res.notes), "time_s": elapsed}
     if "inertia" in params:
@@ -579,7 +820,7 @@ def fit_command(args) -> int:
         import matplotlib
     except ImportError:
         print(f"wrote {out / 'fit.json'} (no plot: pip install matplotlib)")
-        return 0
+        return _fit_verdict(args, res, horizons, params, K)
     from matplotlib.figure import Figure
 
     del matplotlib
@@ -610,9 +851,12 @@ def fit_command(args) -> int:
             ax.set(xlabel="t [s]", ylabel="quaternion", title=f"trajectory {k}: attitude "
                    "observed (dots) vs fitted")
             ax.legend(fontsize=7)
+    if not res.converged:
+        fig.suptitle("not converged: the fitted curves are where the fit stopped",
+                     color="C3")
     fig.savefig(out / "fit.png", dpi=90)
     print(f"wrote {out / 'fit.json'} and {out / 'fit.png'}")
-    return 0
+    return _fit_verdict(args, res, horizons, params, K)
 
 
 def _trajectories_arg(text: str) -> str | int:
@@ -676,6 +920,9 @@ def build_parser() -> argparse.ArgumentParser:
     p_plot = sub.add_parser("plot", help="PNGs of a sweep store")
     p_plot.add_argument("path", help="a store written by rbdyn sweep")
     p_plot.add_argument("--out", default=None, help="folder for the PNGs (default PATH_plots)")
+    p_verify = sub.add_parser("verify", help="check that every chunk of a sweep store is there "
+                              "and intact")
+    p_verify.add_argument("store", help="a store written by rbdyn sweep")
     p_fit = sub.add_parser("fit", help="identify inertia / torque parameters from observations")
     p_fit.add_argument("data", help="observations: .npz, .csv, or a store/netCDF xarray opens")
     p_fit.add_argument("--model", required=True, help="scenario TOML (or shipped name) giving "
@@ -683,14 +930,16 @@ def build_parser() -> argparse.ArgumentParser:
     p_fit.add_argument("--free", default="inertia,ic",
                        help="free parameters: inertia, k, torque, ic (default inertia,ic)")
     p_fit.add_argument("--out", default="results/fit", help="folder for fit.json, fit.png")
-    p_fit.add_argument("--steps", type=int, default=30, help="Levenberg–Marquardt steps")
+    p_fit.add_argument("--steps", type=int, default=30,
+                       help="Levenberg–Marquardt steps, at most, per horizon (default 30)")
     p_fit.add_argument("--scale", default=None,
                        help="fix the scale of J: trace=V or moment=AXIS:V (torque-free data)")
     p_fit.add_argument("--sigma-omega", type=float, default=None, help="ω noise [rad/s]")
     p_fit.add_argument("--sigma-quat", type=float, default=None, help="attitude noise [rad]")
     p_fit.add_argument("--trajectories", type=int, default=None, help="use the first K")
-    p_fit.add_argument("--horizons", default=None,
-                       help="staged horizons for long records, e.g. 0.25,0.5,1")
+    p_fit.add_argument("--horizons", default="0.25,0.5,1",
+                       help="fit growing fractions of every record, each stage starting from "
+                            "the last (default 0.25,0.5,1); 1: the whole record at once")
     p_fit.add_argument("--seq", default="ZXZ", help="Euler sequence of `euler` data")
     sub.add_parser("scenarios", help="list the shipped scenarios")
     p_demo = sub.add_parser("demo", help="summarise and simulate the shipped default body")
@@ -702,6 +951,18 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    args.argv = list(sys.argv[1:] if argv is None else argv)
+    try:
+        with warnings.catch_warnings():  # one line each, without the line that warned
+            warnings.showwarning = lambda message, *_, **__: print(
+                f"rbdyn {args.command}: warning: {message}", file=sys.stderr)
+            return _dispatch(parser, args)
+    except KeyboardInterrupt:
+        print(f"\nrbdyn {args.command}: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+
+
+def _dispatch(parser, args) -> int:
     if args.command == "sweep":
         for name in ("n", "chunk", "lanes", "devices", "workers"):
             v = getattr(args, name)
@@ -714,6 +975,8 @@ def main(argv: list[str] | None = None) -> int:
         return plot_command(args)
     if args.command == "export":
         return export_command(args)
+    if args.command == "verify":
+        return verify_command(args)
     if args.command == "fit":
         if args.steps < 1:
             parser.error("--steps must be ≥ 1")
