@@ -108,7 +108,7 @@ def main(t_end: float = 30.0, n_out: int = 3001, out_dir: str = "results/example
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 3, figsize=(14, 4))
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4.2), layout="constrained")
     ax = axes[0]
     ax.plot(t, u, color="C0", linewidth=1.0, label="γ''(t) simulated")
     ax.plot(tp, np.interp(tp, t, u), "o", color="C3", markersize=4, label="turning points")
@@ -116,9 +116,9 @@ def main(t_end: float = 30.0, n_out: int = 3001, out_dir: str = "results/example
         ax.axhline(r, color="k", linestyle="--", linewidth=0.6)
     ax.plot([], [], "k--", linewidth=0.6,
             label="roots of the quartic (eq. 19)")
-    ax.set_xlabel("t")
-    ax.set_ylabel("γ''")
-    span = u_hi - u_lo
+    ax.set_xlabel("t [s]")
+    ax.set_ylabel("γ'' (direction cosine) [1]")
+    span = u_hi - u_lo  # the band below u_lo holds the legend, clear of the curve
     ax.set_ylim(u_lo - 0.45 * span, u_hi + 0.08 * span)
     ax.set_title("nutation of the axis of symmetry")
     ax.legend(fontsize=8, loc="lower center", ncol=1)
@@ -127,22 +127,23 @@ def main(t_end: float = 30.0, n_out: int = 3001, out_dir: str = "results/example
         ax.plot(np.arange(1, gaps.size + 1), gaps / half - 1.0, "o-", color="C3", markersize=4)
     ax.axhline(0.0, color="k", linewidth=0.6)
     ax.set_xlabel("half period number")
-    ax.set_ylabel("Δt / (T/2)_quadrature − 1")
-    ax.set_title(f"T/2 = {half:.6f} by quadrature", pad=16)  # clear of the axis' offset
+    ax.set_ylabel("Δt / (T/2)_quadrature − 1 [1]")
+    ax.set_title(f"T/2 = {half:.6f} s by quadrature", pad=16)  # clear of the axis' offset
     ax = axes[2]
+    units = {"C1": "rad²/s²", "C2": "rad/s", "r": "rad/s", "|γ|²": "1"}
     for k, (name, x) in enumerate(zip(names, integrals)):
         ax.semilogy(
             t,
             np.abs(x - x[0]) + 1e-18,
             color=f"C{k}",
             linewidth=0.8,
-            label=f"{name} (max {drift[name]:.0e})",
+            label=f"{name} [{units[name]}] (max {drift[name]:.0e})",
         )
-    ax.set_ylim(1e-17, 1e-6)
-    ax.set_xlabel("t")
-    ax.set_title("drift |I(t) − I(0)| of the first integrals")
+    ax.set_ylim(1e-17, 1e-6)  # the decades above 1e-9 hold the legend, clear of the drifts
+    ax.set_xlabel("t [s]")
+    ax.set_ylabel("|I(t) − I(0)| [units of I]")
+    ax.set_title("drift of the first integrals I")
     ax.legend(fontsize=8, loc="upper left", ncol=2)
-    fig.tight_layout()
     out = pathlib.Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     fig.savefig(out / "gg_integrable.png", dpi=110)

@@ -117,7 +117,7 @@ def main(
     # The fitted model at the sample times (same shapes as the data: no new compilation).
     fitted = rb.simulate_batch(res.model, res.y0, ts, rtol=1e-12, atol=1e-12, throw=True)
     w_fit = np.asarray(fitted.ys.omega)
-    fig = plt.figure(figsize=(12, 7))
+    fig = plt.figure(figsize=(12, 7.5), layout="constrained")
     grid = fig.add_gridspec(3, 2, width_ratios=(1.6, 1.0))
     for k in range(3):
         ax = fig.add_subplot(grid[k, 0])
@@ -129,7 +129,7 @@ def main(
         ax.set_ylabel(f"record {k + 1}: ω [rad/s]")
         if k == 0:
             ax.set_title("observed (dots) vs fitted model (lines)")
-            ax.legend(fontsize=7, ncol=3)
+            handles = ax.get_legend_handles_labels()
         if k == 2:
             ax.set_xlabel("t [s]")
     ax = fig.add_subplot(grid[:, 1])
@@ -140,8 +140,10 @@ def main(
     ax.set_xticks(x, ENTRY_NAMES)
     ax.set_ylabel("J_fit − J_true [kg m²]")
     ax.set_title(f"inertia error (max {summary['max_error_in_stderr']:.1f} stderr)")
-    ax.legend(fontsize=8)
-    fig.tight_layout()
+    bars = ax.get_legend_handles_labels()
+    # one legend for both panels, below them
+    fig.legend(handles[0] + bars[0], handles[1] + bars[1], loc="outside lower center", ncols=7,
+               fontsize=8)
     out = pathlib.Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     fig.savefig(out / "identify_inertia.png", dpi=110)

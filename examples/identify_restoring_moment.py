@@ -134,13 +134,13 @@ def main(
     K_sd = np.sqrt(np.einsum("ni,ij,nj->n", V, cov, V))
     summary["K_max_error_in_sigma"] = float(np.max(np.abs(K_fit - K_true) / K_sd))
 
-    fig, axes = plt.subplots(1, 3, figsize=(15, 4.5))
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4.5), layout="constrained")
     ax = axes[0]
     for k in range(n_rec):
         ax.plot(ts, psi_obs[k], ".", color=f"C{k}", markersize=3,
                 label=f"observed (θ0 = {theta0s[k]:g})")
         ax.plot(ts, psi_fit[k], "-", color=f"C{k}", linewidth=1.0, label="fitted model")
-    ax.set_xlabel("t")
+    ax.set_xlabel("t [s]")
     ax.set_ylabel("ψ [rad]")
     ax.set_title("precession angle ψ (ZXZ) from the attitude record")
     ax.legend(fontsize=8)
@@ -150,19 +150,18 @@ def main(
     ax.plot(tau, K_fit, color="C1", label="fitted")
     ax.fill_between(tau, K_fit - 2 * K_sd, K_fit + 2 * K_sd, color="C1", alpha=0.3,
                     label="fitted ± 2σ")
-    ax.set_xlabel("τ = ε t")
-    ax.set_ylabel("K(τ)")
+    ax.set_xlabel("τ = ε t [s]")
+    ax.set_ylabel("K(τ) [N m]")
     ax.set_title("restoring-moment amplitude K(τ)")
     ax.legend(fontsize=8)
     ax = axes[2]
     ax.fill_between(tau, -2 * K_sd, 2 * K_sd, color="C1", alpha=0.3, label="± 2σ")
     ax.plot(tau, K_fit - K_true, color="C1", label="fitted − true")
     ax.axhline(0.0, color="k", linewidth=0.7)
-    ax.set_xlabel("τ = ε t")
-    ax.set_ylabel("K_fit(τ) − K(τ)")
+    ax.set_xlabel("τ = ε t [s]")
+    ax.set_ylabel("K_fit(τ) − K(τ) [N m]")
     ax.set_title("error of the fitted K, var K(τ) = [1, τ] C [1, τ]ᵀ")
     ax.legend(fontsize=8)
-    fig.tight_layout()
     out = pathlib.Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     fig.savefig(out / "identify_restoring_moment.png", dpi=110)

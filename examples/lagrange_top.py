@@ -96,7 +96,7 @@ def main(eps: float = 0.02, n_out: int = 2001, out_dir: str = "results/examples"
     import matplotlib.pyplot as plt
 
     t = np.asarray(ts)
-    fig, axes = plt.subplots(2, 2, figsize=(11, 6.5), sharex=True)
+    fig, axes = plt.subplots(2, 2, figsize=(12, 7), sharex=True, layout="constrained")
     style_1 = dict(color="k", linestyle="--", linewidth=1.0, label="first approximation")
     style_2 = dict(color="C1", linestyle=":", linewidth=1.2, label="second approximation")
     ax = axes[0, 0]
@@ -105,21 +105,21 @@ def main(eps: float = 0.02, n_out: int = 2001, out_dir: str = "results/examples"
     ax.plot(t, second[0], **style_2)
     ax.set_ylabel("ψ [rad]")
     ax.set_title("precession ψ: tan(ψ/2) = tan(ψ0/2) exp(F1(τ))")
-    ax.legend(fontsize=8)
     ax = axes[0, 1]
     ax.plot(t, theta, color="C0", linewidth=0.8, label="simulated")
     ax.plot(t, first[1], **style_1)
     ax.plot(t, second[1], **style_2)
     ax.set_ylabel("θ [rad]")
     ax.set_title("nutation θ: from rest, between θ0 and θ0 + 2a")
-    ax.legend(fontsize=8)
     ax = axes[1, 0]
     ax.plot(t, r, color="C0", linewidth=1.0, label="simulated")
     ax.plot(t, first[2], **style_1)
     ax.set_ylabel("r [rad/s]")
-    ax.set_xlabel("t")
-    ax.set_title(f"spin r = r0 + M3 t / C (max error {summary['r_error_first']:.0e})")
-    ax.legend(fontsize=8)
+    ax.set_xlabel("t [s]")
+    ax.set_title(f"spin r = r0 + M3 t / C (max error {summary['r_error_first']:.0e} rad/s)")
+    # one legend for the three solution panels, above them
+    fig.legend(*axes[0, 0].get_legend_handles_labels(), loc="outside upper center", ncols=3,
+               fontsize=8)
     ax = axes[1, 1]
     ax.semilogy(t, np.abs(psi - first[0]) + 1e-16, color="k", linewidth=0.7, label="|ψ − ψ first|")
     ax.semilogy(
@@ -134,10 +134,10 @@ def main(eps: float = 0.02, n_out: int = 2001, out_dir: str = "results/examples"
     ax.axhline(eps, color="k", linestyle="--", linewidth=0.6)
     ax.axhline(eps**2, color="C1", linestyle="--", linewidth=0.6)
     ax.set_ylim(1e-8, 1.0)
-    ax.set_xlabel("t")
+    ax.set_xlabel("t [s]")
+    ax.set_ylabel("absolute error [rad]")
     ax.set_title(f"errors (dashed: ε = {eps:g}, ε²)")
-    ax.legend(fontsize=7, loc="lower right", ncol=2)
-    fig.tight_layout()
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))  # beside the axes
     out = pathlib.Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     fig.savefig(out / "lagrange_top.png", dpi=110)

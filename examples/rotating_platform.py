@@ -56,26 +56,29 @@ def main(t_end: float = 100.0, n_out: int = 4001, out_dir: str = "results/exampl
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig = plt.figure(figsize=(11, 4.5))
+    fig = plt.figure(figsize=(12, 4.8), layout="constrained")
+    fig.get_layout_engine().set(wspace=0.12)  # room for the 3-D axes' z label
     ax = fig.add_subplot(1, 2, 1, projection="3d")
     u, v = np.mgrid[0 : 2 * np.pi : 40j, 0 : np.pi : 20j]
     a, b, c = (np.sqrt(2 * Tr[0] / m) for m in np.asarray(moments))
     ax.plot_wireframe(a * np.cos(u) * np.sin(v), b * np.sin(u) * np.sin(v), c * np.cos(v),
                       color="0.8", linewidth=0.4)
     ax.plot(w[:, 0], w[:, 1], w[:, 2], color="C3", linewidth=0.8)
-    ax.set_box_aspect((a, b, c))
+    ax.set(xlim=(-a, a), ylim=(-b, b), zlim=(-c, c))
+    ax.set_box_aspect((a, b, c), zoom=0.85)  # equal scale on p, q, r: the ellipsoid's shape
+    ax.locator_params(nbins=5)  # tick labels apart
     ax.set_title("hodograph of ω_r on A p² + B q² + C r² = 2T_r")
-    ax.set_xlabel("p")
-    ax.set_ylabel("q")
-    ax.set_zlabel("r")
+    ax.set_xlabel("p [rad/s]")
+    ax.set_ylabel("q [rad/s]")
+    ax.set_zlabel("r [rad/s]")
     ax2 = fig.add_subplot(1, 2, 2)
     ax2.plot(np.asarray(ts), speed, linewidth=0.8, label="|ω_r|")
     ax2.axhline(lo, color="k", linestyle="--", linewidth=0.8, label="sqrt(2T_r/C), sqrt(2T_r/A)")
     ax2.axhline(hi, color="k", linestyle="--", linewidth=0.8)
-    ax2.set_xlabel("t")
-    ax2.legend(loc="upper right", fontsize=8)
-    ax2.set_title(f"T_r drift {summary['T_r_relative_drift']:.1e}")
-    fig.tight_layout()
+    ax2.set_xlabel("t [s]")
+    ax2.set_ylabel("|ω_r| [rad/s]")
+    ax2.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))  # beside the axes
+    ax2.set_title(f"relative drift of T_r {summary['T_r_relative_drift']:.1e}")
     out = pathlib.Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     fig.savefig(out / "rotating_platform.png", dpi=110)

@@ -57,14 +57,13 @@ def main(orbits: float = 3.0, amplitude_deg: float = 2.0, n_out: int = 3001,
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(8, 3.5))
-    ax.plot(t * n / (2 * np.pi), np.degrees(pitch), label="simulated pitch")
-    ax.plot(t * n / (2 * np.pi), amplitude_deg * np.cos(2 * np.pi * t / predicted), "--",
-            label="θ0 cos(ω_p t), ω_p = n sqrt(3(Ix − Iz)/Iy)")
-    ax.set_xlabel("orbits")
-    ax.set_ylabel("pitch [deg]")
-    ax.legend(fontsize=8)
-    fig.tight_layout()
+    fig, ax = plt.subplots(figsize=(10, 3.5), layout="constrained")
+    ax.plot(t * n / (2 * np.pi), pitch, label="simulated pitch")
+    ax.plot(t * n / (2 * np.pi), theta0 * np.cos(2 * np.pi * t / predicted), "--",
+            label="θ0 cos(ω_p t),\nω_p = n sqrt(3(Ix − Iz)/Iy)")
+    ax.set_xlabel("t [orbital periods]")
+    ax.set_ylabel("pitch θ [rad]")
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))  # beside the axes
     out = pathlib.Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     fig.savefig(out / "satellite_pitch.png", dpi=110)

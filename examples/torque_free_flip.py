@@ -57,28 +57,31 @@ def main(t_end: float = 120.0, n_out: int = 2401, out_dir: str = "results/exampl
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig = plt.figure(figsize=(11, 4.5))
+    fig = plt.figure(figsize=(12, 4.8), layout="constrained")
+    fig.get_layout_engine().set(wspace=0.12)  # room for the 3-D axes' z label
     ax = fig.add_subplot(1, 2, 1, projection="3d")
     u, v = np.mgrid[0 : 2 * np.pi : 40j, 0 : np.pi : 20j]
     a, b, c = (np.sqrt(2 * T[0] / m) for m in np.asarray(moments))
     ax.plot_wireframe(a * np.cos(u) * np.sin(v), b * np.sin(u) * np.sin(v), c * np.cos(v),
                       color="0.8", linewidth=0.4)
     ax.plot(*w_principal.T, color="C3", linewidth=1.0)
-    ax.set_box_aspect((a, b, c))
+    ax.set(xlim=(-a, a), ylim=(-b, b), zlim=(-c, c))
+    ax.set_box_aspect((a, b, c), zoom=0.85)  # equal scale on p, q, r: the ellipsoid's shape
+    ax.locator_params(nbins=5)  # tick labels apart
     ax.set_title("polhode on the energy ellipsoid ωᵀJω = 2T")
-    ax.set_xlabel("p")
-    ax.set_ylabel("q")
-    ax.set_zlabel("r")
+    ax.set_xlabel("p [rad/s]")
+    ax.set_ylabel("q [rad/s]")
+    ax.set_zlabel("r [rad/s]")
     ax2 = fig.add_subplot(1, 2, 2)
     for k, name in enumerate("pqr"):
         ax2.plot(np.asarray(ts), w_principal[:, k], color=f"C{k}", label=f"{name} simulated")
         ax2.plot(np.asarray(ts)[::40], w_ref[::40, k], "k.", markersize=2)
     ax2.plot([], [], "k.", label="Jacobi elliptic")
-    ax2.set_xlabel("t")
-    ax2.legend(fontsize=8, loc="lower right")
+    ax2.set_xlabel("t [s]")
+    ax2.set_ylabel("ω in principal axes [rad/s]")
+    ax2.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))  # beside the axes
     plural = "s" if flips != 1 else ""
-    ax2.set_title(f"{flips} flip{plural}; max error {summary['max_error_vs_elliptic']:.1e}")
-    fig.tight_layout()
+    ax2.set_title(f"{flips} flip{plural}; max error {summary['max_error_vs_elliptic']:.1e} rad/s")
     out = pathlib.Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     fig.savefig(out / "torque_free_flip.png", dpi=110)

@@ -10,7 +10,8 @@
 - `rbdyn verify STORE`: every chunk of a sweep store there and intact (its checksum), or
   the missing and damaged ones with the trajectories they hold (`--resume` repairs them).
 - `rbdyn plot PATH [--out DIR]`: PNGs of a sweep (summary histograms, sample
-  trajectories, polhodes on their energy ellipsoids, status counts).
+  trajectories, polhodes on their energy ellipsoids where the model conserves it, status
+  counts).
 - `rbdyn fit DATA --model SCENARIO [--free inertia,k] [--out PATH]`: identify the
   inertia and/or torque parameters from observed ω / attitudes (`rbdyn_jax.identify`),
   printing them with standard errors and writing fit.json and a PNG of observed vs fitted.
@@ -446,6 +447,10 @@ def plot_command(args) -> int:
             print("note: no trajectories.png or polhodes.png: the store keeps no states (a "
                   'sweep with trajectories = "none"); sweep with --trajectories all or K '
                   "to plot them")
+        elif not any(str(f).endswith("polhodes.png") for f in files):
+            print("note: no polhodes.png: this scenario's torque does not conserve the "
+                  "kinetic energy, so ω leaves the energy ellipsoid; trajectories.png shows "
+                  "|ω| and the nutation against time")
     return 0
 
 

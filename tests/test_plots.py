@@ -3,10 +3,13 @@
 The store mimics the layout of `rbdyn_jax.sweep`: torque-free rotations (J ω' = Jω × ω with the
 quaternion kinematics q' = ½ q ⊗ (0, ω), docs/physics.md#quaternion-kinematics) solved with
 scipy, one failed trajectory whose summaries are 1e6 outliers and whose rates turn to NaN, and
-one not run yet.
+one not run yet; every variable carries the CF attributes `units`, `long_name` and
+`description`, and the group the scenario's source as JSON (`scenario`, whose torques decide
+whether polhodes are drawn).
 """
 
 import functools
+import json
 import sys
 
 import numpy as np
@@ -25,6 +28,26 @@ PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 FOUR = ["summaries.png", "trajectories.png", "polhodes.png", "status.png"]
 STATUS_CODES = {"-1": "not_run", "0": "successful", "1": "max_steps_reached", "2": "nonfinite"}
 SUMMARIES = ["max_nutation", "energy_drift", "first_flip_time", "min_abs_omega", "max_abs_omega"]
+# name: (units, long_name), as the sweep writes them (a summary's long_name is its name).
+CF = {
+    "time": ("s", "time"),
+    "omega": ("rad/s", "body angular velocity"),
+    "quat": ("1", "attitude quaternion"),
+    "inertia": ("kg m2", "inertia tensor"),
+    "status": ("1", "solver status"),
+    "num_steps": ("1", "solver steps"),
+    "max_nutation": ("rad", "max_nutation"),
+    "energy_drift": ("1", "energy_drift"),
+    "first_flip_time": ("s", "first_flip_time"),
+    "min_abs_omega": ("rad/s", "min_abs_omega"),
+    "max_abs_omega": ("rad/s", "max_abs_omega"),
+}
+TORQUE_FREE = {"kind": "rigid_body", "torques": []}
+RESTORING = {"kind": "rigid_body", "torques": [
+    {"kind": "restoring_moment", "coeffs": [1.0, 0.5], "eps": 0.02},
+    {"kind": "body", "moment": [2e-4, -1.2e-4, 4e-4]}]}
+BALANCED = {"kind": "relative_rigid_body", "frame": {"kind": "euler_angles", "seq": "ZXZ"},
+            "torques": [{"kind": "balancing_transport"}]}
 J_DIAG = np.diag([1.0, 2.0, 3.0])
 # A rotated body: principal moments (1, 2, 3) with products of inertia.
 R_TILT = Rotation.from_rotvec([0.3, -0.2, 0.5]).as_matrix()
@@ -74,7 +97,7 @@ def make_dataset(status):
             continue
         omega[k], quat[k] = omega_k, quat_k
         energy = 0.5 * np.einsum("ti,ij,tj->t", omega[k], J, omega[k])
-        nutation = _plots._nutation_deg(quat[k])
+        nutation = _plots._nutation(quat[k])
         w_principal = omega[k] @ np.linalg.eigh(J)[1]
         flips = np.flatnonzero(np.diff(np.sign(w_principal[:, 1])) != 0)
         speed = np.linalg.norm(omega[k], axis=-1)
@@ -90,10 +113,11 @@ def make_dataset(status):
     return time, omega, quat, inertia, np.asarray(status, np.int32), summaries
 
 
-def write_store(path, status, *, model_kind="rigid_body", summaries=True, keep="all"):
-    """Write a sweep-layout zarr v3 group at `path`; return `path`. `keep`: whose states it
-    holds, as a sweep's `trajectories`: "all", "none", or every K-th trajectory's over the
-    dimension `sampled_trajectory`."""
+def write_store(path, status, *, model=TORQUE_FREE, summaries=True, keep="all"):
+    """Write a sweep-layout zarr v3 group at `path`; return `path`. `model`: the scenario's
+    `[model]` table (its `kind` is the store's `model_kind`). `keep`: whose states it holds, as
+    a sweep's `trajectories`: "all", "none", or every K-th trajectory's over the dimension
+    `sampled_trajectory`."""
     time, omega, quat, inertia, status, values = make_dataset(status)
     g = zarr.open_group(str(path), mode="w", zarr_format=3)
 
@@ -102,6 +126,10 @@ def write_store(path, status, *, model_kind="rigid_body", summaries=True, keep="
             name, shape=data.shape, chunks=data.shape, dtype=data.dtype, dimension_names=dims
         )
         a[...] = data
+        if name in CF:
+            units, long_name = CF[name]
+            a.attrs.update({"units": units, "long_name": long_name,
+                            "description": f"the {long_name.replace('_', ' ')}"})
 
     N = len(status)
     put("trajectory", np.arange(N, dtype=np.int64), ["trajectory"])
@@ -123,11 +151,12 @@ def write_store(path, status, *, model_kind="rigid_body", summaries=True, keep="
     g.attrs.update(
         {
             "summaries": " ".join(SUMMARIES) if summaries else "",
-            "model_kind": model_kind,
+            "model_kind": model["kind"],
             "scenario_name": "test_scenario",
             "rtol": 1e-10,
         }
     )
+    g.attrs["scenario"] = json.dumps({"name": "test_scenario", "model": model})
     return path
 
 
@@ -150,6 +179,37 @@ def suptitles(monkeypatch):
 
     monkeypatch.setattr(Figure, "suptitle", spy)
     return seen
+
+
+def recording(made):
+    """A stand-in for `_plots._new_figure` that keeps each figure in `made` by its title less
+    the scenario's name."""
+    original = _plots._new_figure
+
+    def spy(title, size):
+        fig = original(title, size)
+        made[title.split(": ", 1)[-1]] = fig
+        return fig
+
+    return spy
+
+
+@pytest.fixture
+def figures(monkeypatch):
+    """The figures `plot_sweep` makes, by their title less the scenario's name."""
+    made = {}
+    monkeypatch.setattr(_plots, "_new_figure", recording(made))
+    return made
+
+
+def assert_legends_outside_axes(fig):
+    """No axes holds a legend; the figure's legends overlap no axes (laid out by `savefig`)."""
+    renderer = fig.canvas.get_renderer()
+    assert all(ax.get_legend() is None for ax in fig.axes)
+    for legend in fig.legends:
+        box = legend.get_window_extent(renderer)
+        for ax in fig.axes:
+            assert not box.overlaps(ax.get_window_extent(renderer)), legend.texts[0].get_text()
 
 
 def assert_png(path):
@@ -193,6 +253,129 @@ def test_writes_four_pngs(store, suptitles):
     assert not any("hodograph" in t for t in suptitles)
 
 
+@pytest.fixture(scope="module")
+def plotted(tmp_path_factory):
+    """The figures of one `plot_sweep` (by title less the scenario's name) of a torque-free store
+    whose CF attributes of `time`, `omega` and `first_flip_time` are changed, to show that the
+    labels read them: trajectories 0, 1 and 3 (products of inertia) successful, 2 failed."""
+    store = write_store(tmp_path_factory.mktemp("plotted") / "s.zarr", [0, 0, 1, 0])
+    g = zarr.open_group(str(store), mode="r+")
+    g["time"].attrs.update({"units": "min", "long_name": "elapsed time"})
+    g["omega"].attrs["units"] = "deg/s"
+    g["first_flip_time"].attrs.update({"units": "h", "long_name": "time of the first flip"})
+    made = {}
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(_plots, "_new_figure", recording(made))
+        _plots.plot_sweep(store, store.with_name("out"))
+    return made
+
+
+def test_axis_labels_carry_the_store_units(plotted):
+    """Labels come from the CF `long_name` and `units` of the store, histograms count on y,
+    angles are in rad."""
+    assert sorted(plotted) == sorted([
+        "summaries of 3 successful trajectories", "3 of 3 successful trajectories",
+        "polhode on the energy ellipsoid", "status of 4 trajectories"])
+    histograms = plotted["summaries of 3 successful trajectories"].axes
+    assert {ax.get_xlabel(): ax.get_ylabel() for ax in histograms} == {
+        "max_nutation [rad]": "count",
+        "energy_drift [1]": "count",
+        "time of the first flip [h]": "count",
+        "min_abs_omega [rad/s]": "count",
+        "max_abs_omega [rad/s]": "count",
+    }
+    history = plotted["3 of 3 successful trajectories"].axes
+    assert [ax.get_ylabel() for ax in history] == [
+        *(rf"$\omega_{{{c}}}$ [deg/s]" for c in "xyz"),
+        r"|$\omega$| [deg/s]",
+        r"nutation $\theta$ [rad]",
+    ]
+    assert history[-1].get_xlabel() == "elapsed time [min]"
+    for ax in plotted["polhode on the energy ellipsoid"].axes:
+        assert [ax.get_xlabel(), ax.get_ylabel(), ax.get_zlabel()] == [
+            rf"$\omega_{{{c}}}$ [deg/s]" for c in "xyz"]
+    assert plotted["status of 4 trajectories"].axes[0].get_xlabel() == "number of trajectories"
+
+
+def test_legends_sit_outside_the_axes(plotted):
+    assert [len(fig.legends) for fig in plotted.values()] == [0, 1, 1, 0]
+    for fig in plotted.values():
+        assert_legends_outside_axes(fig)
+
+
+def test_polhodes_are_drawn_to_scale(plotted):
+    """Each polhode's 3-D box has the proportions of its axis ranges: a unit is as long on x, y
+    and z, so the energy ellipsoid (drawn, and named in the legend) has its true shape."""
+    fig = plotted["polhode on the energy ellipsoid"]
+    assert [t.get_text() for t in fig.legends[0].texts] == [
+        r"ellipsoid $\omega^T J \omega = 2T(0)$", r"$\omega$(t)", r"$\omega$(0)"]
+    assert [ax.get_title() for ax in fig.axes] == [f"trajectory {i}" for i in (0, 1, 3)]
+    for ax in fig.axes:
+        assert ax.name == "3d"
+        ranges = np.ptp([ax.get_xlim3d(), ax.get_ylim3d(), ax.get_zlim3d()], axis=1)
+        scale = np.asarray(ax.get_box_aspect()) / ranges
+        np.testing.assert_allclose(scale, scale[0], rtol=1e-9)
+
+
+def test_a_polhode_near_the_separatrix_is_not_seen_edge_on():
+    """Two half-ellipses through ±y on the planes z = ±0.9 x (a polhode near the separatrix):
+    the view chosen sees both planes obliquely, where the default view (elevation 30°, azimuth
+    −60°) looks almost along the first and draws that half as a chord."""
+    s = np.linspace(0.0, np.pi, 60)
+    curve = np.concatenate([np.stack([np.sin(s), 1.5 * np.cos(s), 0.9 * np.sin(s)], 1),
+                            np.stack([np.sin(s), -1.5 * np.cos(s), -0.9 * np.sin(s)], 1)])
+    normals = np.array([[-0.9, 0.0, 1.0], [0.9, 0.0, 1.0]]) / np.hypot(0.9, 1.0)
+
+    def facing(elev, azim):
+        e, a = np.radians(elev), np.radians(azim)
+        return np.abs(normals @ [np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)])
+
+    assert facing(30, -60).min() < 0.1
+    ax = _plots._new_figure("", (4, 4)).add_subplot(projection="3d")
+    _plots._open_view(ax, curve)
+    assert facing(ax.elev, ax.azim).min() > 0.25
+
+
+@pytest.mark.parametrize(
+    "model, invariant",
+    [
+        (TORQUE_FREE, True),
+        ({"kind": "rigid_body"}, True),
+        (BALANCED, True),
+        ({"kind": "relative_rigid_body"}, True),  # no torques in the inertial frame
+        (RESTORING, False),
+        ({"kind": "rigid_body", "torques": [{"kind": "gravity_gradient", "eps": 3.0}]}, False),
+        ({"kind": "relative_rigid_body", "frame": {"kind": "constant_rate"}}, False),
+        ({"kind": "relative_rigid_body", "frame": {"kind": "circular_orbit", "n": 1e-3},
+          "torques": [{"kind": "gravity_gradient", "orbit_rate": 1e-3}]}, False),
+        ({"kind": "relative_rigid_body", "torques": [{"kind": "balancing_transport"},
+                                                     {"kind": "body", "moment": [0, 0, 1]}]},
+         False),
+    ],
+)
+def test_polhodes_only_where_the_ellipsoid_is_invariant(model, invariant):
+    attrs = {"model_kind": model["kind"], "scenario": json.dumps({"model": model})}
+    assert _plots._ellipsoid_is_invariant(attrs) is invariant
+    assert not _plots._ellipsoid_is_invariant({"model_kind": "rigid_body"})  # no scenario
+
+
+def test_a_torqued_model_gets_no_polhodes(tmp_path, figures):
+    """Under a restoring moment the energy changes: no panel draws ω on an ellipsoid; the time
+    histories show |ω| and the nutation instead."""
+    store = write_store(tmp_path / "s.zarr", [0, 0, 1], model=RESTORING)
+    written = _plots.plot_sweep(store, tmp_path / "out")
+    assert [p.name for p in written] == ["summaries.png", "trajectories.png", "status.png"]
+    assert not any("polhode" in t or "hodograph" in t for t in figures)
+    for fig in figures.values():
+        assert all(ax.name != "3d" for ax in fig.axes)
+        texts = [fig.get_suptitle()] + [t.get_text() for leg in fig.legends for t in leg.texts]
+        texts += [ax.get_title() for ax in fig.axes]
+        assert not any("ellipsoid" in t or "2T" in t for t in texts)
+    history = figures["2 of 2 successful trajectories"].axes
+    assert [ax.get_ylabel() for ax in history[3:]] == [
+        r"|$\omega$| [rad/s]", r"nutation $\theta$ [rad]"]
+
+
 def test_failed_trajectories_are_excluded(tmp_path):
     ds = xr.open_zarr(write_store(tmp_path / "s.zarr", [1, 0, -1, 0, 2]), consolidated=False)
     ok = _plots._successful(ds)
@@ -212,7 +395,7 @@ def test_all_failed_writes_only_status(tmp_path, suptitles):
 
 
 def test_relative_dataset_is_a_hodograph(tmp_path, suptitles):
-    store = write_store(tmp_path / "r.zarr", [0, 0], model_kind="relative_rigid_body")
+    store = write_store(tmp_path / "r.zarr", [0, 0], model=BALANCED)
     written = _plots.plot_sweep(store, tmp_path / "out", n_sample=1)
     assert [p.name for p in written] == FOUR
     assert "test_scenario: hodograph of ω_r" in suptitles
@@ -279,8 +462,8 @@ def test_nutation_matches_scipy(rng):
     q = rng.normal(size=(50, 4))
     q /= np.linalg.norm(q, axis=-1, keepdims=True)
     R = Rotation.from_quat(wxyz_to_xyzw(q)).as_matrix()
-    expected = np.degrees(np.arccos(np.clip(R[:, 2, 2], -1, 1)))
-    np.testing.assert_allclose(_plots._nutation_deg(q), expected, atol=1e-10)
+    expected = np.arccos(np.clip(R[:, 2, 2], -1, 1))
+    np.testing.assert_allclose(_plots._nutation(q), expected, atol=1e-12)
 
 
 def test_status_names_from_cf_flags():
