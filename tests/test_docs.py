@@ -1,12 +1,15 @@
 """The documentation site: it builds strictly, documents every public name, every `rbdyn`
-subcommand and every scenario key, and its getting-started snippets run."""
+subcommand and every scenario key, and its getting-started snippets run; opened from the file
+system it requests nothing off the machine, and its search works there."""
 
 import fcntl
 import functools
 import html
+import html.parser
 import importlib
 import importlib.util
 import inspect
+import json
 import os
 import pathlib
 import re
@@ -14,6 +17,7 @@ import subprocess
 import sys
 import tomllib
 import types
+import urllib.parse
 
 import numpy as np
 import pytest
@@ -256,3 +260,189 @@ def test_docstring_lists_are_set_off_from_their_label():
                         and not item.match(prev) and not prev.startswith(" ")):
                     bad.append(f"{path.relative_to(ROOT)}: {getattr(node, 'name', '')}")
     assert not bad, bad
+
+
+# --- Offline: the built site, opened from the file system, requests nothing off the machine.
+
+# An address off the machine: http(s), ws(s) or ftp, or protocol-relative (`//host/...`).
+_REMOTE = re.compile(r"^\s*(?:(?:https?|wss?|ftp):)?//", re.I)
+# In CSS: url(...) and @import of such an address (data: URIs and relative paths are local).
+_CSS_REMOTE = re.compile(
+    r"""(?:url\(|@import)\s*(?:url\()?\s*["']?\s*((?:(?:https?|wss?|ftp):)?//[^"')\s]*)""", re.I)
+# In JavaScript: a string literal that starts with an address off the machine.
+_JS_REMOTE = re.compile(r"""["'`]((?:https?:|wss?:)?//[\w-]+(?:\.[\w-]+)+[^"'`\s]*)""")
+# Elements' attributes that make the browser request their address as the page loads.
+_REQUEST_ATTRS = {"script": ("src",), "img": ("src", "srcset"), "iframe": ("src",),
+                  "frame": ("src",), "embed": ("src",), "object": ("data",),
+                  "source": ("src", "srcset"), "video": ("src", "poster"), "audio": ("src",),
+                  "track": ("src",), "input": ("src",), "image": ("href", "xlink:href"),
+                  "use": ("href", "xlink:href"), "link": ("href",)}
+# Remote addresses that the site's scripts name without requesting them from these pages.
+_NAMED_NOT_REQUESTED = {
+    "http://www.w3.org/": "XML namespace names (KaTeX's SVG and MathML elements)",
+    # Material's bundle, on conditions this site never meets:
+    "https://unpkg.com/resize-observer-polyfill": "only where a browser lacks ResizeObserver "
+                                                   "(every browser since 2020 has it)",
+    "https://unpkg.com/mermaid@": "only on a page with a Mermaid diagram (none: checked)",
+    "https://api.github.com/": "the repository's facts, only with `repo_url` (unset: checked)",
+}
+
+
+class _PageScan(html.parser.HTMLParser):
+    """What a built page asks the browser to load: each (tag, attribute, address) of an element
+    that requests its address, the text of its inline `<style>`s, `style=""`s and
+    `<script>`s, and its scripts' `src`s in order."""
+
+    def __init__(self):
+        super().__init__(convert_charrefs=True)
+        self.requests: list[tuple[str, str, str]] = []
+        self.styles: list[str] = []
+        self.inline_scripts: list[str] = []
+        self.scripts: list[str] = []
+        self.config: dict | None = None
+        self.search_form = False
+        self._in: str | None = None
+        self._config_next = False
+
+    def handle_starttag(self, tag, attrs):
+        a = {k: v or "" for k, v in attrs}
+        for name in _REQUEST_ATTRS.get(tag, ()):
+            if name not in a or (tag == "link" and a.get("rel") == "canonical"):
+                continue  # a canonical link names the page, it loads nothing
+            values = a[name].split(",") if name == "srcset" else [a[name]]
+            for value in values:
+                self.requests.append((tag, name, value.strip().split(" ")[0]))
+        if "style" in a:
+            self.styles.append(a["style"])
+        if tag == "script" and "src" in a:
+            self.scripts.append(a["src"])
+        if tag == "form" and a.get("name") == "search":
+            self.search_form = True
+        self._in = tag if tag in ("style", "script") else None
+        self._config_next = tag == "script" and a.get("id") == "__config"
+
+    def handle_endtag(self, tag):
+        self._in = None
+
+    def handle_data(self, data):
+        if self._in == "style":
+            self.styles.append(data)
+        elif self._in == "script" and data.strip():
+            self.inline_scripts.append(data)
+            if self._config_next:
+                self.config = json.loads(data)
+
+
+@functools.cache
+def _scan_site(site: pathlib.Path) -> dict[pathlib.Path, _PageScan]:
+    scans = {}
+    for path in sorted(site.rglob("*.html")):
+        scan = _PageScan()
+        scan.feed(path.read_text())
+        scans[path] = scan
+    return scans
+
+
+def _remote_literals(text: str) -> list[str]:
+    return [url for url in _JS_REMOTE.findall(text)
+            if not any(url.startswith(known) for known in _NAMED_NOT_REQUESTED)]
+
+
+def test_site_requests_nothing_off_the_machine(site):
+    """No page or asset of the built site makes a request off the machine: no script, style
+    sheet, font, image or frame from a CDN or Google Fonts (`theme.font: false`; the search's
+    Web Worker shim bundled), no CSS `url()` or `@import` of one, no script that loads one.
+    Plain `<a href>` links to other sites are links, not requests, and are not looked at."""
+    scans = _scan_site(site)
+    assert len(scans) > 20
+    found = []
+    for path, scan in scans.items():
+        page = path.relative_to(site)
+        found += [f"{page}: <{tag} {name}={url!r}>" for tag, name, url in scan.requests
+                  if _REMOTE.match(url)]
+        found += [f"{page}: inline CSS {url!r}" for style in scan.styles
+                  for url in _CSS_REMOTE.findall(style)]
+        found += [f"{page}: inline script {url!r}" for text in scan.inline_scripts
+                  for url in _remote_literals(text)]
+    for path in sorted(site.rglob("*.css")):
+        found += [f"{path.relative_to(site)}: {url!r}"
+                  for url in _CSS_REMOTE.findall(path.read_text())]
+    for path in sorted(site.rglob("*.js")):
+        if path.relative_to(site).as_posix() == "search/search_index.js":
+            continue  # the search index: data (the pages' text), checked below as such
+        found += [f"{path.relative_to(site)}: {url!r}"
+                  for url in _remote_literals(path.read_text())]
+    assert not found, "requests off the machine:\n" + "\n".join(found)
+    # The conditions on which Material's bundle would load what it names.
+    pages = "".join(path.read_text() for path in scans)
+    assert 'class="mermaid"' not in pages
+    assert 'data-md-component="source"' not in pages
+
+
+def _local_file(page: pathlib.Path, site: pathlib.Path, address: str) -> pathlib.Path:
+    """The file of the site that `address`, relative to `page`, names."""
+    assert not _REMOTE.match(address) and not address.startswith("/"), address
+    path = (page.parent / urllib.parse.urlsplit(address).path).resolve()
+    assert path.is_relative_to(site.resolve()) and path.is_file(), (page, address)
+    return path
+
+
+def test_search_works_from_the_file_system(site):
+    """A page opened from file:// may neither fetch a file nor start a Web Worker. Material's
+    search then reads its index from search/search_index.js, which the offline plugin writes
+    (the index as a script: `var __index = {...}`), and runs its worker in an iframe through
+    the iframe-worker shim, which each page loads from the site itself before Material's
+    bundle. (The 404 page, served by a web server only, links the site's root.)"""
+    index = json.loads((site / "search" / "search_index.json").read_text())
+    script = (site / "search" / "search_index.js").read_text()
+    assert script.startswith("var __index = ")
+    assert json.loads(script.removeprefix("var __index = ")) == index
+    assert len(index["docs"]) > 50
+    # Material's bundle: from file:, the index by a script, not a fetch.
+    (bundle,) = (site / "assets" / "javascripts").glob("bundle.*.min.js")
+    code = bundle.read_text()
+    assert 'location.protocol==="file:"' in code and "search/search_index.js" in code
+    assert "__index" in code
+    for path, scan in _scan_site(site).items():
+        if path.name == "404.html":
+            continue
+        assert scan.search_form, path
+        shims = [s for s in scan.scripts if "iframe-worker" in s]
+        bundles = [s for s in scan.scripts if re.search(r"/bundle\.\w+\.min\.js$", "/" + s)]
+        assert len(shims) == 1 and len(bundles) == 1, (path, scan.scripts)
+        assert scan.scripts.index(shims[0]) < scan.scripts.index(bundles[0]), path
+        shim = _local_file(path, site, shims[0]).read_text()
+        assert 'location.protocol==="file:"&&(window.Worker=' in shim, path
+        _local_file(path, site, scan.config["search"])  # the search worker, in the site
+        _local_file(path, site, f'{scan.config["base"]}/search/search_index.js')
+
+
+def test_wide_tables_and_equations_scroll_in_their_column(site):
+    """A table or display equation wider than the text column scrolls inside it (and shows it
+    does), rather than running past the column's edge, where it is cut off: the performance
+    page's tables, the physics guide's long equations. The rules are in
+    docs/assets/stylesheets/overflow.css, which every page loads after Material's."""
+    sheet = site / "assets" / "stylesheets" / "overflow.css"
+    assert sheet.is_file(), "docs/assets/stylesheets/overflow.css was not built"
+    css = sheet.read_text()
+    rules: dict[str, str] = {}
+    for selectors, body in re.findall(r"([^{}]+)\{([^{}]*)\}", re.sub(r"/\*.*?\*/", "", css,
+                                                                       flags=re.S)):
+        for selector in selectors.split(","):
+            rules[" ".join(selector.split())] = rules.get(" ".join(selector.split()), "") + body
+    for selector in (".md-typeset table:not([class])", ".md-typeset .arithmatex .katex-display"):
+        body = re.sub(r"\s+", "", rules.get(selector, ""))
+        assert "max-width:100%" in body and "overflow-x:auto" in body, selector
+    assert "max-width:100%" in rules.get(".md-typeset__table", "").replace(" ", "")
+    for path, scan in _scan_site(site).items():
+        if path.name == "404.html":
+            continue
+        sheets = [url for tag, name, url in scan.requests if tag == "link" and url.endswith(".css")]
+        ours = [u for u in sheets if u.endswith("assets/stylesheets/overflow.css")]
+        main = [u for u in sheets if re.search(r"stylesheets/main\.\w+\.min\.css$", u)]
+        assert ours and main and sheets.index(ours[0]) > sheets.index(main[0]), (path, sheets)
+        _local_file(path, site, ours[0])
+    # What the rules are for: wide tables on the performance page, display math (KaTeX, in
+    # div.arithmatex) on the physics guide.
+    assert _page(site, "performance.md").count("<table>") >= 5
+    assert _page(site, "physics.md").count('<div class="arithmatex">') >= 20
