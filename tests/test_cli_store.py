@@ -97,7 +97,8 @@ def test_ctrl_c_exits_130_and_names_the_resume_command(tmp_path):
     that finishes the sweep, no traceback; that command then finishes it."""
     toml = _toml(tmp_path / "slow.toml", t1=150.0)
     out = tmp_path / "i.zarr"
-    argv = ["sweep", str(toml), "--n", "64", "--chunk", "8", "--lanes", "16", "--out", str(out)]
+    # 64 chunks: the run outlasts the poll below on a loaded machine (about 0.1 s a chunk).
+    argv = ["sweep", str(toml), "--n", "512", "--chunk", "8", "--lanes", "16", "--out", str(out)]
     env = dict(os.environ, RBDYN_JAX_CACHE_DIR="")
     proc = subprocess.Popen([sys.executable, "-m", "rbdyn_jax.cli", *argv],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
@@ -118,8 +119,8 @@ def test_ctrl_c_exits_130_and_names_the_resume_command(tmp_path):
     assert "Traceback" not in stderr and "KeyboardInterrupt" not in stderr
     line = next(x for x in stderr.splitlines() if "interrupted:" in x)
     done = int(np.sum(zarr.open_group(str(out), mode="r")["status"][:] >= 0))
-    assert 0 < done < 64, "the signal did not land mid-run"
-    assert f"interrupted: {done} of 64 solved; finish with `" in line
+    assert 0 < done < 512, "the signal did not land mid-run"
+    assert f"interrupted: {done} of 512 solved; finish with `" in line
     command = shlex.split(line.split("`")[1])
     assert command[0] == "rbdyn" and command[-1] == "--resume"
     env["RBDYN_JAX_CACHE_DIR"] = ""

@@ -283,7 +283,7 @@ def test_store_carries_cf_metadata(reference_run):
     ds = xr.open_zarr(reference_run)
     for name, v in ds.variables.items():
         assert v.attrs.get("long_name") and v.attrs.get("description"), name
-        if v.dtype.kind not in "UO":  # the labels (strings) have no units
+        if v.dtype.kind not in "UOT":  # the labels (strings) have no units
             assert "units" in v.attrs, name
     units = {k: ds[k].attrs["units"] for k in ("omega", "quat", "inertia", "time",
                                                 "energy_drift", "max_abs_omega",
