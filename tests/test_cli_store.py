@@ -100,8 +100,11 @@ def test_ctrl_c_exits_130_and_names_the_resume_command(tmp_path):
     # 64 chunks: the run outlasts the poll below on a loaded machine (about 0.1 s a chunk).
     argv = ["sweep", str(toml), "--n", "512", "--chunk", "8", "--lanes", "16", "--out", str(out)]
     env = dict(os.environ, RBDYN_JAX_CACHE_DIR="")
+    # SIGINT handled as in a terminal's shell: a pytest-xdist worker ignores it, and a child
+    # started with it ignored keeps ignoring it (Python then installs no handler).
     proc = subprocess.Popen([sys.executable, "-m", "rbdyn_jax.cli", *argv],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     deadline = time.time() + 240
     try:
         while time.time() < deadline and proc.poll() is None:
