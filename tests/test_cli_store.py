@@ -102,9 +102,12 @@ def test_ctrl_c_exits_130_and_names_the_resume_command(tmp_path):
     env = dict(os.environ, RBDYN_JAX_CACHE_DIR="")
     # SIGINT handled as in a terminal's shell: a pytest-xdist worker ignores it, and a child
     # started with it ignored keeps ignoring it (Python then installs no handler).
-    proc = subprocess.Popen([sys.executable, "-m", "rbdyn_jax.cli", *argv],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
-                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    # (The child installs Python's handler itself: no fork-time hook in this JAX process.)
+    code = ("import runpy, signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler)"
+            "; sys.argv = ['rbdyn', *sys.argv[1:]]"
+            "; runpy.run_module('rbdyn_jax.cli', run_name='__main__')")
+    proc = subprocess.Popen([sys.executable, "-c", code, *argv],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
     deadline = time.time() + 240
     try:
         while time.time() < deadline and proc.poll() is None:
