@@ -25,6 +25,7 @@ Both take the same steps and save the same values to round-off (tested).
 
 import abc
 import dataclasses
+import functools
 
 import diffrax
 import equinox as eqx
@@ -273,6 +274,47 @@ def _interpolate(solver, tprev, tnext, dense, t):
     return jax.tree_util.tree_map(combine, *[dense[k] for k in keys], dense["k"])
 
 
+def lane_first(m: AbstractLaneSystem, y0, *, controller, solver, start_time, span, dt0):
+    """One trajectory's start in the unit time (`unit_time`): its `ok` flag, the state
+    integrated, the first step's end, the FSAL stage f(t0, y0) in the unit time (`None`
+    for a method without one), the controller's state, and how long the trajectory will
+    take (|f(t0, y0)| in the controller's tolerance scale; −1 for a bad start, which goes
+    first only where the rate overflowed)."""
+    t0, t1 = jnp.zeros((), span.dtype), jnp.ones((), span.dtype)
+    ok, y, f = start(m.model, m.primal(y0), start_time)  # f at y: the stand-in if not ok
+    y_run, f_run = m.extend(ok, y, f, y0, start_time)
+    term = _term(m.model, start_time, span)
+    tnext, cstate = controller.init(term, t0, t1, y, dt0, ok, solver.func,
+                                    solver.error_order(term))
+    tnext = jnp.minimum(tnext, t1)
+    # An FSAL step starts from f(t0, y0), the last stage of the step before: give it
+    # now, so that a refilled lane needs no extra evaluation of the field. (Another
+    # method evaluates its first stage in the step.)
+    sstate = per_unit_time(span, where_tree(ok, f_run, 0.0)) if solver.tableau.fsal else None
+    # How long the trajectory will take: |f(t0, y0)| in the controller's tolerance
+    # scale. An ordering only: no tangents through it.
+    f, y_ = jax.lax.stop_gradient((f, y))
+    d = sum(jnp.sum((a / (controller.atol + controller.rtol * jnp.abs(b))) ** 2)
+            for a, b in zip(jax.tree_util.tree_leaves(f), jax.tree_util.tree_leaves(y_)))
+    d = jnp.where(ok & ~jnp.isnan(d), d, -1.0)  # an overflow to inf goes first
+    return ok, y_run, tnext, sstate, jax.tree_util.tree_map(jnp.asarray, cstate), d
+
+
+def lane_control(controller, error_order, t1_floor, tprev, tnext, y, y1, y_error, cstate):
+    """diffrax's step-size `controller` on one trajectory's step in the unit time: whether
+    the step is kept, the next step's start and end (clipped to t1 = 1 as diffeqsolve clips
+    them, `clip_floor`), the controller's state and the `RESULTS` code. A NaN error
+    estimate counts as an infinite one (the step is rejected)."""
+    t1 = jnp.ones((), t1_floor.dtype)
+    y_error = jax.tree_util.tree_map(lambda x: jnp.where(jnp.isnan(x), jnp.inf, x), y_error)
+    keep, tp, tn, _, cstate, result = controller.adapt_step_size(
+        tprev, tnext, y, y1, None, y_error, error_order, cstate)
+    tp = jnp.minimum(tp, t1)
+    tn = jnp.where(tn > t1_floor, jnp.where(keep, t1, tp + 0.5 * (t1 - tp)), tn)
+    cstate = jax.tree_util.tree_map(jnp.asarray, cstate)
+    return keep, tp, tn, cstate, result_code(result)
+
+
 def lane_loop(system: AbstractLaneSystem, y0s, ts, controller, *, solver, max_steps, dt0,
               batched, lanes, layout="cpu"):
     """All trajectories of `y0s` through `lanes` lanes of one while loop (in the `layout`
@@ -300,26 +342,8 @@ def lane_loop(system: AbstractLaneSystem, y0s, ts, controller, *, solver, max_st
     t1_floor = jnp.asarray(clip_floor(ts.dtype))  # diffeqsolve's clip
     dyn, static = eqx.partition(system, eqx.is_array)
     axis = 0 if batched else None
-    fsal = solver.tableau.fsal
-
-    def first(m, y0):
-        ok, y, f = start(m.model, m.primal(y0), start_time)  # f at y: the stand-in if not ok
-        y_run, f_run = m.extend(ok, y, f, y0, start_time)
-        term = _term(m.model, start_time, span)
-        tnext, cstate = controller.init(term, t0, t1, y, dt0, ok, solver.func,
-                                        solver.error_order(term))
-        tnext = jnp.minimum(tnext, t1)
-        # An FSAL step starts from f(t0, y0), the last stage of the step before: give it
-        # now, so that a refilled lane needs no extra evaluation of the field. (Another
-        # method evaluates its first stage in the step.)
-        sstate = per_unit_time(span, where_tree(ok, f_run, 0.0)) if fsal else None
-        # How long the trajectory will take: |f(t0, y0)| in the controller's tolerance
-        # scale. An ordering only: no tangents through it.
-        f, y_ = jax.lax.stop_gradient((f, y))
-        d = sum(jnp.sum((a / (controller.atol + controller.rtol * jnp.abs(b))) ** 2)
-                for a, b in zip(jax.tree_util.tree_leaves(f), jax.tree_util.tree_leaves(y_)))
-        d = jnp.where(ok & ~jnp.isnan(d), d, -1.0)  # an overflow to inf goes first
-        return ok, y_run, tnext, sstate, jax.tree_util.tree_map(jnp.asarray, cstate), d
+    first = functools.partial(lane_first, controller=controller, solver=solver,
+                              start_time=start_time, span=span, dt0=dt0)
 
     ok0, y0r, tnext0, sstate0, cstate0, difficulty = eqx.filter_vmap(
         first, in_axes=(axis, 0))(system, y0s)
@@ -327,16 +351,8 @@ def lane_loop(system: AbstractLaneSystem, y0s, ts, controller, *, solver, max_st
     lane_dyn = lanes_last(dyn) if batched else dyn
     order = jnp.argsort(-difficulty)  # longest first
     error_order = solver.error_order(diffrax.ODETerm(Guarded(system, start_time, span)))
+    control = functools.partial(lane_control, controller, error_order, t1_floor)
     primal = system.primal
-
-    def control(tprev, tnext, y, y1, y_error, cstate):
-        y_error = jax.tree_util.tree_map(lambda x: jnp.where(jnp.isnan(x), jnp.inf, x), y_error)
-        keep, tp, tn, _, cstate, result = controller.adapt_step_size(
-            tprev, tnext, y, y1, None, y_error, error_order, cstate)
-        tp = jnp.minimum(tp, t1)
-        tn = jnp.where(tn > t1_floor, jnp.where(keep, t1, tp + 0.5 * (t1 - tp)), tn)
-        cstate = jax.tree_util.tree_map(jnp.asarray, cstate)
-        return keep, tp, tn, cstate, result_code(result)
 
     def step(m, tprev, tnext, y, ok, f0):
         term = _compat.wrapped_term(diffrax.ODETerm(LaneField(m, batched, start_time, span)))
