@@ -44,6 +44,7 @@ if TYPE_CHECKING:  # what the lazy names below resolve to, for type checkers and
         COMPILER_OPTIONS as COMPILER_OPTIONS,
         RESULTS as RESULTS,
         AbstractBatching as AbstractBatching,
+        Kernel as Kernel,
         Lanes as Lanes,
         Trajectory as Trajectory,
         Vmap as Vmap,
@@ -84,8 +85,8 @@ _SUBMODULES = ("analytic", "dynamics", "frames", "identify", "inertia", "integra
 _EXPORTS = {
     "frames": ("AbstractFrame", "CircularOrbit", "ConstantRate", "EulerAngleFrame",
                "HarmonicAngles", "Inertial"),
-    "integrate": ("COMPILER_OPTIONS", "RESULTS", "AbstractBatching", "Lanes", "Trajectory",
-                  "Vmap", "configure_xla", "simulate", "simulate_batch"),
+    "integrate": ("COMPILER_OPTIONS", "RESULTS", "AbstractBatching", "Kernel", "Lanes",
+                  "Trajectory", "Vmap", "configure_xla", "simulate", "simulate_batch"),
     "models": ("AbstractRigidBody", "EulerAngleRigidBody", "PoissonRigidBody",
                "RelativeRigidBody", "RigidBody", "with_log_cholesky"),
     "state": ("EulerState", "Kinematics", "PoissonState", "State"),

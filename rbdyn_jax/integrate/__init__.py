@@ -12,8 +12,10 @@ The modules, one idea each:
   checks, the finished `Trajectory`);
 - `_simulate`: the public `simulate` and `simulate_batch` and their input checks;
 - `_diffeqsolve`: one trajectory by `diffrax.diffeqsolve`, and its vmapped batch;
-- `_batching`: the strategies `Vmap` and `Lanes`, and the default;
+- `_batching`: the strategies `Vmap`, `Lanes` and `Kernel`, and the default;
 - `_lanes`: the lane loop and its typed state;
+- `_kernel`: the Pallas kernel that integrates a block of trajectories per program;
+- `_rows`: a one-trajectory function run on rows of lanes (the kernel's arithmetic);
 - `_sensitivity`: forward sensitivities of the lane loop, its derivative rule;
 - `_dependencies`: which state leaves a derivative must carry;
 - `_cheapest`: the equation that runs the cheapest program giving what is read;
@@ -32,6 +34,7 @@ CPU, before JAX computes anything; `import rbdyn_jax` calls it (one device per c
 from .._xla import COMPILER_OPTIONS as COMPILER_OPTIONS, configure_xla as configure_xla
 from ._batching import (
     AbstractBatching as AbstractBatching,
+    Kernel as Kernel,
     Lanes as Lanes,
     Vmap as Vmap,
     default_lanes as default_lanes,
@@ -52,7 +55,7 @@ from ._solution import (
     result_names as result_names,
 )
 
-__all__ = ["COMPILER_OPTIONS", "RESULTS", "AbstractBatching", "Lanes", "Trajectory", "Vmap",
-           "configure_xla", "default_lanes", "default_tolerance", "device_memory",
+__all__ = ["COMPILER_OPTIONS", "RESULTS", "AbstractBatching", "Kernel", "Lanes", "Trajectory",
+           "Vmap", "configure_xla", "default_lanes", "default_tolerance", "device_memory",
            "make_controller", "min_rtol", "result_code", "result_names", "simulate",
            "simulate_batch"]

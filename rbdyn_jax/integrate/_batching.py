@@ -1,5 +1,5 @@
-"""How `simulate_batch` runs a batch: the batching strategies `Vmap` and `Lanes`, and the
-default that picks the faster one."""
+"""How `simulate_batch` runs a batch: the batching strategies `Vmap`, `Lanes` and `Kernel`,
+and the default that picks the faster one."""
 
 import abc
 import functools
@@ -18,6 +18,7 @@ from .._xla import loops_compiled_whole
 from ._compile import compiled
 from ._diffeqsolve import solve_vmapped
 from ._field import checked_times, finish, promoted
+from ._kernel import _kernel_solved, kernel_block, kernel_refuse
 from ._lanes import LAYOUTS, Plain, lane_loop
 from ._sensitivity import lane_jvp
 from ._solution import Trajectory, as_result
@@ -125,6 +126,51 @@ class Lanes(AbstractBatching):
             lanes = int(self.lanes)
         return _lane_solved[cacheable](model, y0s, ts, solver, controller, max_steps, dt0,
                                        model_axes, lanes, mesh, layout)
+
+
+class Kernel(AbstractBatching):
+    """The kernel strategy (`batching=rb.Kernel()`): one Pallas kernel whose every program
+    integrates a block of trajectories from start to end, with the solver's own tableau,
+    diffrax's `PIDController` rules and the solver's interpolant at `ts`. Same steps,
+    accepted/rejected decisions, saved values (to round-off), `stats` and `result` as
+    `Vmap` and `Lanes`; a failing trajectory (out of steps, a non-finite start) keeps its
+    own code and leaves the others alone.
+
+    **Arguments:**
+
+    - `block`: trajectories a program integrates, a power of two (Triton's blocks are);
+      `None`: 128 on a GPU, else the batch (to the next power of two, at most 1024).
+    - `interpret`: run the kernel in Pallas's interpret mode (on any backend, slowly);
+      `None`: on every backend but a GPU.
+
+    Needs an explicit Runge–Kutta solver (`diffrax.AbstractERK`), a
+    `diffrax.PIDController`, no `adjoint`, and a model whose vector field is written on
+    vector components (elementwise arithmetic, slices, stacks, small contractions: the
+    models and torques of rbdyn_jax are); a solve it cannot run is refused with a
+    `ValueError` naming what. Not differentiable yet: use `Lanes` for derivatives.
+    """
+
+    block: int | None = None
+    interpret: bool | None = None
+
+    def __check_init__(self):
+        b = self.block
+        if b is not None and (isinstance(b, bool) or not isinstance(b, numbers.Integral)
+                              or b < 1 or b & (b - 1)):
+            raise ValueError(f"`block` must be a power of two or None, got {b!r}.")
+        if self.interpret is not None and not isinstance(self.interpret, bool):
+            raise ValueError(f"`interpret` must be a bool or None, got {self.interpret!r}.")
+
+    def solve(self, model, y0s, ts, *, solver, controller, adjoint, max_steps, dt0,
+              model_axes, cacheable) -> Trajectory:
+        reason = kernel_refuse(model, solver, controller, adjoint)
+        if reason is not None:
+            raise ValueError(f"`Kernel` {reason}; `batching=Lanes()` or `Vmap()` takes it.")
+        gpu = jax.default_backend() == "gpu"
+        interpret = (not gpu) if self.interpret is None else self.interpret
+        block = kernel_block(self.block, jax.tree_util.tree_leaves(y0s)[0].shape[0], gpu)
+        return _kernel_solved[cacheable](model, y0s, ts, solver, controller, max_steps, dt0,
+                                         model_axes, block, interpret)
 
 
 def _lanes_refuse(solver, controller, adjoint) -> str | None:
