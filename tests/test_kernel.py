@@ -1,0 +1,143 @@
+"""The kernel strategy, `simulate_batch(..., batching=rb.Kernel())`, in Pallas's interpret
+mode on the CPU, against `batching=rb.Vmap()`, the vmapped `diffeqsolve`.
+
+The kernel drives diffrax's step-size controller and the solver's tableau per lane, so it
+must take the *same* steps as `diffeqsolve` for every trajectory (step counts and
+accept/reject decisions asserted exactly) and save the same values to round-off: its
+stages are unrolled sums (diffrax's step is a loop of dot products over a stage buffer)
+and a 3×3 contraction is a sum of rows, so the last bits differ, and the difference grows
+along a trajectory with its error propagation. `ROUND_OFF` is the bound the lane solver's
+tests use for the same difference. Small batches (8–12) and short horizons: each solve
+runs in seconds in interpret mode.
+"""
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import rbdyn_jax as rb
+
+J = jnp.array([[2.0, 0.05, 0.0], [0.05, 3.0, 0.02], [0.0, 0.02, 4.0]])
+TS = jnp.linspace(0.0, 3.0, 7)
+N = 10  # not a power of two: the batch is padded to the block
+RTOL = 1e-9
+# Same steps (asserted exactly); the saved values differ by round-off only (states of
+# size ≲ 3 here; measured ≤ 5e-14).
+ROUND_OFF = 1e-12
+
+
+def initial_states(n=N, seed=0, dtype=np.float64):
+    rng = np.random.default_rng(seed)
+    q = rng.normal(size=(n, 4))
+    return rb.State(jnp.asarray(rng.normal(size=(n, 3)), dtype),
+                    jnp.asarray(q / np.linalg.norm(q, axis=1, keepdims=True), dtype))
+
+
+def assert_same_solves(a, b, tol=ROUND_OFF):
+    for k in ("num_steps", "num_accepted_steps", "num_rejected_steps"):
+        np.testing.assert_array_equal(a.stats[k], b.stats[k], err_msg=k)
+    np.testing.assert_array_equal(a.result._value, b.result._value)
+    for x, y in zip(jax.tree_util.tree_leaves(a.ys), jax.tree_util.tree_leaves(b.ys)):
+        assert x.shape == y.shape and x.dtype == y.dtype
+        np.testing.assert_allclose(x, y, rtol=0, atol=tol, equal_nan=True)
+    np.testing.assert_allclose(a.stats["norm_drift"], b.stats["norm_drift"], atol=tol)
+
+
+def heavy_top(weight):
+    return rb.RigidBody(J, rb.UniformGravity(weight, jnp.array([0.0, 0.1, 0.5])))
+
+
+CASES = {
+    "torque_free_tsit5": lambda: (rb.RigidBody(J), None, diffrax.Tsit5()),
+    "torque_free_dopri5": lambda: (rb.RigidBody(J), None, diffrax.Dopri5()),
+    "torque_free_bosh3": lambda: (rb.RigidBody(J), None, diffrax.Bosh3()),
+    "heavy_top_per_trajectory_dopri5": lambda: (
+        eqx.filter_vmap(heavy_top)(jnp.linspace(0.5, 2.0, N)), 0, diffrax.Dopri5()),
+    "torque_sum_tsit5": lambda: (
+        rb.RigidBody(J, rb.GravityGradient(0.3) + rb.BodyTorque(jnp.array([0.1, 0.0, -0.2]))
+                     + rb.InertialTorque(jnp.array([0.0, 0.05, 0.1]))), None, diffrax.Tsit5()),
+}
+
+
+@pytest.mark.parametrize("case", CASES)
+def test_same_steps_and_values_as_vmapped_diffeqsolve(case):
+    """From a start time that is not 0 (the field is read at t0 + s·span); three solvers
+    (three tableaus and interpolants), a shared and a per-trajectory model, a sum of
+    torques."""
+    model, axes, solver = CASES[case]()
+    y0s = initial_states()
+    ts = TS + 1.5
+    kw = dict(model_axes=axes, solver=solver, rtol=RTOL, atol=RTOL)
+    kernel = rb.simulate_batch(model, y0s, ts, batching=rb.Kernel(), **kw)
+    plain = rb.simulate_batch(model, y0s, ts, batching=rb.Vmap(), **kw)
+    assert np.all(plain.result._value == 0)
+    assert_same_solves(kernel, plain)
+    assert kernel.ys.omega.shape == (N, len(TS), 3)
+
+
+def test_blocks_of_the_batch_give_the_same_solves():
+    """Several programs (blocks of 4, the batch padded from 10 to 12): each trajectory's
+    solve is its own, to the bit, whatever block it ran in."""
+    y0s = initial_states()
+    kw = dict(rtol=RTOL, atol=RTOL)
+    one = rb.simulate_batch(rb.RigidBody(J), y0s, TS, batching=rb.Kernel(), **kw)
+    blocks = rb.simulate_batch(rb.RigidBody(J), y0s, TS, batching=rb.Kernel(block=4), **kw)
+    for x, y in zip(jax.tree_util.tree_leaves((one.ys, one.stats)),
+                    jax.tree_util.tree_leaves((blocks.ys, blocks.stats))):
+        np.testing.assert_array_equal(x, y)
+
+
+def test_failures_stay_in_their_lane():
+    """A NaN start is `nonfinite_state`, a fast spinner runs out of steps (its unsaved rows
+    are NaN as `Vmap`'s); the lanes of its block go on and equal the plain solve."""
+    y0s = initial_states()
+    omega = y0s.omega.at[2].set(jnp.nan).at[7].set(jnp.array([0.0, 400.0, 1.0]))
+    y0s = rb.State(omega, y0s.quat)
+    kw = dict(rtol=RTOL, atol=RTOL, max_steps=300)
+    kernel = rb.simulate_batch(rb.RigidBody(J), y0s, TS, batching=rb.Kernel(), **kw)
+    plain = rb.simulate_batch(rb.RigidBody(J), y0s, TS, batching=rb.Vmap(), **kw)
+    codes = np.asarray(kernel.result._value)
+    assert codes[2] == rb.RESULTS.nonfinite_state._value
+    assert codes[7] == rb.RESULTS.max_steps_reached._value
+    assert np.sum(codes == 0) == N - 2
+    assert kernel.stats["num_steps"][7] == 300
+    assert_same_solves(kernel, plain)
+
+
+def test_float32():
+    """float32 inputs solve in float32 (the default tolerance 1e-6), with the same steps
+    as `Vmap`; values to float32's round-off grown along the solve."""
+    y0s = initial_states(dtype=np.float32)
+    ts = np.linspace(0.0, 3.0, 7, dtype=np.float32)
+    model = rb.RigidBody(np.asarray(J, np.float32))
+    kernel = rb.simulate_batch(model, y0s, ts, batching=rb.Kernel())
+    plain = rb.simulate_batch(model, y0s, ts, batching=rb.Vmap())
+    assert kernel.ys.omega.dtype == jnp.float32
+    assert np.all(plain.result._value == 0)
+    assert_same_solves(kernel, plain, tol=2e-5)
+
+
+class _Looped(rb.AbstractTorque):
+    """A torque whose evaluation holds a while loop: no form on rows of lanes."""
+
+    def __call__(self, kin, inertia):
+        return jax.lax.while_loop(lambda m: jnp.sum(m) > 1.0, lambda m: 0.5 * m, kin.omega)
+
+
+def test_what_the_kernel_cannot_run_is_refused_by_name():
+    y0s = initial_states(4)
+    with pytest.raises(ValueError, match="Kvaerno5"):
+        rb.simulate_batch(rb.RigidBody(J), y0s, TS, solver=diffrax.Kvaerno5(),
+                          batching=rb.Kernel())
+    with pytest.raises(ValueError, match="ConstantStepSize"):
+        rb.simulate_batch(rb.RigidBody(J), y0s, TS, dt0=0.1,
+                          stepsize_controller=diffrax.ConstantStepSize(),
+                          batching=rb.Kernel())
+    with pytest.raises(ValueError, match="while"):
+        rb.simulate_batch(rb.RigidBody(J, _Looped()), y0s, TS, batching=rb.Kernel())
+    for bad in (3, 0, True, 2.0):
+        with pytest.raises(ValueError, match="power of two"):
+            rb.Kernel(block=bad)
