@@ -141,3 +141,40 @@ def test_what_the_kernel_cannot_run_is_refused_by_name():
     for bad in (3, 0, True, 2.0):
         with pytest.raises(ValueError, match="power of two"):
             rb.Kernel(block=bad)
+
+
+def test_the_default_takes_the_kernel_only_on_a_gpu_backend():
+    """`simulate_batch`'s default (`default_batching`): `Kernel` on a GPU backend (faked
+    here: the choice reads the backend's name) where it can run the solve; `Lanes` on a
+    CPU, or on a GPU for a field with no form on rows; `Vmap` for an implicit solver."""
+    from rbdyn_jax.integrate._batching import default_batching
+
+    y0s, pid = initial_states(4), rb.integrate.make_controller(rtol=RTOL, atol=RTOL)
+
+    def chosen(model, backend, solver=diffrax.Tsit5(), model_axes=None):
+        return type(default_batching(solver, pid, None, model, y0s, model_axes,
+                                     backend=backend))
+
+    assert chosen(rb.RigidBody(J), "gpu") is rb.Kernel
+    assert chosen(eqx.filter_vmap(heavy_top)(jnp.linspace(0.5, 2.0, 4)), "gpu",
+                  model_axes=0) is rb.Kernel
+    assert chosen(rb.RigidBody(J), "cpu") is rb.Lanes
+    assert chosen(rb.RigidBody(J, _Looped()), "gpu") is rb.Lanes
+    assert chosen(rb.RigidBody(J), "gpu", solver=diffrax.Kvaerno5()) is rb.Vmap
+    assert type(default_batching(diffrax.Tsit5(), pid, None, backend="gpu")) is rb.Lanes
+
+
+def test_the_default_call_on_a_faked_gpu_is_the_kernels(monkeypatch):
+    """With JAX's backend reported as a GPU, `simulate_batch`'s default runs the kernel
+    (here in interpret mode, asked for: the CPU has no Triton) and gives its solve."""
+    import rbdyn_jax.integrate._batching as batching
+
+    y0s = initial_states(4)
+    kernel = rb.simulate_batch(rb.RigidBody(J), y0s, TS, rtol=RTOL, atol=RTOL,
+                               batching=rb.Kernel())
+    monkeypatch.setattr(batching, "Kernel", lambda: rb.Kernel(interpret=True))
+    monkeypatch.setattr(batching.jax, "default_backend", lambda: "gpu")
+    default = rb.simulate_batch(rb.RigidBody(J), y0s, TS, rtol=RTOL, atol=RTOL)
+    for x, y in zip(jax.tree_util.tree_leaves((kernel.ys, kernel.stats)),
+                    jax.tree_util.tree_leaves((default.ys, default.stats))):
+        np.testing.assert_array_equal(x, y)

@@ -18,7 +18,7 @@ from .._xla import loops_compiled_whole
 from ._compile import compiled
 from ._diffeqsolve import solve_vmapped
 from ._field import checked_times, finish, promoted
-from ._kernel import _kernel_solved, kernel_block, kernel_refuse
+from ._kernel import _kernel_solved, field_refuse, kernel_block, kernel_refuse
 from ._lanes import LAYOUTS, Plain, lane_loop
 from ._sensitivity import lane_jvp
 from ._solution import Trajectory, as_result
@@ -250,8 +250,16 @@ def default_lanes(n: int, devices: int, platform: str = "cpu", per_lane: int = 0
     return max(1, min(cap, max(min(share, MIN_LANES), math.ceil(share / PER_LANE))))
 
 
-def default_batching(solver, controller, adjoint) -> AbstractBatching:
-    """`Lanes()` where the lane solver can run the solve, else `Vmap()`."""
+def default_batching(solver, controller, adjoint, model=None, y0s=None, model_axes=None,
+                     backend=None) -> AbstractBatching:
+    """The default strategy: on a GPU backend (`backend`, default JAX's), `Kernel()` where
+    it can run the solve (`model` and `y0s` given, and its field runs on rows of lanes);
+    else `Lanes()` where the lane solver can run it; else `Vmap()`."""
+    backend = jax.default_backend() if backend is None else backend
+    if (backend == "gpu" and model is not None and y0s is not None
+            and kernel_refuse(model, solver, controller, adjoint) is None
+            and field_refuse(model, y0s, model_axes) is None):
+        return Kernel()
     return Vmap() if _lanes_refuse(solver, controller, adjoint) is not None else Lanes()
 
 

@@ -68,6 +68,31 @@ def kernel_refuse(model, solver, controller, adjoint) -> str | None:
     return None
 
 
+def field_refuse(model, y0s, model_axes) -> str | None:
+    """Why the kernel cannot evaluate `model`'s vector field on rows of lanes (the
+    operations it cannot run, by name), or `None`. Traces the field for one trajectory
+    from the shapes of `model` (mapped by `model_axes`) and `y0s` (a leading batch axis)."""
+    def one(x):
+        return jax.ShapeDtypeStruct(x.shape[1:], x.dtype)
+
+    if model_axes is not None:
+        model = eqx.filter_eval_shape(
+            lambda m: eqx.filter_vmap(lambda x: x, in_axes=(model_axes,))(m), model)
+        model = jax.tree_util.tree_map(one, model)
+    dyn, static = eqx.partition(model, lambda x: eqx.is_array(x)
+                                or isinstance(x, jax.ShapeDtypeStruct))
+    dyn = jax.tree_util.tree_map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), dyn)
+    y = jax.tree_util.tree_map(one, y0s)
+    t = jax.ShapeDtypeStruct((), jax.tree_util.tree_leaves(y)[0].dtype)
+    closed, _ = trace(lambda d, t, y: eqx.combine(d, static).vector_field(t, y, None),
+                      dyn, t, y)
+    bad = unsupported(closed.jaxpr)
+    if not bad:
+        return None
+    return (f"cannot run this model on rows of lanes: its vector field uses {sorted(bad)}, "
+            "which have no form on rows (write the field on vector components)")
+
+
 def kernel_block(block, n: int, gpu: bool) -> int:
     """The block `Kernel(block)` takes for `n` trajectories: `block`, or 128 on a GPU,
     else the batch to the next power of two, at most 1024."""

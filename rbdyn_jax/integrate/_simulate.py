@@ -192,10 +192,12 @@ def simulate_batch(
       leaf of `model` along its leading axis (build such a model with
       `eqx.filter_vmap(lambda J: RigidBody(J, torque))(Js)`); or any `in_axes` prefix of
       the model for `eqx.filter_vmap` (e.g. batch only the inertia).
-    - `batching`: how the batch is run: `Lanes(...)` (the lane solver) or `Vmap()`
-      (`diffeqsolve` vmapped). `None` (default) takes `Lanes()` where it can run the
-      solve (an explicit Runge–Kutta solver, a `PIDController`, no `adjoint`), else
-      `Vmap()`. Both give the same trajectories to round-off.
+    - `batching`: how the batch is run: `Lanes(...)` (the lane solver), `Kernel(...)` (a
+      Pallas kernel, a block of trajectories per program) or `Vmap()` (`diffeqsolve`
+      vmapped). `None` (default) takes, on a GPU backend, `Kernel()` where it can run the
+      solve (an explicit Runge–Kutta solver, a `PIDController`, no `adjoint`, a field
+      written on vector components); else `Lanes()` where it can run the solve (the same
+      solvers and controller); else `Vmap()`. All give the same trajectories to round-off.
     - `adjoint`: for `Vmap` only (default there `diffrax.RecursiveCheckpointAdjoint()`);
       giving one selects `Vmap` by default.
     - `throw`: default `False`: a failing trajectory (`max_steps_reached`,
@@ -210,10 +212,10 @@ def simulate_batch(
     ts, controller, max_steps = _prepare(model, y0s, ts, stepsize_controller, rtol, atol,
                                          max_steps)
     if batching is None:
-        batching = default_batching(solver, controller, adjoint)
+        batching = default_batching(solver, controller, adjoint, model, y0s, model_axes)
     elif not isinstance(batching, AbstractBatching):
-        raise ValueError("`batching` must be `rbdyn_jax.Lanes(...)`, `rbdyn_jax.Vmap()` or "
-                         f"None, got {type(batching).__name__}.")
+        raise ValueError("`batching` must be `rbdyn_jax.Lanes(...)`, `rbdyn_jax.Kernel(...)`, "
+                         f"`rbdyn_jax.Vmap()` or None, got {type(batching).__name__}.")
     if throw and isinstance(batching, Lanes) and not top_level():
         batching = Lanes(batching.lanes, devices=1, layout=batching.layout)
     traj = batching.solve(model, y0s, ts, solver=solver, controller=controller,
