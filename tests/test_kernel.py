@@ -178,3 +178,30 @@ def test_the_default_call_on_a_faked_gpu_is_the_kernels(monkeypatch):
     for x, y in zip(jax.tree_util.tree_leaves((kernel.ys, kernel.stats)),
                     jax.tree_util.tree_leaves((default.ys, default.stats))):
         np.testing.assert_array_equal(x, y)
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_the_kernel_lowers_to_triton_for_a_gpu(dtype):
+    """Exported for CUDA from this CPU (`jax.export`): every operation of the kernel body
+    (rows of lanes, the loops, the stores of one output row, the scalar read of an output
+    time) has a Triton lowering, and the kernel is a Triton call, not Mosaic GPU (JAX's
+    default for `pallas_call` on a GPU). Compiling the Triton IR needs a GPU."""
+    from rbdyn_jax._checks import checks_as_nan
+    from rbdyn_jax.integrate._field import MODE_DEPENDENT_JITS
+    from rbdyn_jax.integrate._kernel import kernel_solve
+
+    y0s = initial_states(16, dtype=dtype)
+    ts = np.linspace(0.0, 3.0, 7, dtype=dtype)
+    model = rb.RigidBody(np.asarray(J, dtype), rb.GravityGradient(np.asarray(0.3, dtype)))
+    pid = rb.integrate.make_controller(dtype=dtype)
+
+    def solve(y0s, ts):
+        return kernel_solve(model, y0s, ts, diffrax.Tsit5(), pid, 1000, None, None, 16, False)
+
+    with checks_as_nan(jitted=MODE_DEPENDENT_JITS):  # no host callback in the program
+        exported = jax.export.export(
+            jax.jit(solve), platforms=["cuda"],
+            disabled_checks=[jax.export.DisabledSafetyCheck.custom_call(
+                "__gpu$xla.gpu.triton")])(y0s, ts)
+    text = exported.mlir_module()
+    assert "__gpu$xla.gpu.triton" in text and "mosaic" not in text.lower()

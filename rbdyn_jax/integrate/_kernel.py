@@ -48,6 +48,7 @@ from ._solution import RESULTS, Trajectory, as_result, result_code
 # (interpret mode, where a program's cost hardly depends on its width) the whole batch in
 # one program, up to `MAX_INTERPRET_BLOCK` lanes.
 GPU_BLOCK, MAX_INTERPRET_BLOCK = 128, 1024
+TRITON_WARPS = 4  # 128 threads: a lane a thread at the GPU block
 
 
 def next_power_of_two(n: int) -> int:
@@ -154,6 +155,7 @@ def kernel_solve(model, y0s, ts, solver, controller, max_steps, dt0, model_axes,
                  interpret) -> Trajectory:
     """The kernel (`Kernel`) over the batch, and its `Trajectory`s."""
     from jax.experimental import pallas as pl  # imported with the first kernel solve
+    from jax.experimental.pallas import triton as pltriton
 
     ts = checked_times(ts)
     batched = model_axes is not None
@@ -321,6 +323,10 @@ def kernel_solve(model, y0s, ts, solver, controller, max_steps, dt0, model_axes,
         kernel, out_shape=out_shape, grid=(P // block,),
         in_specs=[pl.BlockSpec((n_pad,), lambda i: (0,))] + [row_spec] * n_in,
         out_specs=out_specs, interpret=interpret, name="rbdyn_kernel",
+        # Triton's lowering, asked for by its parameters: JAX's default for a GPU is Mosaic
+        # GPU (`jax_pallas_use_mosaic_gpu`), whose copies are of whole warpgroups.
+        compiler_params=None if interpret else pltriton.CompilerParams(
+            num_warps=TRITON_WARPS, num_stages=1),
     )(ts_pad, *in_rows)
     ys_rows, counts, result = outs[:n_y], outs[n_y:n_y + 3], outs[n_y + 3]
 
