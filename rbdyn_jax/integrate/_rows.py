@@ -228,8 +228,9 @@ def _apply(eqn, ins):
         return list(np.split(x, cuts, axis=p["axis"]))
     if name == "iota":
         aval = eqn.outvars[0].aval
-        values = jax.lax.broadcasted_iota(aval.dtype, aval.shape, p["dimension"])
-        return [_constant(np.asarray(values), aval)]
+        d = p["dimension"]  # NumPy's: a constant, not an operation of the trace
+        values = np.arange(aval.shape[d]).reshape((-1,) + (1,) * (len(aval.shape) - d - 1))
+        return [_constant(np.broadcast_to(values, aval.shape), aval)]
     if name == "dot_general":
         return _dot_general(eqn, *ins)
     if name == "scan":
