@@ -232,3 +232,32 @@ def test_the_kernel_lowers_to_triton_for_a_gpu(dtype):
                 "__gpu$xla.gpu.triton")])(y0s, ts)
     text = exported.mlir_module()
     assert "__gpu$xla.gpu.triton" in text and "mosaic" not in text.lower()
+
+
+def test_a_derivative_through_the_kernel_is_refused():
+    y0s = initial_states(4)
+
+    def loss(J):
+        traj = rb.simulate_batch(rb.RigidBody(J), y0s, TS, batching=rb.Kernel())
+        return jnp.sum(traj.ys.omega[:, -1])
+
+    with pytest.raises(ValueError, match="does not differentiate"):
+        jax.grad(loss)(J)
+
+
+def test_euler_angle_and_poisson_forms():
+    """The other state forms: their fields run on rows as written (trigonometric
+    kinematics; the Poisson vector γ)."""
+    rng = np.random.default_rng(1)
+    omega = jnp.asarray(rng.normal(size=(6, 3)))
+    angles = jnp.asarray(rng.uniform([0.0, 0.5, 0.0], [6.0, 2.5, 6.0], size=(6, 3)))
+    gamma = jnp.asarray(rng.normal(size=(6, 3)))
+    cases = [(rb.EulerAngleRigidBody(J, rb.RestoringMoment(1.0)), rb.EulerState(omega, angles)),
+             (rb.PoissonRigidBody(J, rb.GravityGradient(0.3)),
+              rb.PoissonState(omega, gamma / jnp.linalg.norm(gamma, axis=1, keepdims=True)))]
+    for model, y0s in cases:
+        kw = dict(rtol=RTOL, atol=RTOL)
+        kernel = rb.simulate_batch(model, y0s, TS, batching=rb.Kernel(), **kw)
+        plain = rb.simulate_batch(model, y0s, TS, batching=rb.Vmap(), **kw)
+        assert np.all(plain.result._value == 0)
+        assert_same_solves(kernel, plain)

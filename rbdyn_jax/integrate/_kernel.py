@@ -319,7 +319,7 @@ def kernel_solve(model, y0s, ts, solver, controller, max_steps, dt0, model_axes,
     out_shape = ([jax.ShapeDtypeStruct((n_pad, P), dtype)] * n_y
                  + [jax.ShapeDtypeStruct((P,), int_t)] * 4)
     out_specs = ([pl.BlockSpec((n_pad, block), lambda i: (0, i))] * n_y + [row_spec] * 4)
-    outs = pl.pallas_call(
+    call = pl.pallas_call(
         kernel, out_shape=out_shape, grid=(P // block,),
         in_specs=[pl.BlockSpec((n_pad,), lambda i: (0,))] + [row_spec] * n_in,
         out_specs=out_specs, interpret=interpret, name="rbdyn_kernel",
@@ -327,7 +327,8 @@ def kernel_solve(model, y0s, ts, solver, controller, max_steps, dt0, model_axes,
         # GPU (`jax_pallas_use_mosaic_gpu`), whose copies are of whole warpgroups.
         compiler_params=None if interpret else pltriton.CompilerParams(
             num_warps=TRITON_WARPS, num_stages=1),
-    )(ts_pad, *in_rows)
+    )
+    outs = _undifferentiated(call)(ts_pad, *in_rows)
     ys_rows, counts, result = outs[:n_y], outs[n_y:n_y + 3], outs[n_y + 3]
 
     # Back to the batch's order: position p of the kernel holds trajectory order[p].
@@ -347,6 +348,22 @@ def kernel_solve(model, y0s, ts, solver, controller, max_steps, dt0, model_axes,
 
     return eqx.filter_vmap(finished, in_axes=(0 if batched else None, 0, 0, 0, 0))(
         model, ys, ok0, result, counts)
+
+
+def _undifferentiated(call):
+    """`call`, refusing a derivative by name (`jax.grad`, `jax.jvp`, … through it) rather
+    than differentiating the kernel's discrete program."""
+
+    @jax.custom_jvp
+    def run(*args):
+        return call(*args)
+
+    def refused(primals, tangents):
+        raise ValueError("`Kernel` does not differentiate a solve: take derivatives through "
+                         "`batching=Lanes()` (forward sensitivities) or `Vmap()`.")
+
+    run.defjvp(refused)
+    return run
 
 
 def _compiled(fn):
