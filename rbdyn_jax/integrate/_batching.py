@@ -18,7 +18,7 @@ from .._xla import loops_compiled_whole
 from ._compile import compiled
 from ._diffeqsolve import solve_vmapped
 from ._field import checked_times, finish, promoted
-from ._kernel import _kernel_solved, field_refuse, kernel_block, kernel_refuse
+from ._kernel import field_refuse, kernel_block, kernel_refuse, kernel_solved
 from ._lanes import LAYOUTS, Plain, lane_loop
 from ._sensitivity import lane_jvp
 from ._solution import Trajectory, as_result
@@ -169,7 +169,7 @@ class Kernel(AbstractBatching):
         gpu = jax.default_backend() == "gpu"
         interpret = (not gpu) if self.interpret is None else self.interpret
         block = kernel_block(self.block, jax.tree_util.tree_leaves(y0s)[0].shape[0], gpu)
-        return _kernel_solved[cacheable](model, y0s, ts, solver, controller, max_steps, dt0,
+        return kernel_solved[cacheable](model, y0s, ts, solver, controller, max_steps, dt0,
                                          model_axes, block, interpret)
 
 

@@ -40,7 +40,7 @@ from ._field import (
     promoted,
     unit_time,
 )
-from ._lanes import Plain, _term, clip_floor, lane_control, lane_first, unrolled_step
+from ._lanes import Plain, clip_floor, guarded_term, lane_control, lane_first, unrolled_step
 from ._rows import objects, rowwise, trace, unsupported
 from ._solution import RESULTS, Trajectory, as_result, result_code
 
@@ -200,7 +200,7 @@ def kernel_solve(model, y0s, ts, solver, controller, max_steps, dt0, model_axes,
         m_dyn, c_dyn, t0_, span_ = params
         m = eqx.combine(m_dyn, static)
         ctrl = eqx.combine(c_dyn, cstatic)
-        term = _term(m, t0_, span_)
+        term = guarded_term(m, t0_, span_)
         y1, y_error, dense, f1 = unrolled_step(solver, term, tprev, tnext, y, ok, f0)
         keep, tp, tn, cs, code = lane_control(ctrl, error_order, jnp.asarray(t1_floor),
                                               tprev, tnext, y, y1, y_error, cstate)
@@ -378,4 +378,4 @@ def _compiled(fn):
     return {False: filter_jit(fn), True: filter_jit(checks_nan)}
 
 
-_kernel_solved = _compiled(kernel_solve)
+kernel_solved = _compiled(kernel_solve)

@@ -239,7 +239,7 @@ def unrolled_step(solver, term, t0, t1, y0, args, f0):
     return y1, y_error, dict(y0=y0, y1=y1, k=k), fi if tab.fsal else None
 
 
-def _term(model, t0, span):
+def guarded_term(model, t0, span):
     return _compat.wrapped_term(diffrax.ODETerm(Guarded(model, t0, span)))
 
 
@@ -283,7 +283,7 @@ def lane_first(m: AbstractLaneSystem, y0, *, controller, solver, start_time, spa
     t0, t1 = jnp.zeros((), span.dtype), jnp.ones((), span.dtype)
     ok, y, f = start(m.model, m.primal(y0), start_time)  # f at y: the stand-in if not ok
     y_run, f_run = m.extend(ok, y, f, y0, start_time)
-    term = _term(m.model, start_time, span)
+    term = guarded_term(m.model, start_time, span)
     tnext, cstate = controller.init(term, t0, t1, y, dt0, ok, solver.func,
                                     solver.error_order(term))
     tnext = jnp.minimum(tnext, t1)
