@@ -26,7 +26,8 @@ from ._solution import Trajectory, as_result
 
 class AbstractBatching(eqx.Module):
     """How `simulate_batch` runs a batch of trajectories. Pass an instance as its
-    `batching=` argument; `None` chooses for you (`Lanes` where it serves, else `Vmap`)."""
+    `batching=` argument; `None` chooses for you (on a GPU `Kernel` where it serves; else
+    `Lanes` where it serves; else `Vmap`)."""
 
     @abc.abstractmethod
     def solve(self, model, y0s, ts, *, solver, controller, adjoint, max_steps, dt0,
@@ -52,7 +53,8 @@ class Lanes(AbstractBatching):
     """The lane solver, the fast path for batches: each device runs `lanes` lanes of one
     loop that drives diffrax's solver step and step-size controller itself, and a lane
     whose trajectory has finished takes the next one at once, so no lane idles behind the
-    slowest trajectory. The default wherever it can run the solve.
+    slowest trajectory. The default wherever it can run the solve, but for a solve `Kernel`
+    runs on a GPU.
 
     **Arguments:**
 
