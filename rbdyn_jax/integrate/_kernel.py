@@ -56,9 +56,9 @@ def next_power_of_two(n: int) -> int:
 
 
 def kernel_refuse(model, solver, controller, adjoint) -> str | None:
-    """Why `Kernel` cannot run this solve, or `None`: an explicit Runge–Kutta solver, a
-    `PIDController`, no adjoint, and a model whose field and the controller's rules run on
-    rows of lanes (`_rows`)."""
+    """Why `Kernel` cannot run this solve's solver, controller or adjoint, or `None`: it
+    needs an explicit Runge–Kutta solver, a `PIDController` and no adjoint. (Whether the
+    model's field runs on rows of lanes is `field_refuse`'s question.)"""
     if not isinstance(solver, diffrax.AbstractERK):
         return ("needs an explicit Runge–Kutta solver (a `diffrax.AbstractERK`: Tsit5, "
                 f"Dopri5, Dopri8, Bosh3, …), got {type(solver).__name__}")
