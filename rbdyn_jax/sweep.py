@@ -7,18 +7,22 @@ The scenario (model, distributions, output times, solver settings, summaries; TO
 its key path), so a trajectory's sample does not depend on the chunking, the devices, the
 workers or the other random quantities. A chunk is solved by one compiled program: each
 device takes its part with `jax.shard_map` (no collectives inside the solver loop) and
-runs it through the lane solver (`simulate_batch(..., batching=Lanes(lanes, devices=1))`)
-in blocks: `lanes` trajectories step together, and a lane whose trajectory has finished
-takes the next one of its block at once. On a CPU a block is 8 × `lanes` trajectories (1024
-and 64 by default); on a GPU a device solves its whole share in one block, through the lanes
-`simulate_batch` takes for a batch that size, and the chunk is sized from the device's
-memory (`chunking`). On a CPU, because the block shape is fixed and every drawn quantity
-enters as a runtime argument (the output times and tolerances, the same for every
-trajectory, are constants of the program), the results are **bitwise identical for any
-chunk size, any number of devices and any number of Dask workers** at a given `lanes`
-(tested at 4, 16 and 64 lanes; at 8, with XLA's while loops compiled whole, a trajectory's
-last bits can depend on its lane within the block). On a GPU they are so for a given chunk
-and lanes.
+solves it in blocks by the batching `simulate_batch`'s default takes: on a GPU backend the
+Pallas kernel (`Kernel`, a program of 128 trajectories each, every trajectory in its own
+lane from start to end) where the scenario's model runs on rows of lanes, and otherwise the
+lane solver (`Lanes(lanes, devices=1)`: `lanes` trajectories step together, and a lane
+whose trajectory has finished takes the next one of its block at once). On a CPU a block is
+8 × `lanes` trajectories (1024 and 64 by default); on a GPU a device solves its whole share
+in one block (through the kernel, or through the lanes `simulate_batch` takes for a batch
+that size), and the chunk is sized from the device's memory (`chunking`). On a CPU, because
+the block shape is fixed and every drawn quantity enters as a runtime argument (the output
+times and tolerances, the same for every trajectory, are constants of the program), the
+results are **bitwise identical for any chunk size, any number of devices and any number
+of Dask workers** at a given `lanes` (tested at 4, 16 and 64 lanes; at 8, with XLA's while
+loops compiled whole, a trajectory's last bits can depend on its lane within the block).
+On a GPU they are so through the kernel for any chunk (its program's arithmetic per lane
+is fixed; tested on a CPU with the kernel in interpret mode), and through the lanes for a
+given chunk and lanes.
 
 In this process (the default) the chunks are solved one after the other. With
 `client=dask.distributed.Client(...)` every chunk is a task (`solve_chunk`): a worker
@@ -70,7 +74,9 @@ from ._xla import jit
 from .integrate import (
     MODE_DEPENDENT_JITS,
     RESULTS,
+    Kernel,
     Lanes,
+    default_batching,
     default_lanes,
     device_memory,
     result_code,
@@ -113,7 +119,8 @@ def _solve_block(scenario: Scenario, dists, key, idx, lanes):
     traj = simulate_batch(models, y0s, scenario.ts, model_axes=0,
                           solver=scenario.diffrax_solver,
                           stepsize_controller=scenario.stepsize_controller,
-                          max_steps=scenario.max_steps, batching=Lanes(lanes, devices=1))
+                          max_steps=scenario.max_steps,
+                          batching=_batching(scenario, models, y0s, lanes))
     status = jnp.where(ok, result_code(traj.result), result_code(RESULTS.nonfinite_state))
 
     def summaries(m, tr):
@@ -130,6 +137,17 @@ def _solve_block(scenario: Scenario, dists, key, idx, lanes):
         "num_steps": traj.stats["num_steps"].astype(_index_dtype()),
         **{k: jnp.where(good, v, jnp.nan) for k, v in summ.items()},
     }
+
+
+def _batching(scenario: Scenario, models, y0s, lanes):
+    """How a block is solved: `Kernel` where `simulate_batch`'s default takes it (a GPU
+    backend, and the scenario's model field runs on rows of lanes), else the lane solver
+    through `lanes` lanes on the block's device. A kernel's trajectory is integrated by its
+    own lane of a program, its arithmetic the same whatever the other lanes hold, so a
+    sweep's bits do not depend on its chunking either way."""
+    chosen = default_batching(scenario.diffrax_solver, scenario.stepsize_controller, None,
+                              models, y0s, model_axes=0)
+    return chosen if isinstance(chosen, Kernel) else Lanes(lanes, devices=1)
 
 
 _PER_LANE = 8  # trajectories per lane in one CPU block (a block: 8 × lanes)

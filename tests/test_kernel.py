@@ -261,3 +261,58 @@ def test_euler_angle_and_poisson_forms():
         plain = rb.simulate_batch(model, y0s, TS, batching=rb.Vmap(), **kw)
         assert np.all(plain.result._value == 0)
         assert_same_solves(kernel, plain)
+
+
+# --------------------------------------------------------------------------------------
+# Sweeps: the default's batching
+# --------------------------------------------------------------------------------------
+
+SWEEP_N = 12
+
+
+def test_a_sweep_on_a_gpu_takes_the_kernel(monkeypatch, tmp_path):
+    """On a GPU backend (faked: JAX's backend reported as a GPU, the kernel in interpret
+    mode since the CPU has no Triton, and each chunk's device share solved in one block as
+    on a GPU) a sweep takes the default's `Kernel`. Its store is the same to the bit for
+    two chunkings (each trajectory is integrated in its own lane, whatever the others
+    are), and equals the lane solver's store to round-off: the same step counts and codes,
+    values within `ROUND_OFF` (the unrolled stages and the rows' sums round differently
+    in the last bits; states and summaries of size ≲ 3 here)."""
+    import rbdyn_jax.integrate._batching as batching
+    from helpers import load_store, small_scenario
+
+    from rbdyn_jax import sweep
+    from rbdyn_jax.scenario import Scenario
+
+    sc = Scenario.from_dict(small_scenario(time={"t1": 2.0, "n": 5}))
+    chosen = []
+    real = sweep._batching
+
+    def recorded(*args):
+        out = real(*args)
+        chosen.append(type(out))
+        return out
+
+    def run(name, chunk):
+        return load_store(sweep.run(sc, SWEEP_N, tmp_path / name, chunk=chunk, seed=3,
+                                    lanes=4))
+
+    monkeypatch.setattr(sweep, "_batching", recorded)
+    lanes = run("lanes.zarr", SWEEP_N)
+    assert set(chosen) == {rb.Lanes}
+    chosen.clear()
+    monkeypatch.setattr(batching, "Kernel", lambda: rb.Kernel(interpret=True))
+    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
+    monkeypatch.setattr(sweep, "_quantum", lambda platform, lanes: 1)
+    jax.clear_caches()  # the chunk program compiled for the CPU's choice
+    one = run("k12.zarr", SWEEP_N)
+    split = run("k5.zarr", 5)
+    assert set(chosen) == {rb.Kernel}
+    for k in one:
+        np.testing.assert_array_equal(one[k], split[k], err_msg=k)
+    assert np.all(one["status"] == 0)
+    for k in ("status", "num_steps", "inertia"):
+        np.testing.assert_array_equal(one[k], lanes[k], err_msg=k)
+    for k in ("omega", "quat", "energy_drift", "max_abs_omega", "first_flip_time"):
+        np.testing.assert_allclose(one[k], lanes[k], rtol=0, atol=ROUND_OFF, equal_nan=True,
+                                   err_msg=k)

@@ -37,6 +37,7 @@ from ._batching import (
     Kernel as Kernel,
     Lanes as Lanes,
     Vmap as Vmap,
+    default_batching as default_batching,
     default_lanes as default_lanes,
     device_memory as device_memory,
 )
@@ -56,6 +57,6 @@ from ._solution import (
 )
 
 __all__ = ["COMPILER_OPTIONS", "RESULTS", "AbstractBatching", "Kernel", "Lanes", "Trajectory",
-           "Vmap", "configure_xla", "default_lanes", "default_tolerance", "device_memory",
+           "Vmap", "configure_xla", "default_batching", "default_lanes", "default_tolerance", "device_memory",
            "make_controller", "min_rtol", "result_code", "result_names", "simulate",
            "simulate_batch"]
