@@ -149,7 +149,10 @@ class Kernel(AbstractBatching):
     `diffrax.PIDController`, no `adjoint`, and a model whose vector field is written on
     vector components (elementwise arithmetic, slices, stacks, small contractions: the
     models and torques of rbdyn_jax are); a solve it cannot run is refused with a
-    `ValueError` naming what. Not differentiable yet: use `Lanes` for derivatives.
+    `ValueError` naming what. Differentiable in both modes (`jax.grad`, `jax.jacfwd`) as
+    `Lanes` is: forward sensitivities integrated in the kernel by the same steps, only
+    those of the state the caller reads, an inertia as a symmetric tensor; a second
+    derivative is refused (take it through `Lanes` or `Vmap`).
     """
 
     block: int | None = None

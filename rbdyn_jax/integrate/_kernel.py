@@ -41,6 +41,7 @@ from ._field import (
     unit_time,
 )
 from ._lanes import Plain, clip_floor, guarded_term, lane_control, lane_first, unrolled_step
+from ._sensitivity import lane_jvp
 from ._rows import objects, rowwise, trace, unsupported
 from ._solution import RESULTS, Trajectory, as_result, result_code
 
@@ -153,22 +154,57 @@ def _select(mask, new, old):
 
 def kernel_solve(model, y0s, ts, solver, controller, max_steps, dt0, model_axes, block,
                  interpret) -> Trajectory:
-    """The kernel (`Kernel`) over the batch, and its `Trajectory`s."""
-    from jax.experimental import pallas as pl  # imported with the first kernel solve
-    from jax.experimental.pallas import triton as pltriton
+    """The kernel (`Kernel`) over the batch, and its `Trajectory`s.
 
+    Differentiable in both modes by forward sensitivities, by the lane solver's rule
+    (`_sensitivity.lane_jvp`, see `_batching.lane_solve`): the kernel integrates the model
+    extended by the variational equations (`_sensitivity.Sensitivity`, whose field is one
+    `jax.jvp` of the model's, run on rows as the field is) by the same steps, for the
+    state leaves the caller reads only, and the rule contracts them with the tangents. A
+    derivative of that derivative is refused."""
     ts = checked_times(ts)
     batched = model_axes is not None
     if batched:  # every array leaf with a leading trajectory axis
         model = eqx.filter_vmap(lambda m: m, in_axes=(model_axes,))(model)
     dyn, static = eqx.partition(model, eqx.is_array)
     y0s = promoted(dyn, y0s, ts)
+    tols, cstatic = eqx.partition(controller, eqx.is_array)
+
+    def loop(system, y0s, ts, tols):
+        return kernel_run(system, y0s, ts, eqx.combine(tols, cstatic), solver, max_steps, dt0,
+                          batched, block, interpret)
+
+    @jax.custom_jvp
+    def solve(dyn, y0s, ts, tols):
+        return loop(Plain(eqx.combine(dyn, static)), y0s, ts, tols)
+
+    solve.defjvp(functools.partial(lane_jvp, loop, static, batched), symbolic_zeros=True)
+    ys, ok0, result, counts = solve(dyn, y0s, ts, tols)
+
+    def finished(m, ys, ok, result, counts):
+        return finish(m, ts, ys, ok, as_result(result), list(counts))
+
+    return eqx.filter_vmap(finished, in_axes=(0 if batched else None, 0, 0, 0, 0))(
+        model, ys, ok0, result, counts)
+
+
+def kernel_run(system, y0s, ts, controller, solver, max_steps, dt0, batched, block,
+               interpret):
+    """The kernel over the batch `y0s` of what `system` integrates (`_lanes.
+    AbstractLaneSystem`: the model, or the model and its sensitivities; a leading
+    trajectory axis on its array leaves when `batched`): the raw saved states `(N, n, …)`
+    (+inf where never saved), the start flags, result codes and step counts, in the
+    batch's order, as `_lanes.lane_loop` gives them. The steps are the model's own: the
+    controller sees the model's state alone (`system.primal`)."""
+    from jax.experimental import pallas as pl  # imported with the first kernel solve
+    from jax.experimental.pallas import triton as pltriton
+
+    dyn, static = eqx.partition(system, eqx.is_array)
     N = jax.tree_util.tree_leaves(y0s)[0].shape[0]
     n = ts.shape[0]
     start_time, span, uts, dt0 = unit_time(ts, dt0)
     controller = controller_in_unit_time(controller, start_time, span)
     dtype = uts.dtype
-    system = Plain(model)
     axis = 0 if batched else None
     first = functools.partial(lane_first, controller=controller, solver=solver,
                               start_time=start_time, span=span, dt0=dt0)
@@ -203,7 +239,8 @@ def kernel_solve(model, y0s, ts, solver, controller, max_steps, dt0, model_axes,
         term = guarded_term(m, t0_, span_)
         y1, y_error, dense, f1 = unrolled_step(solver, term, tprev, tnext, y, ok, f0)
         keep, tp, tn, cs, code = lane_control(ctrl, error_order, jnp.asarray(t1_floor),
-                                              tprev, tnext, y, y1, y_error, cstate)
+                                              tprev, tnext, m.primal(y), m.primal(y1),
+                                              m.primal(y_error), cstate)
         return y1, dense, f1, keep, tp, tn, cs, code
 
     def interpolate(tprev, tnext, dense, t):
@@ -341,26 +378,23 @@ def kernel_solve(model, y0s, ts, solver, controller, max_steps, dt0, model_axes,
         leaves.append(jnp.moveaxis(x, 1, 0)[back].reshape((N, n) + shape))
     ys = jax.tree_util.tree_unflatten(jax.tree_util.tree_structure(y0s), leaves)
     counts = jnp.stack(counts, axis=-1)[:N][back].astype(int)
-    result = result[:N][back]
-
-    def finished(m, ys, ok, result, counts):
-        return finish(m, ts, ys, ok, as_result(result), list(counts))
-
-    return eqx.filter_vmap(finished, in_axes=(0 if batched else None, 0, 0, 0, 0))(
-        model, ys, ok0, result, counts)
+    return ys, ok0, result[:N][back], counts
 
 
 def _undifferentiated(call):
     """`call`, refusing a derivative by name (`jax.grad`, `jax.jvp`, … through it) rather
-    than differentiating the kernel's discrete program."""
+    than differentiating the kernel's discrete program. A solve's derivative is
+    `kernel_solve`'s rule, which calls the kernel undifferentiated; this refuses a
+    derivative of that derivative."""
 
     @jax.custom_jvp
     def run(*args):
         return call(*args)
 
     def refused(primals, tangents):
-        raise ValueError("`Kernel` does not differentiate a solve: take derivatives through "
-                         "`batching=Lanes()` (forward sensitivities) or `Vmap()`.")
+        raise ValueError("`Kernel` differentiates a solve once (forward sensitivities "
+                         "integrated in the kernel), not its derivative: take a second "
+                         "derivative through `batching=Lanes()` or `Vmap()`.")
 
     run.defjvp(refused)
     return run
