@@ -1,19 +1,26 @@
-"""Batched solves on a GPU, side by side in one run: rbdyn_jax's strategies against a
-hand-written CUDA kernel (the yardstick: one thread per trajectory, Dormand–Prince 5(4),
-`_cuda.py`) and against the plain vmapped `diffrax.diffeqsolve`, at 10³–10⁶ trajectories;
-forward solves, gradients and float32. Every rate is also given as a ratio to the kernel's
-float64 rate measured in the same run at the same batch size.
+"""Batched solves on a GPU, side by side in one run: rbdyn_jax's strategies (`Kernel`,
+`Lanes`, `Vmap` and the default call) against a hand-written CUDA kernel (the yardstick:
+one thread per trajectory, Dormand–Prince 5(4), `_cuda.py`) and against the plain vmapped
+`diffrax.diffeqsolve`, at 10³–10⁶ trajectories; forward solves, gradients and float32; and
+a summaries-only sweep of 10⁷ trajectories end to end. Every rate is also given as a ratio
+to the CUDA kernel's float64 rate measured in the same run at the same batch size (a
+float32 row also to its float32 rate).
 
 Setting (the throughput benchmark's): torque-free J = [[2, 0.05, 0], [0.05, 3, 0.02],
 [0, 0.02, 4]], ω0 ~ N(0, 1) per axis (seed 0), identity attitude, t ∈ [0, 100], 101 outputs,
 rtol = atol = 1e-8 in float64 and 1e-6 in float32. Rows:
 
-- `default`: `rb.simulate_batch(model, y0s, ts)`, which on a GPU takes the lane solver in its
-  array layout with a lane per trajectory (`rb.Lanes`);
+- `default`: `rb.simulate_batch(model, y0s, ts)`, which on a GPU takes the Pallas kernel
+  (`rb.Kernel`; the row names the strategy the default took, and for `Lanes` its lanes);
 - `default f32`: the same call on float32 inputs (the solve runs in float32);
-- `gradient`: `jax.jit(jax.grad(loss))` of a batch loss (Σ ω² over the outputs) through
-  the default call w.r.t. the inertia's six log-Cholesky parameters (`rb.with_log_cholesky`);
-  its time is also given as a multiple of the forward call's;
+- `kernel`, `kernel f32`: `batching=rb.Kernel()` (a block of 128 trajectories a program),
+  float64 and float32;
+- `lanes`, `lanes f32`: `batching=rb.Lanes()`, the lane solver in its array layout with the
+  lanes it takes for the batch;
+- `gradient`, `kernel gradient`: `jax.jit(jax.grad(loss))` of a batch loss (Σ ω² over the
+  outputs) w.r.t. the inertia's six log-Cholesky parameters (`rb.with_log_cholesky`),
+  through the default call and through `Kernel` (forward sensitivities); the time is also
+  given as a multiple of the forward call's (`default`, `kernel`);
 - `lane per trajectory`: `rb.Lanes(N)`: every trajectory in a lane of its own, no refill
   (the default refills a third as many lanes on batches over 16,384, at most 131,072; the
   rows give the lanes it took), and `Lanes(L)` for each count of `--lanes`;
@@ -23,7 +30,11 @@ rtol = atol = 1e-8 in float64 and 1e-6 in float32. Rows:
 - `lanes cpu layout` (only with `--cpu-layout-max`): `rb.Lanes(256, layout="cpu")`, the
   CPU's layout of the lane loop on the GPU;
 - `cuda f64`, `cuda f32`: the kernel alone (device arrays allocated once, launch and
-  synchronise timed).
+  synchronise timed);
+- `sweep` (`--sweep-n`, default 10⁷; 0 leaves it out): `sweep.run("torque_free_flip", n,
+  store, trajectories="none")`, the shipped scenario (t ∈ [0, 40], 81 outputs, Tsit5 at
+  1e-8) with its summaries only, timed once from the call to the store written and
+  closed (compilation included); the store, under `--out`, is removed afterwards.
 
 Each rate is the median of repeated calls after a first call, which is reported apart (it
 includes compilation). Errors: the largest and the median over trajectories of
@@ -34,7 +45,9 @@ Results are written after every row (`gpu.json` under `--out`), so a run stopped
 
 Run: `python benchmarks/gpu.py [--sizes 1000 10000 100000 1000000] [--grad-max 100000]
 [--vmap-max 100000] [--whole-min 100000] [--lanes L …] [--cpu-layout-max 0]
-[--budget 600] [--out results/benchmarks]`.
+[--sweep-n 10000000] [--budget 600] [--out results/benchmarks]`. The issue's report in one
+command within a 10-minute device call: `python benchmarks/gpu.py --sizes 100000 1000000
+--vmap-max 100000 --whole-min 2000000 --budget 480`.
 Without a GPU it runs on the CPU (the kernel then needs numba-cuda's simulator,
 `NUMBA_ENABLE_CUDASIM=1`, and only tiny sizes are sensible).
 """
@@ -53,7 +66,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import rbdyn_jax as rb  # noqa: E402
-from rbdyn_jax.integrate import default_lanes, device_memory  # noqa: E402
+from rbdyn_jax.integrate import default_batching, default_lanes, device_memory  # noqa: E402
 
 sys.path.insert(0, str(pathlib.Path(__file__).parent))
 import _baselines  # noqa: E402
@@ -107,14 +120,14 @@ def rbdyn_forward(w0, ts, dtype, batching):
     return lambda: rb.simulate_batch(model, y0s, ts, rtol=tol, atol=tol, batching=batching)
 
 
-def rbdyn_gradient(w0, ts):
+def rbdyn_gradient(w0, ts, batching=None):
     body = rb.RigidBody(jnp.asarray(J))
     y0s, ts = states(w0, np.float64), jnp.asarray(ts)
     theta = rb.inertia.to_log_cholesky(jnp.asarray(J))
 
     def loss(th):
         tr = rb.simulate_batch(rb.with_log_cholesky(body, th), y0s, ts, rtol=TOL["float64"],
-                               atol=TOL["float64"])
+                               atol=TOL["float64"], batching=batching)
         return jnp.sum(tr.ys.omega ** 2)
 
     grad = jax.jit(jax.grad(loss), compiler_options=rb.COMPILER_OPTIONS)
@@ -141,6 +154,28 @@ def plain_vmap(w0, ts):
                                                      (len(w0), 1))], axis=1)
     fn = jax.jit(jax.vmap(solve))
     return lambda: fn(y0s)
+
+
+def sweep_run(n, out):
+    """A summaries-only sweep of `n` trajectories of `torque_free_flip` into a store under
+    `out`, timed end to end; the store is removed afterwards."""
+    import shutil
+
+    import zarr
+
+    from rbdyn_jax import sweep
+
+    store = pathlib.Path(out) / "gpu_sweep.zarr"
+    t0 = time.perf_counter()
+    sweep.run("torque_free_flip", n, store, trajectories="none", overwrite=True)
+    seconds = time.perf_counter() - t0
+    status = zarr.open_group(str(store), mode="r")["status"][:]
+    size = sum(f.stat().st_size for f in store.rglob("*") if f.is_file())
+    shutil.rmtree(store)
+    return {"method": "sweep", "batch": n, "dtype": "float64", "traj_per_s": n / seconds,
+            "seconds": seconds, "first_call_s": seconds,
+            "all_successful": bool(np.all(status == 0)), "successful": int(np.sum(status == 0)),
+            "store_bytes": size, "backend": jax.default_backend()}
 
 
 def cuda_kernel(w0, ts, dtype):
@@ -171,27 +206,36 @@ def rate_row(method, n, dtype, first, t, omega, steps, ok, ref):
 
 def measure(method, n, w0, ts, ref, repeats):
     """One row: the method's rate, first call, steps and errors at batch size `n`."""
-    if method in ("default", "default f32", "vmap", "lanes cpu layout", "lane per trajectory"
-                  ) or method.startswith("Lanes("):
-        dtype = np.float32 if method == "default f32" else np.float64
+    if method in ("default", "default f32", "kernel", "kernel f32", "lanes", "lanes f32",
+                  "vmap", "lanes cpu layout", "lane per trajectory") or method.startswith("Lanes("):
+        dtype = np.float32 if method.endswith("f32") else np.float64
         batching = {"vmap": rb.Vmap(), "lanes cpu layout": rb.Lanes(256, layout="cpu"),
-                    "lane per trajectory": rb.Lanes(n)}.get(method)
+                    "lane per trajectory": rb.Lanes(n), "kernel": rb.Kernel(),
+                    "kernel f32": rb.Kernel(), "lanes": rb.Lanes(),
+                    "lanes f32": rb.Lanes()}.get(method)
         if method.startswith("Lanes("):
             batching = rb.Lanes(int(method[6:-1]))
         tr, first, t = timed(rbdyn_forward(w0, ts, dtype, batching), repeats)
         row = rate_row(method, n, dtype, first, t, tr.ys.omega, tr.stats["num_steps"],
                        np.all(np.asarray(tr.result._value) == 0), ref)
-        if method.startswith("default"):  # the lanes the default took
-            per_lane = 7 * np.dtype(dtype).itemsize  # the state (ω, q) of a trajectory
-            row["lanes"] = default_lanes(n, len(jax.devices()), jax.devices()[0].platform,
-                                         per_lane, device_memory(jax.devices()[0]))
+        if method.startswith("default"):  # the strategy the default took (and its lanes)
+            tol = TOL[np.dtype(dtype).name]
+            chosen = default_batching(diffrax.Tsit5(), diffrax.PIDController(rtol=tol, atol=tol),
+                                      None, rb.RigidBody(jnp.asarray(J, dtype)),
+                                      states(w0[:1], dtype))
+            row["batching"] = type(chosen).__name__
+            if isinstance(chosen, rb.Lanes):
+                per_lane = 7 * np.dtype(dtype).itemsize  # the state (ω, q) of a trajectory
+                row["lanes"] = default_lanes(n, len(jax.devices()), jax.devices()[0].platform,
+                                             per_lane, device_memory(jax.devices()[0]))
         return row
     if method == "plain vmap":
         (ys, steps), first, t = timed(plain_vmap(w0, ts), repeats)
         return rate_row(method, n, np.float64, first, t, ys[..., :3], steps,
                         np.all(np.isfinite(np.asarray(ys))), ref)
-    if method == "gradient":
-        g, first, t = timed(rbdyn_gradient(w0, ts), repeats)
+    if method in ("gradient", "kernel gradient"):
+        batching = rb.Kernel() if method == "kernel gradient" else None
+        g, first, t = timed(rbdyn_gradient(w0, ts, batching), repeats)
         return {"method": method, "batch": n, "dtype": "float64", "traj_per_s": n / t,
                 "seconds": t, "first_call_s": first,
                 "all_successful": bool(np.all(np.isfinite(np.asarray(g))))}
@@ -204,13 +248,18 @@ def measure(method, n, w0, ts, ref, repeats):
     raise ValueError(method)
 
 
-def plan(sizes, grad_max, vmap_max, cpu_layout_max, whole_min, lanes=()):
-    """(method, n) in the order measured: the yardstick first at each size, then the rest."""
+def plan(sizes, grad_max, vmap_max, cpu_layout_max, whole_min, lanes=(), sweep_n=0):
+    """(method, n) in the order measured: the yardstick first at each size, then the rest;
+    the sweep after the largest size's kernel rows (before its slower reference rows)."""
     rows = []
     for n in sizes:
-        rows += [("cuda f64", n), ("default", n), ("cuda f32", n), ("default f32", n)]
+        rows += [("cuda f64", n), ("kernel", n), ("default", n), ("cuda f32", n),
+                 ("kernel f32", n), ("default f32", n)]
         if n <= grad_max:
-            rows.append(("gradient", n))
+            rows += [("kernel gradient", n), ("gradient", n)]
+        if sweep_n and n == max(sizes):
+            rows.append(("sweep", sweep_n))
+        rows += [("lanes", n), ("lanes f32", n)]
         if n >= whole_min:
             rows.append(("lane per trajectory", n))
             rows += [(f"Lanes({L})", n) for L in lanes if L < n]
@@ -232,32 +281,42 @@ def device_names():
     return names
 
 
-def main(sizes, grad_max, vmap_max, cpu_layout_max, whole_min, lanes, ref_max, budget, out):
+def main(sizes, grad_max, vmap_max, cpu_layout_max, whole_min, lanes, ref_max, budget, out,
+         sweep_n=0):
     t_start = time.perf_counter()
     ts = np.linspace(0.0, T_END, N_OUT)
-    meta = {"t_end": T_END, "n_out": N_OUT, "tol": TOL, "sizes": sizes, **device_names()}
+    meta = {"t_end": T_END, "n_out": N_OUT, "tol": TOL, "sizes": sizes, "sweep_n": sweep_n,
+            **device_names()}
     print(f"device: {meta['jax_device']}; CUDA yardstick on: {meta['cuda_device']}")
     rows, refs = [], {}
-    for method, n in plan(sizes, grad_max, vmap_max, cpu_layout_max, whole_min, lanes):
+    for method, n in plan(sizes, grad_max, vmap_max, cpu_layout_max, whole_min, lanes,
+                          sweep_n):
         if time.perf_counter() - t_start > budget:
             rows.append({"method": method, "batch": n, "skipped": "budget"})
             print(f"{method:>19} {n:>8}  skipped (over --budget {budget:.0f} s)")
             continue
-        w0 = initial_rates(n)
-        if n not in refs:
-            refs[n] = elliptic(w0[:ref_max], jnp.asarray(ts))
-        repeats = 3 if n <= 100_000 else 1
         try:
-            row = measure(method, n, w0, ts, refs[n], repeats)
+            if method == "sweep":
+                row = sweep_run(n, out)
+            else:
+                w0 = initial_rates(n)
+                if n not in refs:
+                    refs[n] = elliptic(w0[:ref_max], jnp.asarray(ts))
+                row = measure(method, n, w0, ts, refs[n], 3 if n <= 100_000 else 1)
         except Exception as e:  # recorded, and the run goes on (out of memory, say)
             row = {"method": method, "batch": n, "failed": f"{type(e).__name__}: {e}"[:500]}
-        yard = next((r for r in rows if r["method"] == "cuda f64" and r["batch"] == n
-                     and "traj_per_s" in r), None)
-        if yard is not None and "traj_per_s" in row:
-            row["ratio_to_cuda_f64"] = row["traj_per_s"] / yard["traj_per_s"]
-        fwd = next((r for r in rows if r["method"] == "default" and r["batch"] == n
+        for yard_method, key in (("cuda f64", "ratio_to_cuda_f64"),
+                                 ("cuda f32", "ratio_to_cuda_f32")):
+            if key == "ratio_to_cuda_f32" and row.get("dtype") != "float32":
+                continue
+            yard = next((r for r in rows if r["method"] == yard_method and r["batch"] == n
+                         and "traj_per_s" in r), None)
+            if yard is not None and "traj_per_s" in row:
+                row[key] = row["traj_per_s"] / yard["traj_per_s"]
+        forward = {"gradient": "default", "kernel gradient": "kernel"}.get(method)
+        fwd = next((r for r in rows if r["method"] == forward and r["batch"] == n
                     and "seconds" in r), None)
-        if method == "gradient" and fwd is not None and "seconds" in row:
+        if fwd is not None and "seconds" in row:
             row["times_forward"] = row["seconds"] / fwd["seconds"]
         rows.append(row)
         print_row(row)
@@ -285,6 +344,12 @@ def print_row(r, _printed=[]):  # noqa: B006 (print the header once)
     err = (f"{r['max_error']:>8.1e} {r['median_error']:>8.1e}" if "max_error" in r
            else f"{'':>8} {'':>8}")
     note = f"{r['times_forward']:.2f}× forward" if "times_forward" in r else ""
+    if "ratio_to_cuda_f32" in r:
+        note += f"{r['ratio_to_cuda_f32']:.2f}× cuda f32"
+    if "batching" in r:
+        note += f"took {r['batching']}" + (f"({r['lanes']})" if "lanes" in r else "")
+    if "store_bytes" in r:
+        note += f"store {r['store_bytes'] / 1e6:.0f} MB written, end to end"
     if not r.get("all_successful", True):
         note += " (not all successful)"
     print(f"{r['method']:>19} {r['batch']:>8} {r['dtype']:>7} | {r['traj_per_s']:>10.4g} "
@@ -301,8 +366,9 @@ if __name__ == "__main__":
     p.add_argument("--whole-min", type=int, default=100_000)
     p.add_argument("--lanes", type=int, nargs="*", default=[])
     p.add_argument("--ref-max", type=int, default=1000)
+    p.add_argument("--sweep-n", type=int, default=10_000_000)
     p.add_argument("--budget", type=float, default=600.0)
     p.add_argument("--out", default="results/benchmarks")
     a = p.parse_args()
     main(a.sizes, a.grad_max, a.vmap_max, a.cpu_layout_max, a.whole_min, a.lanes, a.ref_max,
-         a.budget, a.out)
+         a.budget, a.out, a.sweep_n)
