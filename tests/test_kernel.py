@@ -343,9 +343,9 @@ def test_a_sweep_on_a_gpu_takes_the_kernel(monkeypatch, tmp_path):
     are), and equals the lane solver's store to round-off: the same step counts and codes,
     values within `ROUND_OFF` (the unrolled stages and the rows' sums round differently
     in the last bits; states and summaries of size ≲ 3 here)."""
-    import rbdyn_jax.integrate._batching as batching
     from helpers import load_store, small_scenario
 
+    import rbdyn_jax.integrate._batching as batching
     from rbdyn_jax import sweep
     from rbdyn_jax.scenario import Scenario
 

@@ -57,6 +57,6 @@ from ._solution import (
 )
 
 __all__ = ["COMPILER_OPTIONS", "RESULTS", "AbstractBatching", "Kernel", "Lanes", "Trajectory",
-           "Vmap", "configure_xla", "default_batching", "default_lanes", "default_tolerance", "device_memory",
-           "make_controller", "min_rtol", "result_code", "result_names", "simulate",
-           "simulate_batch"]
+           "Vmap", "configure_xla", "default_batching", "default_lanes", "default_tolerance",
+           "device_memory", "make_controller", "min_rtol", "result_code", "result_names",
+           "simulate", "simulate_batch"]

@@ -41,8 +41,8 @@ from ._field import (
     unit_time,
 )
 from ._lanes import Plain, clip_floor, guarded_term, lane_control, lane_first, unrolled_step
-from ._sensitivity import lane_jvp
 from ._rows import objects, rowwise, trace, unsupported
+from ._sensitivity import lane_jvp
 from ._solution import RESULTS, Trajectory, as_result, result_code
 
 # The block on a GPU: 128 lanes a program (the measurement on an H100); elsewhere
