@@ -2,12 +2,14 @@
 elsewhere). This module imports only JAX, diffrax and NumPy beside rbdyn_jax, so that it
 runs on a GPU machine without the sweep's store libraries.
 
-On a GPU the default `simulate_batch` takes the lane solver in its array layout with a lane
-for every trajectory (`Lanes`, `default_lanes`). Checked there: that the default call is
-that solve; that it takes the same steps as the vmapped `diffeqsolve` on the same GPU and
-the same values to round-off; that its accuracy against the Jacobi elliptic solution is
-what the tolerance gives; that gradients through it equal reverse mode through the vmapped
-`diffeqsolve`; and that float32 solves reach the accuracy the docs state.
+On a GPU the default `simulate_batch` takes the Pallas kernel (`Kernel`, Triton's
+lowering); the lane solver there takes its array layout with a lane for every trajectory of
+a small batch (`Lanes`, `default_lanes`). Checked there: that the default call is the
+kernel's solve, and `Lanes()` the lane-per-trajectory one; that the default takes the
+same steps as the vmapped `diffeqsolve` on the same GPU and the same values to round-off;
+that its accuracy against the Jacobi elliptic solution is what the tolerance gives; that
+gradients through it (the kernel's forward sensitivities) equal reverse mode through the
+vmapped `diffeqsolve`; and that float32 solves reach the accuracy the docs state.
 """
 
 import jax
@@ -38,15 +40,17 @@ def elliptic(y0s, ts):
                     )(y0s.omega @ axes) @ axes.T
 
 
-def test_the_default_is_the_array_layout_with_a_lane_per_trajectory():
+def test_the_default_is_the_kernel_and_lanes_a_lane_per_trajectory():
     y0s = states()
     lanes = default_lanes(N, 1, "gpu", lane_bytes(y0s), device_memory(jax.devices()[0]))
     assert lanes == N
-    default = rb.simulate_batch(rb.RigidBody(jnp.asarray(J)), y0s, jnp.asarray(TS))
-    explicit = rb.simulate_batch(rb.RigidBody(jnp.asarray(J)), y0s, jnp.asarray(TS),
-                                 batching=rb.Lanes(N, layout="array"))
-    for a, b in zip(jax.tree_util.tree_leaves(default), jax.tree_util.tree_leaves(explicit)):
-        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    model, ts = rb.RigidBody(jnp.asarray(J)), jnp.asarray(TS)
+    for batching, explicit in ((None, rb.Kernel()),
+                               (rb.Lanes(), rb.Lanes(N, layout="array"))):
+        a = rb.simulate_batch(model, y0s, ts, batching=batching)
+        b = rb.simulate_batch(model, y0s, ts, batching=explicit)
+        for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)):
+            np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
 
 
 def test_same_steps_as_vmapped_diffeqsolve_and_the_elliptic_solution():
@@ -54,13 +58,13 @@ def test_same_steps_as_vmapped_diffeqsolve_and_the_elliptic_solution():
     GPU; both within the tolerance's reach of the closed form (rtol 1e-8 over 20 s of
     O(1) rates: ≲ 1e-5, as on a CPU)."""
     y0s, ts = states(), jnp.asarray(TS)
-    lanes = rb.simulate_batch(rb.RigidBody(jnp.asarray(J)), y0s, ts, rtol=TOL, atol=TOL)
+    default = rb.simulate_batch(rb.RigidBody(jnp.asarray(J)), y0s, ts, rtol=TOL, atol=TOL)
     plain = rb.simulate_batch(rb.RigidBody(jnp.asarray(J)), y0s, ts, rtol=TOL, atol=TOL,
                               batching=rb.Vmap())
     for k in ("num_steps", "num_accepted_steps", "num_rejected_steps"):
-        np.testing.assert_array_equal(lanes.stats[k], plain.stats[k])
-    np.testing.assert_allclose(lanes.ys.omega, plain.ys.omega, rtol=0, atol=1e-11)
-    err = np.max(np.abs(np.asarray(lanes.ys.omega) - np.asarray(elliptic(y0s, ts))))
+        np.testing.assert_array_equal(default.stats[k], plain.stats[k])
+    np.testing.assert_allclose(default.ys.omega, plain.ys.omega, rtol=0, atol=1e-11)
+    err = np.max(np.abs(np.asarray(default.ys.omega) - np.asarray(elliptic(y0s, ts))))
     assert err < 1e-5
 
 
