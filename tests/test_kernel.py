@@ -299,6 +299,31 @@ def test_jacfwd_through_the_kernel():
     np.testing.assert_allclose(kernel, lanes, rtol=1e-9, atol=1e-12 * scale)
 
 
+def test_gradients_for_per_trajectory_models_whole_states_and_times():
+    """A heavy top per trajectory (its weight), a loss on the attitude and the rates:
+    gravity couples ω̇ to q, so the kernel integrates the whole state's sensitivities, with
+    each lane's own model. Gradients w.r.t. the weights, the initial states (ω0 and q0)
+    and the output times equal the lane solver's to round-off (bound as above). A minute or
+    two in interpret mode (the whole state's sensitivities: 7 + 7 × 12 rows)."""
+    y0s = initial_states(4, seed=2)
+    weights = jnp.linspace(0.5, 2.0, 4)
+
+    def loss(w, y0s, ts, batching):
+        model = eqx.filter_vmap(heavy_top)(w)
+        tr = rb.simulate_batch(model, y0s, ts, model_axes=0, solver=diffrax.Bosh3(),
+                               rtol=GRAD_RTOL, atol=GRAD_RTOL, batching=batching)
+        return jnp.sum(tr.ys.quat[..., 1:] ** 2) + jnp.sum(jnp.sin(tr.ys.omega))
+
+    grad = jax.jit(jax.grad(loss, argnums=(0, 1, 2)), static_argnums=3)
+    kernel = grad(weights, y0s, GRAD_TS, rb.Kernel())
+    lanes = grad(weights, y0s, GRAD_TS, rb.Lanes())
+    leaves = jax.tree_util.tree_leaves(lanes)
+    scale = max(float(jnp.max(jnp.abs(x))) for x in leaves)
+    assert min(float(jnp.max(jnp.abs(x))) for x in leaves) > 1e-2  # every one real
+    for a, b in zip(jax.tree_util.tree_leaves(kernel), leaves):
+        np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12 * scale)
+
+
 def test_a_second_derivative_through_the_kernel_is_refused():
     y0s = initial_states(4)
 
