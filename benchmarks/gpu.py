@@ -17,10 +17,11 @@ rtol = atol = 1e-8 in float64 and 1e-6 in float32. Rows:
   float64 and float32;
 - `lanes`, `lanes f32`: `batching=rb.Lanes()`, the lane solver in its array layout with the
   lanes it takes for the batch;
-- `gradient`, `kernel gradient`: `jax.jit(jax.grad(loss))` of a batch loss (Σ ω² over the
-  outputs) w.r.t. the inertia's six log-Cholesky parameters (`rb.with_log_cholesky`),
-  through the default call and through `Kernel` (forward sensitivities); the time is also
-  given as a multiple of the forward call's (`default`, `kernel`);
+- `kernel gradient`, `lanes gradient`: `jax.jit(jax.grad(loss))` of a batch loss (Σ ω² over
+  the outputs) w.r.t. the inertia's six log-Cholesky parameters (`rb.with_log_cholesky`),
+  through `Kernel` and through `Lanes` (forward sensitivities, integrated in the kernel or
+  in the lane loop); the time is also given as a multiple of the same strategy's forward
+  call (`kernel`, `lanes`);
 - `lane per trajectory`: `rb.Lanes(N)`: every trajectory in a lane of its own, no refill
   (the default refills a third as many lanes on batches over 16,384, at most 131,072; the
   rows give the lanes it took), and `Lanes(L)` for each count of `--lanes`;
@@ -233,8 +234,8 @@ def measure(method, n, w0, ts, ref, repeats):
         (ys, steps), first, t = timed(plain_vmap(w0, ts), repeats)
         return rate_row(method, n, np.float64, first, t, ys[..., :3], steps,
                         np.all(np.isfinite(np.asarray(ys))), ref)
-    if method in ("gradient", "kernel gradient"):
-        batching = rb.Kernel() if method == "kernel gradient" else None
+    if method in ("kernel gradient", "lanes gradient"):
+        batching = rb.Kernel() if method == "kernel gradient" else rb.Lanes()
         g, first, t = timed(rbdyn_gradient(w0, ts, batching), repeats)
         return {"method": method, "batch": n, "dtype": "float64", "traj_per_s": n / t,
                 "seconds": t, "first_call_s": first,
@@ -256,10 +257,12 @@ def plan(sizes, grad_max, vmap_max, cpu_layout_max, whole_min, lanes=(), sweep_n
         rows += [("cuda f64", n), ("kernel", n), ("default", n), ("cuda f32", n),
                  ("kernel f32", n), ("default f32", n)]
         if n <= grad_max:
-            rows += [("kernel gradient", n), ("gradient", n)]
+            rows.append(("kernel gradient", n))
         if sweep_n and n == max(sizes):
             rows.append(("sweep", sweep_n))
         rows += [("lanes", n), ("lanes f32", n)]
+        if n <= grad_max:
+            rows.append(("lanes gradient", n))
         if n >= whole_min:
             rows.append(("lane per trajectory", n))
             rows += [(f"Lanes({L})", n) for L in lanes if L < n]
@@ -313,7 +316,7 @@ def main(sizes, grad_max, vmap_max, cpu_layout_max, whole_min, lanes, ref_max, b
                          and "traj_per_s" in r), None)
             if yard is not None and "traj_per_s" in row:
                 row[key] = row["traj_per_s"] / yard["traj_per_s"]
-        forward = {"gradient": "default", "kernel gradient": "kernel"}.get(method)
+        forward = {"kernel gradient": "kernel", "lanes gradient": "lanes"}.get(method)
         fwd = next((r for r in rows if r["method"] == forward and r["batch"] == n
                     and "seconds" in r), None)
         if fwd is not None and "seconds" in row:

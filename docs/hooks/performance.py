@@ -214,6 +214,12 @@ def _identify() -> str:
 _GPU_METHODS = {
     "default": "default, float64",
     "default f32": "default, float32",
+    "kernel": "`Kernel()`, float64",
+    "kernel f32": "`Kernel()`, float32",
+    "kernel gradient": "`Kernel()` gradient (6 parameters)",
+    "lanes": "`Lanes()`, float64",
+    "lanes f32": "`Lanes()`, float32",
+    "lanes gradient": "`Lanes()` gradient (6 parameters)",
     "gradient": "gradient (6 parameters)",
     "lane per trajectory": "`Lanes(N)`: a lane per trajectory",
     "vmap": "`Vmap()`",
@@ -235,11 +241,14 @@ def _gpu_environment() -> str:
 def _gpu() -> str:
     """One column per batch size, one row per method: trajectories per second and, below,
     the rate as a fraction of the float64 CUDA kernel's at that size."""
-    rows_in = [r for r in _load("gpu")["rows"] if "traj_per_s" in r]
+    rows_in = [r for r in _load("gpu")["rows"] if "traj_per_s" in r and r["method"] != "sweep"]
+    sweeps = [r for r in _load("gpu")["rows"] if r["method"] == "sweep" and "seconds" in r]
     sizes = sorted({r["batch"] for r in rows_in})
     cell = {(r["method"], r["batch"]): r for r in rows_in}
     rows = []
     for method, label in _GPU_METHODS.items():
+        if not any(m == method for m, _ in cell):  # not measured in this run
+            continue
         row = [label]
         for n in sizes:
             r = cell.get((method, n))
@@ -250,18 +259,28 @@ def _gpu() -> str:
             else:
                 row.append(f"{_n(r['traj_per_s'])}<br>{r['ratio_to_cuda_f64']:.3f}×")
         rows.append(row)
-    rows.append(["gradient ÷ forward, time", *[
-        f"{cell[('gradient', n)]['times_forward']:.2f}" if ("gradient", n) in cell else "—"
-        for n in sizes]])
+    for method in ("gradient", "kernel gradient", "lanes gradient"):
+        if any(m == method for m, _ in cell):
+            rows.append([f"{_GPU_METHODS[method].split(' (')[0]} ÷ forward, time", *[
+                f"{cell[(method, n)]['times_forward']:.2f}"
+                if "times_forward" in cell.get((method, n), {}) else "—" for n in sizes]])
     rows.append(["default ÷ `Vmap()`", *[
         f"{cell[('default', n)]['traj_per_s'] / cell[('vmap', n)]['traj_per_s']:.1f}"
         if ("vmap", n) in cell else "—" for n in sizes]])
     for method, label in (("default", "first call (s), default"),
-                          ("gradient", "first call (s), gradient")):
-        rows.append([label, *[f"{cell[(method, n)]['first_call_s']:.1f}"
-                              if (method, n) in cell else "—" for n in sizes]])
+                          ("kernel", "first call (s), `Kernel()`"),
+                          ("gradient", "first call (s), gradient"),
+                          ("kernel gradient", "first call (s), `Kernel()` gradient")):
+        if any(m == method for m, _ in cell):
+            rows.append([label, *[f"{cell[(method, n)]['first_call_s']:.1f}"
+                                  if (method, n) in cell else "—" for n in sizes]])
     head = [""] + [f"N = {_n(n)}" for n in sizes]
-    return _table(head, rows)
+    table = _table(head, rows)
+    for r in sweeps:  # the summaries-only sweep, end to end
+        table += (f"\n\nA summaries-only sweep of {_n(r['batch'])} `torque_free_flip` "
+                  f"trajectories, its store written: {r['seconds']:.1f} s end to end "
+                  f"({_n(r['traj_per_s'])} a second).")
+    return table
 
 
 def _gpu_accuracy() -> str:
