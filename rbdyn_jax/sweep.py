@@ -1058,7 +1058,10 @@ def run(
       lane takes the next trajectory as soon as its own has finished). `None` (default): 64
       on a CPU; on a GPU those `simulate_batch` takes for a device's share of the chunk,
       solved in one block (`chunking`). On a CPU results are bitwise identical for any
-      `chunk`, `devices` and `client` at the same `lanes`.
+      `chunk`, `devices` and `client` at the same `lanes`. On a GPU backend a scenario
+      whose model the Pallas kernel runs is solved by it (`Kernel`, as `simulate_batch`'s
+      default), which has no lanes to set: `lanes` is then recorded but unused, and the
+      results are bitwise identical for any `chunk`.
     - `trajectories`: which trajectories' states (`omega`, `quat`) the store keeps: `"all"`,
       `"none"` (only the summaries, `status`, `num_steps` and `inertia`), or an integer K
       (those of trajectories 0, K, 2K, …, over the dimension `sampled_trajectory`); `None`

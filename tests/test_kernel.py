@@ -367,7 +367,7 @@ def test_a_sweep_on_a_gpu_takes_the_kernel(monkeypatch, tmp_path):
     two chunkings (each trajectory is integrated in its own lane, whatever the others
     are), and equals the lane solver's store to round-off: the same step counts and codes,
     values within `ROUND_OFF` (the unrolled stages and the rows' sums round differently
-    in the last bits; states and summaries of size ≲ 3 here)."""
+    in the last bits; states and summaries of size ≲ 3 here; measured ≤ 2.2e-14)."""
     from helpers import load_store, small_scenario
 
     import rbdyn_jax.integrate._batching as batching
