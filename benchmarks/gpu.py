@@ -32,6 +32,10 @@ rtol = atol = 1e-8 in float64 and 1e-6 in float32. Rows:
   CPU's layout of the lane loop on the GPU;
 - `cuda f64`, `cuda f32`: the kernel alone (device arrays allocated once, launch and
   synchronise timed);
+- for the throughput benchmark's other models (`--models`: `heavy_top`, uniform gravity of
+  weight 1 at r_c = (0, 0, 0.5); `gravity_gradient`, ε = 3), at the sizes ≥ `--model-min`,
+  float64: `cuda f64 <model>`, `kernel <model>`, `lanes <model>`; their errors are against the
+  CUDA kernel's solution (Dormand–Prince 5(4) at the same tolerance: both solvers' errors);
 - `sweep` (`--sweep-n`, default 10⁷; 0 leaves it out): `sweep.run("torque_free_flip", n,
   store, trajectories="none")`, the shipped scenario (t ∈ [0, 40], 81 outputs, Tsit5 at
   1e-8) with its summaries only, timed once from the call to the store written and
@@ -46,7 +50,8 @@ Results are written after every row (`gpu.json` under `--out`), so a run stopped
 
 Run: `python benchmarks/gpu.py [--sizes 1000 10000 100000 1000000] [--grad-max 100000]
 [--vmap-max 100000] [--whole-min 100000] [--lanes L …] [--cpu-layout-max 0]
-[--sweep-n 10000000] [--budget 600] [--out results/benchmarks]`. The issue's report in one
+[--models heavy_top gravity_gradient] [--model-min 100000] [--sweep-n 10000000]
+[--budget 600] [--out results/benchmarks]`. The issue's report in one
 command within a 10-minute device call: `python benchmarks/gpu.py --sizes 100000 1000000
 --vmap-max 100000 --whole-min 2000000 --budget 480`.
 Without a GPU it runs on the CPU (the kernel then needs numba-cuda's simulator,
@@ -76,6 +81,8 @@ import _report  # noqa: E402
 
 J = np.array([[2.0, 0.05, 0.0], [0.05, 3.0, 0.02], [0.0, 0.02, 4.0]])
 T_END, N_OUT = 100.0, 101
+WEIGHT, COM, EPS = 1.0, np.array([0.0, 0.0, 0.5]), 3.0  # the throughput benchmark's
+MODELS = ("heavy_top", "gravity_gradient")
 TOL = {"float64": 1e-8, "float32": 1e-6}
 
 
@@ -114,8 +121,15 @@ def timed(fn, repeats):
     return out, first, float(np.median(times))
 
 
-def rbdyn_forward(w0, ts, dtype, batching):
-    model = rb.RigidBody(jnp.asarray(J, dtype))
+def rbdyn_model(name, dtype=np.float64):
+    torque = {"torque_free": None,
+              "heavy_top": rb.UniformGravity(jnp.asarray(WEIGHT, dtype), jnp.asarray(COM, dtype)),
+              "gravity_gradient": rb.GravityGradient(jnp.asarray(EPS, dtype))}[name]
+    return rb.RigidBody(jnp.asarray(J, dtype), torque)
+
+
+def rbdyn_forward(w0, ts, dtype, batching, model_name="torque_free"):
+    model = rbdyn_model(model_name, dtype)
     y0s, ts = states(w0, dtype), jnp.asarray(ts, dtype)
     tol = TOL[np.dtype(dtype).name]
     return lambda: rb.simulate_batch(model, y0s, ts, rtol=tol, atol=tol, batching=batching)
@@ -179,11 +193,12 @@ def sweep_run(n, out):
             "store_bytes": size, "backend": jax.default_backend()}
 
 
-def cuda_kernel(w0, ts, dtype):
+def cuda_kernel(w0, ts, dtype, model_name="torque_free"):
     """The yardstick: the kernel alone on device arrays, and a reader of its outputs."""
     cuda = _cuda._import_cuda()
     tol = TOL[np.dtype(dtype).name]
-    solver = _cuda.CudaSolver("torque_free", {"inertia": J}, ts, tol, tol, dtype=dtype)
+    params = {"inertia": J, "weight": WEIGHT, "com": COM, "eps": EPS}
+    solver = _cuda.CudaSolver(model_name, params, ts, tol, tol, dtype=dtype)
     y0 = np.concatenate([w0, np.tile([1.0, 0.0, 0.0, 0.0], (len(w0), 1))], axis=1)
     y0 = cuda.to_device(y0.astype(dtype))
     out, steps, status = solver.outputs(len(w0))
@@ -202,7 +217,24 @@ def rate_row(method, n, dtype, first, t, omega, steps, ok, ref):
     return {"method": method, "batch": n, "dtype": np.dtype(dtype).name,
             "traj_per_s": n / t, "seconds": t, "first_call_s": first,
             "mean_steps": float(np.mean(steps)), "max_steps": int(np.max(steps)),
-            "all_successful": bool(ok), **errors(omega, ref)}
+            "all_successful": bool(ok), **({} if ref is None else errors(omega, ref))}
+
+
+def model_row(method, n, w0, ts, repeats, ref_max, refs):
+    """`cuda f64 <model>`, `kernel <model>` or `lanes <model>` (float64); errors against the
+    CUDA kernel's ω on the first `ref_max` trajectories (`refs`, filled by its row)."""
+    kind, model_name = method.rsplit(" ", 1)
+    if kind == "cuda f64":
+        run, read = cuda_kernel(w0, ts, np.float64, model_name)
+        _, first, t = timed(run, repeats)
+        omega, steps, status = read()
+        refs[(model_name, n)] = np.asarray(omega[:ref_max], np.float64)
+        return rate_row(method, n, np.float64, first, t, omega, steps, np.all(status == 0),
+                        None)
+    batching = rb.Kernel() if kind == "kernel" else rb.Lanes()
+    tr, first, t = timed(rbdyn_forward(w0, ts, np.float64, batching, model_name), repeats)
+    return rate_row(method, n, np.float64, first, t, tr.ys.omega, tr.stats["num_steps"],
+                    np.all(np.asarray(tr.result._value) == 0), refs.get((model_name, n)))
 
 
 def measure(method, n, w0, ts, ref, repeats):
@@ -249,7 +281,8 @@ def measure(method, n, w0, ts, ref, repeats):
     raise ValueError(method)
 
 
-def plan(sizes, grad_max, vmap_max, cpu_layout_max, whole_min, lanes=(), sweep_n=0):
+def plan(sizes, grad_max, vmap_max, cpu_layout_max, whole_min, lanes=(), sweep_n=0,
+         models=(), model_min=0):
     """(method, n) in the order measured: the yardstick first at each size, then the rest;
     the sweep after the largest size's kernel rows (before its slower reference rows)."""
     rows = []
@@ -270,6 +303,9 @@ def plan(sizes, grad_max, vmap_max, cpu_layout_max, whole_min, lanes=(), sweep_n
             rows += [("vmap", n), ("plain vmap", n)]
         if n <= cpu_layout_max:
             rows.append(("lanes cpu layout", n))
+        if n >= model_min:
+            rows += [(f"{kind} {m}", n) for m in models for kind in ("cuda f64", "kernel",
+                                                                      "lanes")]
     return rows
 
 
@@ -285,15 +321,15 @@ def device_names():
 
 
 def main(sizes, grad_max, vmap_max, cpu_layout_max, whole_min, lanes, ref_max, budget, out,
-         sweep_n=0):
+         sweep_n=0, models=(), model_min=0):
     t_start = time.perf_counter()
     ts = np.linspace(0.0, T_END, N_OUT)
     meta = {"t_end": T_END, "n_out": N_OUT, "tol": TOL, "sizes": sizes, "sweep_n": sweep_n,
-            **device_names()}
+            "models": list(models), "model_min": model_min, **device_names()}
     print(f"device: {meta['jax_device']}; CUDA yardstick on: {meta['cuda_device']}")
-    rows, refs = [], {}
+    rows, refs, model_refs = [], {}, {}
     for method, n in plan(sizes, grad_max, vmap_max, cpu_layout_max, whole_min, lanes,
-                          sweep_n):
+                          sweep_n, models, model_min):
         if time.perf_counter() - t_start > budget:
             rows.append({"method": method, "batch": n, "skipped": "budget"})
             print(f"{method:>19} {n:>8}  skipped (over --budget {budget:.0f} s)")
@@ -301,6 +337,9 @@ def main(sizes, grad_max, vmap_max, cpu_layout_max, whole_min, lanes, ref_max, b
         try:
             if method == "sweep":
                 row = sweep_run(n, out)
+            elif method.rsplit(" ", 1)[-1] in MODELS:
+                row = model_row(method, n, initial_rates(n), ts, 3 if n <= 100_000 else 1,
+                                ref_max, model_refs)
             else:
                 w0 = initial_rates(n)
                 if n not in refs:
@@ -308,7 +347,9 @@ def main(sizes, grad_max, vmap_max, cpu_layout_max, whole_min, lanes, ref_max, b
                 row = measure(method, n, w0, ts, refs[n], 3 if n <= 100_000 else 1)
         except Exception as e:  # recorded, and the run goes on (out of memory, say)
             row = {"method": method, "batch": n, "failed": f"{type(e).__name__}: {e}"[:500]}
-        for yard_method, key in (("cuda f64", "ratio_to_cuda_f64"),
+        model = method.rsplit(" ", 1)[-1]
+        suffix = f" {model}" if model in MODELS else ""
+        for yard_method, key in ((f"cuda f64{suffix}", "ratio_to_cuda_f64"),
                                  ("cuda f32", "ratio_to_cuda_f32")):
             if key == "ratio_to_cuda_f32" and row.get("dtype") != "float32":
                 continue
@@ -369,9 +410,11 @@ if __name__ == "__main__":
     p.add_argument("--whole-min", type=int, default=100_000)
     p.add_argument("--lanes", type=int, nargs="*", default=[])
     p.add_argument("--ref-max", type=int, default=1000)
+    p.add_argument("--models", nargs="*", default=list(MODELS), choices=MODELS)
+    p.add_argument("--model-min", type=int, default=100_000)
     p.add_argument("--sweep-n", type=int, default=10_000_000)
     p.add_argument("--budget", type=float, default=600.0)
     p.add_argument("--out", default="results/benchmarks")
     a = p.parse_args()
     main(a.sizes, a.grad_max, a.vmap_max, a.cpu_layout_max, a.whole_min, a.lanes, a.ref_max,
-         a.budget, a.out, a.sweep_n)
+         a.budget, a.out, a.sweep_n, a.models, a.model_min)

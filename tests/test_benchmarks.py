@@ -115,24 +115,28 @@ def test_gradient_steps_runs_and_agrees(tmp_path):
 
 def test_gpu_report_runs_on_a_cpu(tmp_path):
     """`benchmarks/gpu.py`'s rows on this CPU at 3 trajectories over t ≤ 3: the kernel (in
-    interpret mode), the lane solver, the default call, and the summaries-only sweep (4
-    trajectories, its store written and removed). The CUDA rows are recorded as failed (no
+    interpret mode), the lane solver, the default call, the heavy top's rows, and the
+    summaries-only sweep (4 trajectories, its store written and removed). The CUDA rows are recorded as failed (no
     driver here) and the run goes on. The gradient rows are left out (`grad_max=0`): the
     kernel's sensitivities take two minutes to compile in interpret mode, and its gradients
     are tested in tests/test_kernel.py."""
     mod = load("gpu")
     mod.T_END, mod.N_OUT = 3.0, 4
     rows = mod.main(sizes=[3], grad_max=0, vmap_max=0, cpu_layout_max=0, whole_min=10,
-                    lanes=[], ref_max=3, budget=600.0, out=str(tmp_path), sweep_n=4)
+                    lanes=[], ref_max=3, budget=600.0, out=str(tmp_path), sweep_n=4,
+                    models=["heavy_top"], model_min=0)
     saved = json.loads((tmp_path / "gpu.json").read_text())
     assert saved["rows"] == rows
     by = {r["method"]: r for r in rows}
     assert set(by) == {"cuda f64", "cuda f32", "kernel", "kernel f32", "default",
-                       "default f32", "lanes", "lanes f32", "sweep"}
+                       "default f32", "lanes", "lanes f32", "sweep", "cuda f64 heavy_top",
+                       "kernel heavy_top", "lanes heavy_top"}
     assert "failed" in by["cuda f64"]
     assert by["default"]["batching"] == "Lanes"  # a CPU backend
     for m in ("kernel", "default", "lanes"):
         assert by[m]["all_successful"] and by[m]["max_error"] < 1e-6, m
-    assert by["kernel"]["mean_steps"] == by["lanes"]["mean_steps"]
+    for m in ("", " heavy_top"):
+        assert by[f"kernel{m}"]["mean_steps"] == by[f"lanes{m}"]["mean_steps"]
+        assert by[f"kernel{m}"]["all_successful"]
     assert by["sweep"]["all_successful"] and by["sweep"]["store_bytes"] > 0
     assert not (tmp_path / "gpu_sweep.zarr").exists()
