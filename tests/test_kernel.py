@@ -324,6 +324,35 @@ def test_gradients_for_per_trajectory_models_whole_states_and_times():
         np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12 * scale)
 
 
+def test_the_gradient_kernel_lowers_to_triton_for_a_gpu():
+    """`jax.grad` through the kernel, exported for CUDA from this CPU: the one kernel of
+    the gradient program integrates the state and its sensitivities (a loss on ω and the
+    attitude, six inertia parameters: 7 + 7 × 6 output rows) and lowers to Triton, every
+    operation of the sensitivities' field (a `jax.jvp` of the model's, vmapped over the
+    columns, on rows) included."""
+    from rbdyn_jax._checks import checks_as_nan
+    from rbdyn_jax.integrate._field import MODE_DEPENDENT_JITS
+
+    y0s, ts = initial_states(16), np.linspace(0.0, 3.0, 7)
+    body = rb.RigidBody(J)
+
+    def loss(theta):
+        tr = rb.simulate_batch(rb.with_log_cholesky(body, theta), y0s, ts,
+                               batching=rb.Kernel(block=16, interpret=False))
+        return jnp.sum(tr.ys.omega ** 2) + jnp.sum(tr.ys.quat[..., 1:] ** 2)
+
+    with checks_as_nan(jitted=MODE_DEPENDENT_JITS):
+        exported = jax.export.export(
+            jax.jit(jax.grad(loss)), platforms=["cuda"],
+            disabled_checks=[jax.export.DisabledSafetyCheck.custom_call(
+                "__gpu$xla.gpu.triton")])(rb.inertia.to_log_cholesky(J))
+    text = exported.mlir_module()
+    calls = [line for line in text.splitlines()
+             if "custom_call" in line and "__gpu$xla.gpu.triton" in line]
+    assert len(calls) == 1 and "mosaic" not in text.lower()
+    assert calls[0].count("tensor<8x16xf64>") == 7 + 7 * 6  # rows: 7 output times, padded
+
+
 def test_a_second_derivative_through_the_kernel_is_refused():
     y0s = initial_states(4)
 
