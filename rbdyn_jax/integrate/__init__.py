@@ -16,7 +16,7 @@ The modules, one idea each:
 - `_lanes`: the lane loop and its typed state;
 - `_kernel`: the Pallas kernel that integrates a block of trajectories per program;
 - `_rows`: a one-trajectory function run on rows of lanes (the kernel's arithmetic);
-- `_sensitivity`: forward sensitivities of the lane loop, its derivative rule;
+- `_sensitivity`: forward sensitivities, the derivative rule of the lane loop and the kernel;
 - `_dependencies`: which state leaves a derivative must carry;
 - `_cheapest`: the equation that runs the cheapest program giving what is read;
 - `_compile`: when a solve is compiled, and which of its traces are stored on disk
