@@ -71,6 +71,7 @@ from .integrate import (
     MODE_DEPENDENT_JITS,
     RESULTS,
     Lanes,
+    Vmap,
     default_lanes,
     device_memory,
     result_code,
@@ -110,10 +111,13 @@ def _solve_block(scenario: Scenario, dists, key, idx, lanes):
     models, y0s = jax.vmap(scenario.build)(values)
     # The scenario's times and tolerances are constants of the trace: the solve is then
     # traced with its checks as NaN (its inputs validated), and its loops can be stored.
+    # A fixed-step method (`LiePoissonSplitting`) steps every trajectory in lockstep: `Vmap`
+    # wastes nothing there, and the lane solver takes only adaptive Runge–Kutta methods.
+    batching = Vmap() if scenario.fixed_step else Lanes(lanes, devices=1)
     traj = simulate_batch(models, y0s, scenario.ts, model_axes=0,
                           solver=scenario.diffrax_solver,
                           stepsize_controller=scenario.stepsize_controller,
-                          max_steps=scenario.max_steps, batching=Lanes(lanes, devices=1))
+                          dt0=scenario.dt0, max_steps=scenario.max_steps, batching=batching)
     status = jnp.where(ok, result_code(traj.result), result_code(RESULTS.nonfinite_state))
 
     def summaries(m, tr):

@@ -111,3 +111,22 @@ def test_gradient_steps_runs_and_agrees(tmp_path):
     # The reverse step is the adjoint of the steps the sensitivities differentiate: equal
     # in exact arithmetic, to round-off over three steps (measured 2.6e-14 over 300).
     assert error < 1e-10
+
+
+def test_long_horizon_runs_and_the_splitting_keeps_its_invariants(tmp_path):
+    """`benchmarks/long_horizon.py` over 30 periods, Tsit5 at 1e-10 against the order-6
+    splitting at T/50: its JSON and PNG, the energy error bounded by the splitting's 1.7e-9
+    (measured), |L| to rounding (1e-15 measured; 1e-13 allowed), the curves binned."""
+    spec = importlib.util.spec_from_file_location("long_horizon", BENCH / "long_horizon.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    rows = mod.main(periods=30.0, per_decade=20, out=str(tmp_path), repeats=1,
+                    methods=("Tsit5 1e-10", "Splitting 6, T/50"))
+    saved = json.loads((tmp_path / "long_horizon.json").read_text())
+    assert saved["rows"] == rows and (tmp_path / "long_horizon.png").stat().st_size > 1000
+    tsit, split = rows
+    assert split["steps"] == 1500 and split["energy_max"] < 5e-9 and split["L_max"] < 1e-13
+    assert tsit["L_max"] > 100 * split["L_max"]
+    assert all(np.isfinite(r["us_per_period"]) and len(r["curve"]["energy"][0]) > 10
+               for r in rows)
+    assert saved["meta"]["targets"]["energy_le_1e-8"]
