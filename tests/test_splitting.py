@@ -9,6 +9,8 @@ The body is the benchmarks' J (non-diagonal: the solver works in its principal f
 ω0 = (0.8, 0, 0.6) in principal axes: elliptic modulus k² = 0.89, period T = 29.41.
 """
 
+import tomllib
+
 import diffrax
 import equinox as eqx
 import jax
@@ -21,7 +23,7 @@ from scipy.linalg import expm
 import rbdyn_jax as rb
 from rbdyn_jax import sweep
 from rbdyn_jax.integrate._composition import COMPOSITIONS, MCLACHLAN_4, Scheme
-from rbdyn_jax.scenario import Scenario, ScenarioError
+from rbdyn_jax.scenario import SCENARIO_DIR, Scenario, ScenarioError
 
 J = np.array([[2.0, 0.05, 0.0], [0.05, 3.0, 0.02], [0.0, 0.02, 4.0]])
 MOMENTS, AXES = np.linalg.eigh(J)
@@ -101,8 +103,9 @@ def test_compositions_have_their_order_on_a_linear_problem(order):
 
 
 def test_mclachlans_composition_beats_yoshidas_triple_jump():
-    """The reason for McLachlan's 5 stages at order 4: a local error 35× smaller than the
-    3-stage triple jump's (Yoshida 1990) on the same problem, more than its 5/3 cost."""
+    """The reason for McLachlan's 5 stages at order 4: a local error 37× smaller than the
+    3-stage triple jump's (Yoshida 1990) on the same problem (measured; 20× required), more
+    than the (5/3)⁴ ≈ 7.7 that its 5/3 cost per step takes away at equal work."""
     rng = np.random.default_rng(1)
     A, B, C = (rng.normal(size=(4, 4)) for _ in range(3))
     w1 = 1.0 / (2.0 - 2.0 ** (1.0 / 3.0))
@@ -120,9 +123,10 @@ def test_a_schemes_flows_merge_at_the_seams_and_add_up(order):
     assert all(a[0] != b[0] for a, b in zip(flows, flows[1:]))  # merged where they meet
     for name in ("kick", "0", "2", "casimir"):  # each flow runs for one step in all
         assert sum(c for f, c, _ in flows if f == name) == pytest.approx(1.0, abs=1e-15)
+    # The kicks act at t_n and at the end of each stage's free flow: t_n + (γ_1 + … + γ_i) h.
     kicks = [e for f, _, e in flows if f == "kick"]
-    assert kicks[0] == 0.0 and kicks[-1] == pytest.approx(1.0, abs=1e-15)  # t_n, t_n + h
-    assert np.all(np.diff(np.cumsum(COMPOSITIONS[order])) != 0)
+    np.testing.assert_allclose(kicks, [0.0, *np.cumsum(COMPOSITIONS[order])], rtol=0,
+                               atol=1e-15)
 
 
 # --------------------------------------------------------------------------------------
@@ -137,18 +141,19 @@ def _windows(ts, err):
 
 
 def test_free_body_over_ten_thousand_periods():
-    """Order 6 at T/50, 5·10⁵ steps: |L| (inertial, R(q) J ω) and the quaternion's norm
-    (before the output's renormalisation: `norm_drift`) move by rounding only, measured
-    3e-15 and 1e-15 (tolerance 1e-13: the compensated sums leave a random walk of a small
-    fraction of an ulp per step; summed plainly they reach 1e-13 here); the energy error,
+    """Order 6 at T/50, 5·10⁵ steps: the inertial angular momentum R(q) J ω (the vector,
+    which sees the attitude, not only its norm) and the quaternion's norm (before the
+    output's renormalisation: `norm_drift`) move by rounding only, measured 3e-15 and 1e-15
+    (tolerance 1e-13: the compensated sums leave a random walk of a small fraction of an
+    ulp per step; summed plainly they reach 1e-13 here); the energy error,
     1.7e-9 here, shows no trend: its largest value over periods 10³–10⁴ is within 2× of
     that over periods 10–10² (1.0002× measured; a drift of the energy grows linearly: 98×
     between the windows for Tsit5 at rtol 1e-8, checked below)."""
     ts = random_times(1e4 * PERIOD, 4000)
     model = rb.RigidBody(jnp.asarray(J))
     traj = splitting(model, ts, 6, PERIOD / 50)
-    L = np.linalg.norm(rb.invariants.angular_momentum_inertial(model, traj), axis=-1)
-    assert relative(L).max() < 1e-13
+    L = np.asarray(rb.invariants.angular_momentum_inertial(model, traj))
+    assert np.abs(L - L[0]).max() / np.linalg.norm(L[0]) < 1e-13
     assert float(traj.stats["norm_drift"]) < 1e-13
     energy = relative(rb.invariants.energy(model, traj))
     early, late = _windows(ts, energy)
@@ -231,6 +236,62 @@ def test_a_slowly_varying_restoring_moment_keeps_the_order():
           for r in runs]
     e = [np.abs(ys[0] - ys[1]).max(), np.abs(ys[1] - ys[2]).max()]
     assert np.log2(e[0] / e[1]) == pytest.approx(4.0, abs=0.25)
+
+
+def _reference(model, y0, ts):
+    """Dopri8 at rtol = atol = 1e-13: ω and q to about 1e-11 over these short horizons."""
+    return rb.simulate(model, y0, jnp.asarray(ts), solver=diffrax.Dopri8(), rtol=1e-13,
+                       atol=1e-13, max_steps=1 << 16)
+
+
+def _aligned(q):
+    q = np.asarray(q)
+    return q * np.sign(q[:, :1])
+
+
+@pytest.mark.parametrize("torque", ["free", "restoring", "body", "sum"])
+def test_states_match_an_adaptive_reference_from_a_later_start(torque):
+    """ω and the attitude against Dopri8 at 1e-13 over t ∈ [1, 6] (a start other than 0,
+    so that the kicks' times and the deferred Casimir rotation are checked in the solve's
+    own time): the free body of the test inertia, the slowly varying restoring moment
+    k(τ, ψ) = ε K(τ) sin ψ (ε = 0.5), a constant body-fixed moment, and the heavy top plus
+    the gravity gradient plus a constant moment fixed in space. Order 6 at dt = 0.01: the
+    differences, 3e-12 to 8e-12 measured, are the reference's own error (they do not change
+    at dt = 0.1 for the free body); 1e-10 allowed, where a wrong sign of a flow or a kick
+    at a wrong time would leave errors of order 1e-3 or more."""
+    I3 = jnp.asarray(J)
+    models = {
+        "free": rb.RigidBody(I3),
+        "restoring": rb.RigidBody(jnp.diag(jnp.array([1.0, 1.0, 1.5])), rb.RestoringMoment(
+            rb.PolynomialSinPsi(jnp.array([1.0, 2.0]), 0.5))),
+        "body": rb.RigidBody(I3, rb.BodyTorque(jnp.array([0.1, -0.2, 0.05]))),
+        "sum": rb.RigidBody(I3, rb.UniformGravity(1.0, jnp.array([0.0, 0.1, 0.5]))
+                            + rb.GravityGradient(0.7) + rb.InertialTorque(jnp.array(
+                                [0.05, 0.0, -0.1]))),
+    }
+    model = models[torque]
+    y0 = state(W0 if torque != "restoring" else np.array([0.1, 0.0, 3.0]),
+               rb.rotation.euler_to_quat(jnp.array([1.0, 0.8, 0.3]), "ZXZ"))
+    ts = np.linspace(1.0, 6.0, 6)
+    ref = _reference(model, y0, ts)
+    traj = splitting(model, ts, 6, 0.01, max_steps=1 << 12, y0=y0)
+    assert np.abs(np.asarray(traj.ys.omega) - np.asarray(ref.ys.omega)).max() < 1e-10
+    assert np.abs(_aligned(traj.ys.quat) - _aligned(ref.ys.quat)).max() < 1e-10
+
+
+def test_a_moment_fixed_in_space_adds_to_the_angular_momentum_linearly():
+    """Under a constant moment M0 fixed in space, dL/dt = M0 in the inertial frame: L(t) =
+    L(t0) + M0 (t − t0) exactly. The kicks add h R(q)ᵀ M0 in body axes, h M0 in space, and
+    the free flows keep the inertial L, so the splitting holds this closed form to rounding
+    at any step (order 2, dt = 0.1 over 10³ time units: measured 3e-15 of |L|; 1e-12
+    allowed), though its attitude is only of order 2."""
+    M0 = np.array([0.02, -0.01, 0.03])
+    model = rb.RigidBody(jnp.asarray(J), rb.InertialTorque(jnp.asarray(M0)))
+    ts = random_times(1e3, 500)
+    traj = splitting(model, ts, 2, 0.1)
+    L = np.asarray(rb.invariants.angular_momentum_inertial(model, traj))
+    exact = L[0] + np.outer(ts - ts[0], M0)
+    assert np.abs(L - exact).max() / np.linalg.norm(exact, axis=-1).max() < 1e-12
 
 
 # --------------------------------------------------------------------------------------
@@ -328,8 +389,6 @@ def test_diffeqsolve_takes_the_models_field_and_runs_backwards_to_the_start(torq
 
 JJ = jnp.asarray(J)
 REFUSED = {
-    "BodyTorque": rb.RigidBody(JJ, rb.BodyTorque(jnp.ones(3))),
-    "InertialTorque": rb.RigidBody(JJ, rb.GravityGradient(1.0) + rb.InertialTorque(jnp.ones(3))),
     "RelativeRigidBody": rb.RelativeRigidBody(JJ, rb.ConstantRate(jnp.array([0.0, 0.0, 1.0])),
                                               rb.BalancingTransport()),
     "PoissonRigidBody": rb.PoissonRigidBody(JJ),
@@ -354,7 +413,8 @@ def test_balancing_transport_and_a_torque_of_ones_own_are_refused():
         with pytest.raises(ValueError, match=rf"the torque `{name}`"):
             rb.LiePoissonSplitting().check_model(rb.RigidBody(JJ, torque))
     rb.LiePoissonSplitting().check_model(rb.RigidBody(JJ, rb.RestoringMoment(
-        rb.PolynomialSinPsi(jnp.array([1.0]), 0.1)) + rb.UniformGravity(1.0, jnp.ones(3))))
+        rb.PolynomialSinPsi(jnp.array([1.0]), 0.1)) + rb.UniformGravity(1.0, jnp.ones(3))
+        + rb.BodyTorque(jnp.ones(3)) + rb.InertialTorque(jnp.ones(3))))
 
 
 @pytest.mark.parametrize("settings, message", [
@@ -410,9 +470,9 @@ def test_a_splitting_scenario_names_its_bad_key(solver, key):
 
 
 def test_a_scenario_refuses_the_splitting_for_a_model_it_cannot_split():
-    d = _splitting_scenario()
-    d["model"]["torques"] = [{"kind": "body", "moment": [0.0, 0.0, 0.1]}]
-    with pytest.raises(ScenarioError, match=r"`solver.method`: .*`BodyTorque`"):
+    d = tomllib.loads((SCENARIO_DIR / "rotating_platform.toml").read_text())
+    d["solver"] = {"method": "LiePoissonSplitting", "dt": 0.01}
+    with pytest.raises(ScenarioError, match=r"`solver.method`: .*`RelativeRigidBody`"):
         Scenario.from_dict(d)
     d = small_scenario(solver={"method": "Tsit5", "dt": 0.1})
     with pytest.raises(ScenarioError, match="`solver.dt`"):

@@ -14,18 +14,20 @@ intermediate axis, chosen by measurement, gives the smallest energy error of the
 compared in docs/physics.md#splitting-the-free-body. Strang's symmetric composition of the
 flows is of order 2; McLachlan's (1995) and Kahan & Li's (1997) symmetric compositions of it
 are of orders 4 and 6 (`_composition`). A torque of the attitude alone — uniform gravity,
-the gravity gradient, the restoring moment k(τ, ψ) with its slow time — is an exact kick
-`L ← L + h M(q)`, which leaves the attitude as it is, run half a step before and after the
-free flows (docs/physics.md#potential-torques-as-kicks).
+the gravity gradient, the restoring moment k(τ, ψ) with its slow time, a constant moment
+fixed in the body or in space — is an exact kick `L ← L + h M(q)`, which leaves the
+attitude as it is, run half a step before and after the free flows
+(docs/physics.md#potential-torques-as-kicks).
 
-Every sub-flow is a rotation: |L| (the inertial angular momentum's norm) and the
-quaternion's norm change only by rounding, and the energy error of the torque-free body
-and of the conservative torques stays bounded over exponentially long times (Hairer,
-Lubich & Wanner (2006), chapter IX) instead of growing as an adaptive Runge–Kutta method's
-does. The rounding is kept small too: each flow's increment is added with compensation
-(`Principal`), and for the torque-free body the Casimir's flow, the same rotation at every
-step, is deferred to the outputs (`Stepper`), so that |L| and |q| stay within about 1e-14
-of their values over 10⁶ periods (docs/performance.md#long-horizons).
+Every free sub-flow is a rotation: the inertial angular momentum (of the torque-free body; a
+kick changes it as the torque does) and the quaternion's norm change only by rounding, and
+the energy error of the torque-free body and of the potential torques stays bounded over
+exponentially long times (Hairer, Lubich & Wanner (2006), chapter IX) instead of growing as
+an adaptive Runge–Kutta method's does. The rounding is kept small too: each flow's increment
+is added with compensation (`Principal`), and for the torque-free body the Casimir's flow,
+the same rotation at every step, is deferred to the outputs (`Stepper`), so that |L| and |q|
+stay within a few 1e-14 of their values over 10⁶ periods
+(docs/performance.md#long-horizons).
 """
 
 import math
@@ -43,7 +45,9 @@ from ..inertia import principal_axes
 from ..models import RigidBody
 from ..state import State
 from ..torques import (
+    BodyTorque,
     GravityGradient,
+    InertialTorque,
     NoTorque,
     RestoringMoment,
     SumTorque,
@@ -56,8 +60,10 @@ ORDERS = tuple(COMPOSITIONS)
 # The torques whose moment depends on the attitude (and, for the restoring moment, on time
 # through its slow time τ = ε t) alone: the flow of L' = M(t, q), q' = 0 is the exact kick
 # L ← L + h M. `NoTorque` adds nothing. Exact classes, not subclasses: a subclass may
-# depend on the rates.
-KICKED = (UniformGravity, GravityGradient, RestoringMoment)
+# depend on the rates. Uniform gravity and the gravity gradient derive from a potential
+# (the method is then symplectic, its energy error bounded); the others have none, and the
+# method keeps its order, |q| and the free flows' structure but no energy.
+KICKED = (UniformGravity, GravityGradient, RestoringMoment, BodyTorque, InertialTorque)
 
 # The split of the kinetic energy (docs/physics.md#splitting-the-free-body): the spherical
 # term |L|²/(2 I_a) of the principal axis `CASIMIR_AXIS` (0, 1, 2: moments ascending), and
@@ -74,10 +80,10 @@ UNROLL = 1
 def _refusal(what: str) -> str:
     return (f"`LiePoissonSplitting` cannot integrate {what} geometrically: it splits a "
             "`RigidBody` whose torque depends on the attitude alone (`NoTorque`, "
-            "`UniformGravity`, `GravityGradient`, `RestoringMoment` and their sums), which "
-            "acts as an exact kick. Use an adaptive solver for this model: the default "
-            "`diffrax.Tsit5()`, or `diffrax.Dopri8()` with tight tolerances "
-            "(docs/physics.md#what-the-splitting-cannot-treat).")
+            "`UniformGravity`, `GravityGradient`, `RestoringMoment`, `BodyTorque`, "
+            "`InertialTorque` and their sums), which acts as an exact kick. Use an adaptive "
+            "solver for this model: the default `diffrax.Tsit5()`, or `diffrax.Dopri8()` "
+            "with tight tolerances (docs/physics.md#what-the-splitting-cannot-treat).")
 
 
 def check_splittable(model) -> bool:
@@ -97,9 +103,9 @@ def check_splittable(model) -> bool:
             continue
         if type(torque) not in KICKED:
             raise ValueError(_refusal(
-                f"the torque `{type(torque).__name__}` (a rate-dependent, follower or "
-                "arbitrarily time-varying moment, or one the splitting does not know, has "
-                "no exact kick that keeps the structure)"))
+                f"the torque `{type(torque).__name__}` (a moment that depends on the rates, "
+                "or one whose dependence the splitting does not know, has no exactly solved "
+                "flow of its own)"))
         kicked = True
     return kicked
 
@@ -167,7 +173,9 @@ def _q_times(q, p):
 
 def _two_sum(hi, lo, d):
     """`hi + lo + d` as a new pair `(hi, lo)`: the rounding error of the sum kept in `lo`
-    (compensated summation; Knuth's TwoSum, exact in floating point)."""
+    (compensated summation by Knuth's TwoSum, whose last step recovers the rounding of
+    `hi + b` exactly; `b = d + lo` is itself rounded, at the size of the increment's ulp).
+    XLA keeps floating-point additions in the order written (no reassociation)."""
     b = d + lo
     s = hi + b
     bb = s - hi
@@ -275,6 +283,8 @@ class Stepper(eqx.Module):
 
         def run(flow, coefficient, elapsed, L, q):  # L, q: (hi, lo) pairs
             c = coefficient * h
+            # The increments are computed from the leading parts: the rotation of the
+            # compensation terms (`lo`, an ulp) would change them by an ulp times the angle.
             Lh, qh = [x[0] for x in L], [x[0] for x in q]
             if flow == "kick":
                 dL, dq = dict(enumerate(self._kick(t + elapsed * h, Lh, qh, c))), None
@@ -411,31 +421,32 @@ class LiePoissonSplitting(diffrax.AbstractSolver):
     """The Lie–Poisson splitting of the rigid body, of order 2, 4 or 6: a fixed-step,
     structure-preserving solver for long horizons (docs/physics.md#geometric-integration).
 
-    The kinetic energy, in the inertia's principal frame, is split into three terms whose
-    flows are exact rotations of the angular momentum and of the attitude (a Casimir's and
-    two principal axes'); a torque of the attitude alone (`UniformGravity`,
-    `GravityGradient`, `RestoringMoment` with its slow time, and their sums) enters as exact
-    kicks `L ← L + h M(q)`. The flows are composed by Strang's splitting (order 2) and by
-    the symmetric compositions of McLachlan (1995) (order 4, 5 stages) and Kahan & Li (1997)
-    (order 6, 9 stages). The inertial |L| and the quaternion's norm are kept to rounding
-    (no renormalisation: within about 1e-14 over 10⁶ periods of the torque-free body); the
-    energy error of the torque-free body, the heavy top and the gravity-gradient body stays
-    bounded, without the linear drift of an adaptive Runge–Kutta method
-    (docs/performance.md#long-horizons).
+    The kinetic energy, in the inertia's principal frame, is split into three terms whose flows
+    are exact rotations of the angular momentum and of the attitude (a Casimir's and two
+    principal axes'); a torque of the attitude alone (`UniformGravity`, `GravityGradient`,
+    `RestoringMoment` with its slow time, `BodyTorque`, `InertialTorque`, and their sums)
+    enters as exact kicks `L ← L + h M(q)`. The flows are composed by Strang's splitting
+    (order 2) and by the symmetric compositions of McLachlan (1995) (order 4, 5 stages) and
+    Kahan & Li (1997) (order 6, 9 stages). The quaternion's norm is kept to rounding without
+    renormalisation, and so is the inertial angular momentum of the torque-free body (within
+    a few 1e-14 over 10⁶ periods); the energy error of the torque-free body and of the
+    potential torques (the heavy top, the gravity-gradient body) stays bounded, without the
+    linear drift of an adaptive Runge–Kutta method (docs/performance.md#long-horizons).
 
     Use it as any diffrax solver with a fixed step: `rb.simulate(model, y0, ts,
     solver=rb.LiePoissonSplitting(6), dt0=T / 100, max_steps=...)`; `simulate` then takes
     `diffrax.ConstantStepSize()` (rtol and atol mean nothing here). `simulate_batch` runs it
     under `Vmap` (every trajectory takes the same fixed steps, so lockstep wastes nothing;
     `Lanes` refuses it). Outputs between steps are the composed step over the part of the
-    step elapsed, so they keep the method's order and norms. Differentiable through
-    diffrax's adjoints (the default `RecursiveCheckpointAdjoint`); where two principal
-    moments are equal, the gradient with respect to the inertia is not defined (its
-    principal axes are not).
+    step elapsed, so they keep the method's order and norms. Differentiable by
+    differentiating the steps (diffrax's default `RecursiveCheckpointAdjoint`; a
+    `BacksolveAdjoint` hands the solver a term without the model, which is refused); where
+    two principal moments are equal, the derivative of the principal axes (`eigh`'s) is not
+    finite, and neither is the gradient with respect to the inertia.
 
     Takes `RigidBody` models only; another model, or a torque that depends on the rates or
-    on time in an arbitrary way (`BodyTorque`, `InertialTorque`, `BalancingTransport`, a
-    torque of your own), is refused with a `ValueError`: use an adaptive solver there.
+    that the splitting does not know (`BalancingTransport`, a torque of your own), is
+    refused with a `ValueError`: use an adaptive solver there.
 
     **Arguments:**
 
