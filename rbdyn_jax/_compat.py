@@ -35,6 +35,20 @@ def wrapped_term(term):
     return WrapTerm(term, 1)
 
 
+def unwrapped_term(terms):
+    """The term a solver was given by `diffrax.diffeqsolve` as the caller's term and the
+    direction of time (+1, or −1 for a solve from a later time to an earlier one):
+    diffeqsolve hands its solver `WrapTerm(term, direction)`, which runs the caller's term
+    at `direction · t`. A term not so wrapped (a solver stepped by hand) is its own,
+    direction +1. For a solver that needs the model behind the term, not only its vector
+    field (`integrate.LiePoissonSplitting`)."""
+    from diffrax._term import WrapTerm
+
+    if isinstance(terms, WrapTerm):
+        return terms.term, terms.direction
+    return terms, 1
+
+
 def result_value(item):
     """The integer code of a result item of a `diffrax.RESULTS`-like enumeration (an int32
     array, traced or not), read without the table lookup of `RESULTS.promote`."""

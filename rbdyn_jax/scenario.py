@@ -34,7 +34,13 @@ from . import inertia as _inertia, invariants, rotation
 from ._catalogue import SCENARIO_DIR as SCENARIO_DIR, list_scenarios as list_scenarios
 from ._vector import parse_seq
 from .frames import CircularOrbit, ConstantRate, EulerAngleFrame, HarmonicAngles, Inertial
-from .integrate import RESULTS, Trajectory, default_tolerance, min_rtol
+from .integrate import (
+    RESULTS,
+    LiePoissonSplitting,
+    Trajectory,
+    default_tolerance,
+    min_rtol,
+)
 from .models import RelativeRigidBody, RigidBody
 from .state import State
 from .torques import (
@@ -569,7 +575,10 @@ SUMMARIES: dict[str, Summary] = {
                              "output times", "rad/s",
                              lambda m, tr: jnp.max(jnp.linalg.norm(tr.ys.omega, axis=-1))),
 }
-SOLVERS = ("Tsit5", "Dopri5", "Dopri8")
+SOLVERS = ("Tsit5", "Dopri5", "Dopri8", "LiePoissonSplitting")
+# The fixed-step, structure-preserving methods (`[solver] dt`, `order`); the others are
+# diffrax's adaptive ones (`[solver] rtol`, `atol`).
+FIXED_STEP = ("LiePoissonSplitting",)
 _DTYPES = ("float64", "float32")
 
 
@@ -584,7 +593,9 @@ class Scenario:
 
     `dists` is the pytree of distributions (key path → distribution module); the structure
     (model kind, torque and frame kinds, `static` settings by key path, summaries) is
-    static. `dtype` (`[solver] dtype`, "float64" or "float32") is the dtype of every array
+    static. `rtol` and `atol` are an adaptive method's tolerances, `dt` and `order` a
+    fixed-step method's step and order (`FIXED_STEP`; `None` where they do not apply).
+    `dtype` (`[solver] dtype`, "float64" or "float32") is the dtype of every array
     it makes: its distributions, output times, draws and built models; `trajectories`
     (`[outputs] trajectories`: "all", "none" or K) whose states a sweep stores. The file
     format is documented in docs/scenarios.md (the shipped examples are
@@ -603,13 +614,15 @@ class Scenario:
     t1: float
     n_times: int
     solver: str
-    rtol: float
-    atol: float
+    rtol: float | None
+    atol: float | None
     max_steps: int
     dtype: str
     summaries: tuple[str, ...]
     trajectories: str | int
     source: dict
+    dt: float | None = None
+    order: int | None = None
 
     TOP = {"name", "description", "model", "initial", "time", "solver", "outputs"}
 
@@ -692,22 +705,49 @@ class Scenario:
                         tt["n"])
 
         s = _table(d.get("solver", {}), "solver",
-                   {"method", "rtol", "atol", "max_steps", "dtype"})
+                   {"method", "rtol", "atol", "max_steps", "dtype", "dt", "order"})
         method = s.get("method", "Tsit5")
         if method not in SOLVERS:
             raise _fail("solver.method", f"one of {list(SOLVERS)}", method)
         dtype = s.get("dtype", "float64")
         if not isinstance(dtype, str) or dtype not in _DTYPES:
             raise _fail("solver.dtype", '"float64" or "float32"', dtype)
-        default_tol = default_tolerance(dtype)  # 1e-8, or 1e-6 in float32
-        rtol = float(_number(s.get("rtol", default_tol), "solver.rtol", positive=True))
-        if rtol < min_rtol(dtype):  # the step-size control would compare with rounding
-            raise _fail("solver.rtol", f"a number ≥ {min_rtol(dtype):.2g} with dtype = "
-                        f'"{dtype}" (8 machine epsilons of {dtype}: a finer tolerance is '
-                        "below its rounding)", rtol)
-        atol = float(_number(s.get("atol", default_tol), "solver.atol", positive=True))
-        max_steps = int(_number(s.get("max_steps", 16384), "solver.max_steps", integer=True,
-                                positive=True))
+        rtol = atol = dt = order = None
+        if method in FIXED_STEP:
+            for key in ("rtol", "atol"):
+                if key in s:
+                    raise _fail(f"solver.{key}", f'no tolerance with method = "{method}" '
+                                "(it takes fixed steps: give solver.dt)", s[key])
+            if "dt" not in s:
+                raise _fail("solver.dt", f'the fixed step of method = "{method}" (a number '
+                            "> 0, in the unit of time)")
+            dt = float(_number(s["dt"], "solver.dt", positive=True))
+            if dt > t1 - t0:
+                raise _fail("solver.dt", f"a step no longer than t1 − t0 = {t1 - t0:g}", dt)
+            order = int(_number(s.get("order", 6), "solver.order", integer=True))
+            if order not in (2, 4, 6):
+                raise _fail("solver.order", "2, 4 or 6", order)
+            steps = math.ceil((t1 - t0) / dt * (1.0 - 1e-12))
+            # One more by default: the rounding of the step's times may leave a short last one.
+            max_steps = int(_number(s.get("max_steps", steps + 1), "solver.max_steps",
+                                    integer=True, positive=True))
+            if max_steps < steps:
+                raise _fail("solver.max_steps", f"at least the {steps} steps of dt over "
+                            "[t0, t1] (or leave it out)", max_steps)
+        else:
+            for key in ("dt", "order"):
+                if key in s:
+                    raise _fail(f"solver.{key}", f"only with method = one of {list(FIXED_STEP)}"
+                                " (an adaptive method chooses its steps)", s[key])
+            default_tol = default_tolerance(dtype)  # 1e-8, or 1e-6 in float32
+            rtol = float(_number(s.get("rtol", default_tol), "solver.rtol", positive=True))
+            if rtol < min_rtol(dtype):  # the step-size control would compare with rounding
+                raise _fail("solver.rtol", f"a number ≥ {min_rtol(dtype):.2g} with dtype = "
+                            f'"{dtype}" (8 machine epsilons of {dtype}: a finer tolerance is '
+                            "below its rounding)", rtol)
+            atol = float(_number(s.get("atol", default_tol), "solver.atol", positive=True))
+            max_steps = int(_number(s.get("max_steps", 16384), "solver.max_steps",
+                                    integer=True, positive=True))
 
         o = _table(d.get("outputs", {}), "outputs", {"summaries", "trajectories"})
         trajectories = _trajectories(o.get("trajectories", "all"), "outputs.trajectories")
@@ -728,7 +768,8 @@ class Scenario:
                  frame=frame, static=static, dists=dists, t0=t0, t1=t1, n_times=n_times,
                  solver=method, rtol=rtol, atol=atol, max_steps=max_steps, dtype=dtype,
                  summaries=tuple(summaries), trajectories=trajectories,
-                 source=json.loads(json.dumps(dict(d))))
+                 source=json.loads(json.dumps(dict(d))), dt=dt, order=order)
+        sc._check_solver()
         sc._check_summaries()
         return sc
 
@@ -754,14 +795,32 @@ class Scenario:
     # -- solver settings -----------------------------------------------------------------
 
     @property
+    def fixed_step(self) -> bool:
+        """Whether the `[solver] method` takes fixed steps `dt` (`LiePoissonSplitting`)."""
+        return self.solver in FIXED_STEP
+
+    @property
     def diffrax_solver(self) -> diffrax.AbstractSolver:
-        """A fresh instance of the `[solver] method` (`diffrax.Tsit5()`, …)."""
+        """A fresh instance of the `[solver] method` (`diffrax.Tsit5()`, …,
+        `LiePoissonSplitting(order)`)."""
+        if self.solver == "LiePoissonSplitting":
+            return LiePoissonSplitting(self.order)
         return getattr(diffrax, self.solver)()
 
     @property
-    def stepsize_controller(self) -> diffrax.PIDController:
-        """The adaptive step-size controller of the `[solver]` tolerances."""
+    def stepsize_controller(self) -> diffrax.AbstractStepSizeController:
+        """The step-size controller of the `[solver]` settings: a `diffrax.PIDController`
+        of the tolerances for an adaptive method, `diffrax.ConstantStepSize()` (steps of
+        `dt0`) for a fixed-step one."""
+        if self.fixed_step:
+            return diffrax.ConstantStepSize()
         return diffrax.PIDController(rtol=self.rtol, atol=self.atol)
+
+    @property
+    def dt0(self) -> float | None:
+        """The `dt0` a solve takes: the fixed step `[solver] dt`, or `None` (the adaptive
+        methods' default first step)."""
+        return self.dt
 
     # -- building one trajectory ----------------------------------------------------------
 
@@ -812,6 +871,17 @@ class Scenario:
         k = jax.random.fold_in(key, index)
         return {path: dist.sample(_path_key(k, path)) for path, dist in dists.items()}
 
+    def _check_solver(self):
+        """A fixed-step method that cannot integrate the model (a relative model, a torque
+        that depends on the rates) is refused now, naming `solver.method`."""
+        if not self.fixed_step:
+            return
+        model, _ = jax.eval_shape(lambda: self.build(self.nominal()))
+        try:
+            self.diffrax_solver.check_model(model)
+        except ValueError as e:
+            raise ScenarioError(f"`solver.method`: {e}") from None
+
     def _check_summaries(self):
         def nominal_run():
             model, y0 = self.build(self.nominal())
@@ -831,6 +901,7 @@ class Scenario:
 
 __all__ = [
     "DISTRIBUTIONS",
+    "FIXED_STEP",
     "FRAMES",
     "SCENARIO_DIR",
     "SOLVERS",

@@ -76,6 +76,7 @@ from .integrate import (
     RESULTS,
     Kernel,
     Lanes,
+    Vmap,
     default_batching,
     default_lanes,
     device_memory,
@@ -119,7 +120,7 @@ def _solve_block(scenario: Scenario, dists, key, idx, lanes):
     traj = simulate_batch(models, y0s, scenario.ts, model_axes=0,
                           solver=scenario.diffrax_solver,
                           stepsize_controller=scenario.stepsize_controller,
-                          max_steps=scenario.max_steps,
+                          dt0=scenario.dt0, max_steps=scenario.max_steps,
                           batching=_batching(scenario, models, y0s, lanes))
     status = jnp.where(ok, result_code(traj.result), result_code(RESULTS.nonfinite_state))
 
@@ -140,11 +141,15 @@ def _solve_block(scenario: Scenario, dists, key, idx, lanes):
 
 
 def _batching(scenario: Scenario, models, y0s, lanes):
-    """How a block is solved: `Kernel` where `simulate_batch`'s default takes it (a GPU
-    backend, and the scenario's model field runs on rows of lanes), else the lane solver
-    through `lanes` lanes on the block's device. A kernel's trajectory is integrated by its
-    own lane of a program, its arithmetic the same whatever the other lanes hold, so a
-    sweep's bits do not depend on its chunking either way."""
+    """How a block is solved: `Vmap` for a fixed-step method (`LiePoissonSplitting` steps
+    every trajectory in lockstep, so `Vmap` wastes nothing, and the lane solver and the
+    kernel take only adaptive Runge–Kutta methods); `Kernel` where `simulate_batch`'s
+    default takes it (a GPU backend, and the scenario's model field runs on rows of lanes);
+    else the lane solver through `lanes` lanes on the block's device. A kernel's trajectory
+    is integrated by its own lane of a program, its arithmetic the same whatever the other
+    lanes hold, so a sweep's bits do not depend on its chunking either way."""
+    if scenario.fixed_step:
+        return Vmap()
     chosen = default_batching(scenario.diffrax_solver, scenario.stepsize_controller, None,
                               models, y0s, model_axes=0)
     return chosen if isinstance(chosen, Kernel) else Lanes(lanes, devices=1)

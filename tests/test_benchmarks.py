@@ -116,10 +116,10 @@ def test_gradient_steps_runs_and_agrees(tmp_path):
 def test_gpu_report_runs_on_a_cpu(tmp_path):
     """`benchmarks/gpu.py`'s rows on this CPU at 3 trajectories over t ≤ 3: the kernel (in
     interpret mode), the lane solver, the default call, the heavy top's rows, and the
-    summaries-only sweep (4 trajectories, its store written and removed). The CUDA rows are recorded as failed (no
-    driver here) and the run goes on. The gradient rows are left out (`grad_max=0`): the
-    kernel's sensitivities take two minutes to compile in interpret mode, and its gradients
-    are tested in tests/test_kernel.py."""
+    summaries-only sweep (4 trajectories, its store written and removed). The CUDA rows are
+    recorded as failed (no driver here) and the run goes on. The gradient rows are left out
+    (`grad_max=0`): the kernel's sensitivities take two minutes to compile in interpret
+    mode, and its gradients are tested in tests/test_kernel.py."""
     mod = load("gpu")
     mod.T_END, mod.N_OUT = 3.0, 4
     rows = mod.main(sizes=[3], grad_max=0, vmap_max=0, cpu_layout_max=0, whole_min=10,
@@ -140,3 +140,29 @@ def test_gpu_report_runs_on_a_cpu(tmp_path):
         assert by[f"kernel{m}"]["all_successful"]
     assert by["sweep"]["all_successful"] and by["sweep"]["store_bytes"] > 0
     assert not (tmp_path / "gpu_sweep.zarr").exists()
+
+
+def test_long_horizon_runs_and_the_splitting_keeps_its_invariants(tmp_path):
+    """`benchmarks/long_horizon.py` over 30 periods, Tsit5 at 1e-10 against the order-6
+    splitting at T/50, and the splitting on the heavy top and the gravity-gradient body:
+    its JSON and PNG, the energy error bounded by the splitting's 1.7e-9 (measured), |L| to
+    rounding (1e-15 measured; 1e-13 allowed), the curves binned; under the potential
+    torques the energy error at T/200 (3e-10 and 5e-8 measured; 1e-7 allowed) and the
+    quaternion's norm to rounding."""
+    spec = importlib.util.spec_from_file_location("long_horizon", BENCH / "long_horizon.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    rows = mod.main(periods=30.0, per_decade=20, out=str(tmp_path), repeats=1,
+                    methods=("Tsit5 1e-10", "Splitting 6, T/50"), potential_periods=30.0,
+                    potential_methods=("Splitting 6, T/200",))
+    saved = json.loads((tmp_path / "long_horizon.json").read_text())
+    assert saved["rows"] == rows and (tmp_path / "long_horizon.png").stat().st_size > 1000
+    tsit, split, top, gg = rows
+    assert split["steps"] == 1500 and split["energy_max"] < 5e-9 and split["L_max"] < 1e-13
+    assert tsit["L_max"] > 100 * split["L_max"]
+    assert all(np.isfinite(r["us_per_period"]) and len(r["curve"]["energy"][0]) > 10
+               for r in rows)
+    assert (top["body"], gg["body"]) == ("heavy top", "gravity gradient")
+    assert all(r["steps"] == 6000 and r["energy_max"] < 1e-7 and r["quat_norm_drift"] < 1e-13
+               and "L_max" not in r for r in (top, gg))
+    assert saved["meta"]["targets"]["energy_le_1e-8"]

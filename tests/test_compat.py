@@ -55,6 +55,28 @@ def test_wrapped_term_is_the_term_diffeqsolve_hands_its_solver():
     np.testing.assert_array_equal(mine, direct)
 
 
+def test_unwrapped_term_is_the_callers_term_and_its_direction():
+    """`LiePoissonSplitting` finds the model behind the term diffeqsolve hands it: that
+    term must unwrap to the caller's own, with the direction of time (−1 for a solve
+    from a later time to an earlier one), and a term stepped by hand is its own."""
+    fields, directions = [], []
+
+    class Spy(diffrax.Euler):
+        def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
+            inner, direction = _compat.unwrapped_term(terms)
+            fields.append(inner.vector_field)
+            jax.debug.callback(lambda d: directions.append(int(d)), direction)
+            return super().step(terms, t0, t1, y0, args, solver_state, made_jump)
+
+    term = diffrax.ODETerm(lambda t, y, args: -y)
+    forward = diffrax.diffeqsolve(term, Spy(), 0.0, 1.0, 0.5, jnp.ones(2))
+    backward = diffrax.diffeqsolve(term, Spy(), 1.0, 0.0, -0.5, jnp.ones(2))
+    jax.block_until_ready((forward, backward))
+    assert fields and all(f is term.vector_field for f in fields)
+    assert set(directions) == {1, -1}
+    assert _compat.unwrapped_term(term) == (term, 1)
+
+
 def test_result_values_are_int_codes_of_the_enumeration():
     names = _compat.result_names(diffrax.RESULTS)
     assert names["successful"] is diffrax.RESULTS.successful

@@ -48,12 +48,21 @@ def _check_gg_integrable(s):
         assert s[key] < 1e-8, key
 
 
+def _check_long_horizon_sweep(s):
+    # order 6 at dt = 0.2 holds 1.7e-9 (measured); Tsit5 at 1e-8 drifts past 1e-7 by t = 500
+    assert s["splitting_max_energy_drift"] < 1e-8
+    assert s["tsit5_max_energy_drift"] > 10 * s["splitting_max_energy_drift"]
+    assert s["splitting_late_over_early"] < 2.0 < s["tsit5_late_over_early"]
+
+
 CASES = [
     ("torque_free_flip", dict(t_end=12.0, n_out=121), _check_torque_free_flip),
     ("rotating_platform", dict(t_end=10.0, n_out=201), _check_rotating_platform),
     ("satellite_pitch", dict(orbits=1.5, n_out=301), _check_satellite_pitch),
     ("lagrange_top", dict(eps=0.05, n_out=201), _check_lagrange_top),
     ("gg_integrable", dict(t_end=8.0, n_out=401), _check_gg_integrable),
+    # needs `rbdyn_jax.sweep` to run a fixed-step scenario (`Vmap`, its `dt0`)
+    ("long_horizon_sweep", dict(n=4, t_end=500.0, n_out=401), _check_long_horizon_sweep),
 ]
 
 

@@ -7,9 +7,10 @@ Nothing generated is committed. At each build:
   with `--out-dir` into `results/docs/figures/<name>/` (under the git-ignored `results/`),
   and its PNG is added
   to the site as `tutorials/figures/<name>.png` and what it printed is kept beside it;
-- the work–precision plot of the performance page is drawn from the committed result
-  `docs/performance/work_precision.json` by `benchmarks/work_precision.py`'s own `plot`,
-  into `results/docs/figures/performance/`, and added as `performance/work_precision.png`.
+- the plots of the performance page (`PERF_PLOTS`: work–precision, long horizons) are drawn
+  from the committed results `docs/performance/<name>.json` by `benchmarks/<name>.py`'s own
+  `plot`, into `results/docs/figures/performance/<name>/`, and added as
+  `performance/<name>.png`.
 
 Pages reference the figures by those paths (`figures/<name>.png` from a tutorial), so
 `mkdocs build --strict` checks the links as for any other file. A marker line
@@ -52,16 +53,17 @@ HOOK = pathlib.Path(__file__).resolve()  # a change to this hook reruns the exam
 DEFAULT_OUT = "results/examples"  # the examples' own default --out-dir, shown in printouts
 
 EXAMPLES = ("torque_free_flip", "lagrange_top", "gg_integrable", "satellite_pitch",
-            "rotating_platform", "identify_inertia", "identify_restoring_moment")
+            "rotating_platform", "long_horizon_sweep", "identify_inertia",
+            "identify_restoring_moment")
 
-# The performance page's plot: `plot(rows, path)` of benchmarks/work_precision.py.
-PERF_JSON = ROOT / "docs" / "performance" / "work_precision.json"
-PERF_SCRIPT = ROOT / "benchmarks" / "work_precision.py"
+# The performance page's plots: `plot(rows, path)` of each benchmark script named here,
+# drawn from its committed JSON.
+PERF_PLOTS = ("work_precision", "long_horizon")
 _RUN_PLOT = """\
-import json, pathlib, sys
+import importlib, json, pathlib, sys
 sys.path.insert(0, str(pathlib.Path(sys.argv[1]).parent))
-import work_precision
-work_precision.plot(json.loads(pathlib.Path(sys.argv[2]).read_text())["rows"], sys.argv[3])
+script = importlib.import_module(pathlib.Path(sys.argv[1]).stem)
+script.plot(json.loads(pathlib.Path(sys.argv[2]).read_text())["rows"], sys.argv[3])
 """
 
 _OUTPUT_MARKER = re.compile(r"^<!-- example-output: (\w+) -->$", re.MULTILINE)
@@ -127,11 +129,14 @@ def on_files(files: Files, config) -> Files:
         expected = [f"{name}.png"]
         if _stale([dest / f for f in expected + ["output.txt"]], [script, HOOK], library):
             jobs[name] = (command, dest, expected)
-    perf_dest = CACHE / "performance"
-    if _stale([perf_dest / "work_precision.png"], [PERF_JSON, PERF_SCRIPT], library):
-        jobs["work_precision plot"] = (
-            [sys.executable, "-c", _RUN_PLOT, str(PERF_SCRIPT), str(PERF_JSON),
-             "{out}/work_precision.png"], perf_dest, ["work_precision.png"])
+    for plot in PERF_PLOTS:
+        script = ROOT / "benchmarks" / f"{plot}.py"
+        result = ROOT / "docs" / "performance" / f"{plot}.json"
+        dest = CACHE / "performance" / plot
+        if _stale([dest / f"{plot}.png"], [script, result], library):
+            jobs[f"{plot} plot"] = (
+                [sys.executable, "-c", _RUN_PLOT, str(script), str(result),
+                 f"{{out}}/{plot}.png"], dest, [f"{plot}.png"])
 
     if jobs:
         workers = int(os.environ.get("RBDYN_DOCS_JOBS", os.cpu_count() or 1))
@@ -159,7 +164,8 @@ def on_files(files: Files, config) -> Files:
     for name in EXAMPLES:
         add(f"tutorials/figures/{name}.png", CACHE / name / f"{name}.png")
         _FOLDERS[name] = CACHE / name
-    add("performance/work_precision.png", perf_dest / "work_precision.png")
+    for plot in PERF_PLOTS:
+        add(f"performance/{plot}.png", CACHE / "performance" / plot / f"{plot}.png")
     return files
 
 

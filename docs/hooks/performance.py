@@ -13,6 +13,7 @@ To update the page: run the commands it lists, copy the JSON files here, update
 from __future__ import annotations
 
 import json
+import math
 import pathlib
 import re
 
@@ -298,6 +299,68 @@ def _gpu_accuracy() -> str:
                    "largest error"], rows)
 
 
+def _power(x: float) -> str:
+    """A power of ten as 10ⁿ, another number as it is."""
+    n = round(math.log10(x))
+    if abs(x - 10.0**n) > 1e-9 * x:
+        return f"{x:g}"
+    return "10" + str(n).translate(str.maketrans("-0123456789", "⁻⁰¹²³⁴⁵⁶⁷⁸⁹"))
+
+
+def _long_horizon() -> str:
+    """One row per method: steps and cost per period, the energy and |L| errors over the
+    horizon, the quaternion's norm, the global error at 10⁴ periods; the targets below."""
+    d = _load("long_horizon")
+    rows_in = [r for r in d["rows"] if r["body"] == "torque-free"]
+    base = next(r for r in rows_in if r["method"] == d["meta"]["targets"]["baseline"])
+    rows = []
+    for r in rows_in:
+        early = r["energy_10_100"]
+        rows.append([r["method"], f"{r['steps_per_period']:.0f}", f"{r['us_per_period']:.0f}",
+                     f"{r['us_per_period'] / base['us_per_period']:.2f}", _e(r["energy_max"]),
+                     "—" if early is None else _e(early), _e(r["energy_last_decade"]),
+                     _e(r["L_max"]), _e(r["quat_norm_drift"]),
+                     _e(r["global_error_1e4"]) if "global_error_1e4" in r else "—"])
+    t = d["meta"]["targets"]
+    decade = f"{_power(d['meta']['periods'] / 10)}–{_power(d['meta']['periods'])}"
+
+    def mark(ok):
+        return "met" if ok else "**not met**"
+
+    return (_table(["method", "steps per period", "µs per period", f"× {t['baseline']}",
+                    "largest energy error", "periods 10–10²", f"periods {decade}",
+                    "largest \\|L\\| error", "\\|q\\| − 1", "global error at 10⁴ periods"],
+                   rows)
+            + f"\n\nTargets, on {t['method']}: |L| error ≤ 1e-12 — {mark(t['L_le_1e-12'])}; "
+            f"energy error ≤ 1e-8 — {mark(t['energy_le_1e-8'])}, without trend (the largest "
+            f"over the last decade within 2× of that over periods 10–10²) — "
+            f"{mark(t['energy_bounded'])}; cost per period ≤ 3× {t['baseline']}'s — "
+            f"{t['cost_ratio']:.2f}×, {mark(t['cost_le_3x'])}; global error at 10⁴ periods "
+            f"below {t['baseline']}'s — {mark(t['global_below_baseline'])}. On "
+            f"{t['fine_method']}: energy error ≤ 1e-13 — {mark(t['fine_energy_le_1e-13'])}, "
+            f"at {t['fine_cost_ratio']:.2f}× the cost per period of {t['baseline']}.")
+
+
+def _long_horizon_potentials() -> str:
+    """One row per body under a potential torque and method: steps and cost per period,
+    the energy error over the horizon, early and over its last decade, and the
+    quaternion's norm."""
+    d = _load("long_horizon")
+    periods = d["meta"]["potential_periods"]
+    decade = f"{_power(periods / 10)}–{_power(periods)}"
+    rows = [[r["body"], r["method"], f"{r['steps_per_period']:.0f}",
+             f"{r['us_per_period']:.0f}", _e(r["energy_max"]), _e(r["energy_10_100"]),
+             _e(r["energy_last_decade"]), _e(r["quat_norm_drift"])]
+            for r in d["rows"] if r["body"] != "torque-free"]
+    bounded = d["meta"]["targets"]["potentials_bounded"]
+    return (_table(["body", "method", "steps per period", "µs per period",
+                    "largest energy error", "periods 10–10²", f"periods {decade}",
+                    "\\|q\\| − 1"], rows)
+            + "\n\nTarget, the splitting on every body: energy error without trend (the "
+            f"largest over the last decade within 2× of that over periods 10–10²) — "
+            f"{'met' if bounded else '**not met**'}.")
+
+
 TABLES = {
     "environment": _environment,
     "gpu_environment": _gpu_environment,
@@ -310,6 +373,8 @@ TABLES = {
     "compile": _compile,
     "sweep_scale": _sweep_scale,
     "identify": _identify,
+    "long_horizon": _long_horizon,
+    "long_horizon_potentials": _long_horizon_potentials,
 }
 
 

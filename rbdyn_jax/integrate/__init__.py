@@ -18,6 +18,9 @@ The modules, one idea each:
 - `_rows`: a one-trajectory function run on rows of lanes (the kernel's arithmetic);
 - `_sensitivity`: forward sensitivities, the derivative rule of the lane loop and the kernel;
 - `_dependencies`: which state leaves a derivative must carry;
+- `_lie_poisson`: `LiePoissonSplitting`, the structure-preserving solver of the rigid body
+  (exact flows of the kinetic energy's terms, potential torques as kicks), and
+  `_composition`, the symmetric compositions that raise it to orders 4 and 6;
 - `_cheapest`: the equation that runs the cheapest program giving what is read;
 - `_compile`: when a solve is compiled, and which of its traces are stored on disk
   (`rbdyn_jax/_traces.py`, the package's cache of traced programs).
@@ -42,6 +45,7 @@ from ._batching import (
     device_memory as device_memory,
 )
 from ._field import MODE_DEPENDENT_JITS as MODE_DEPENDENT_JITS
+from ._lie_poisson import LiePoissonSplitting as LiePoissonSplitting
 from ._simulate import (
     default_tolerance as default_tolerance,
     make_controller as make_controller,
@@ -56,7 +60,8 @@ from ._solution import (
     result_names as result_names,
 )
 
-__all__ = ["COMPILER_OPTIONS", "RESULTS", "AbstractBatching", "Kernel", "Lanes", "Trajectory",
-           "Vmap", "configure_xla", "default_batching", "default_lanes", "default_tolerance",
+__all__ = ["COMPILER_OPTIONS", "RESULTS", "AbstractBatching", "Kernel", "Lanes",
+           "LiePoissonSplitting", "Trajectory", "Vmap", "configure_xla", "default_batching",
+           "default_lanes", "default_tolerance",
            "device_memory", "make_controller", "min_rtol", "result_code", "result_names",
            "simulate", "simulate_batch"]

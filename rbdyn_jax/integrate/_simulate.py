@@ -17,6 +17,7 @@ from ._batching import AbstractBatching, Lanes, default_batching
 from ._compile import cacheable, compiled, thrown
 from ._diffeqsolve import solve
 from ._field import solve_dtype
+from ._lie_poisson import LiePoissonSplitting, fixed_step_controller
 from ._solution import Trajectory
 
 DEFAULT_TOL = 1e-8  # rtol and atol of the default PIDController
@@ -98,7 +99,8 @@ def make_controller(
     return stepsize_controller
 
 
-def _prepare(model, y0, ts, stepsize_controller, rtol, atol, max_steps):
+def _prepare(model, y0, ts, stepsize_controller, rtol, atol, max_steps, solver=None,
+             dt0=None):
     if not isinstance(model, AbstractRigidBody):
         raise ValueError(f"`model` must be a rigid-body model, got {type(model).__name__}.")
     ts = as_float_array(ts, "ts")
@@ -110,6 +112,10 @@ def _prepare(model, y0, ts, stepsize_controller, rtol, atol, max_steps):
             raise ValueError("`ts` must be finite and strictly increasing.")
     if not isinstance(max_steps, numbers.Integral) or isinstance(max_steps, bool) or max_steps < 1:
         raise ValueError(f"`max_steps` must be a positive int, got {max_steps!r}.")
+    if isinstance(solver, LiePoissonSplitting):  # fixed steps, its models only
+        stepsize_controller = fixed_step_controller(model, ts, stepsize_controller, rtol,
+                                                    atol, dt0, max_steps)
+        rtol = atol = None
     controller = make_controller(stepsize_controller, rtol, atol,
                                  dtype=solve_dtype(model, y0, ts))
     return ts, controller, int(max_steps)
@@ -143,24 +149,27 @@ def simulate(
     - `y0`: its initial state (`State(omega, quat)` for the quaternion models); its
       quaternion (γ in the Poisson form) is normalised first.
     - `ts`: strictly increasing output times; the solve runs from `ts[0]` to `ts[-1]`.
-    - `solver`, `adjoint`: diffrax objects, passed through unchanged.
+    - `solver`, `adjoint`: diffrax objects, passed through unchanged. The
+      structure-preserving `LiePoissonSplitting` takes fixed steps: give `dt0`, and no
+      tolerances; its model and torque are checked before the solve is traced.
     - `stepsize_controller`: a diffrax step-size controller, passed through (its
       tolerances as arrays); default `diffrax.PIDController(rtol=1e-8, atol=1e-8)`
-      (1e-6 in float32: `default_tolerance`).
+      (1e-6 in float32: `default_tolerance`), or `diffrax.ConstantStepSize()` for
+      `LiePoissonSplitting`.
     - `rtol`, `atol`: shorthand for `stepsize_controller=diffrax.PIDController(rtol,
       atol)` (the other defaulting as above); positive scalars, which may be traced. The
       solve runs in the dtype of `ts`, the model's arrays and `y0` together; a concrete
       `rtol` finer than it resolves is refused (`min_rtol`: below 9.5e-7 in float32).
     - `max_steps`: the most steps the solver may take.
     - `dt0`: initial step; `None` takes 0.01 (in the unit of `ts`), what `diffeqsolve`
-      takes.
+      takes. For `LiePoissonSplitting`, the fixed step (required).
     - `throw`: raise a runtime error when the result is not `RESULTS.successful`;
       otherwise the code is returned in `Trajectory.result`.
 
     **Returns:** a `Trajectory`.
     """
     ts, controller, max_steps = _prepare(model, y0, ts, stepsize_controller, rtol, atol,
-                                         max_steps)
+                                         max_steps, solver, dt0)
     traj = _solved[cacheable(ts, controller)](model, y0, ts, solver, controller, adjoint,
                                               max_steps, dt0)
     return thrown(traj) if throw else traj
@@ -197,7 +206,8 @@ def simulate_batch(
       vmapped). `None` (default) takes, on a GPU backend, `Kernel()` where it can run the
       solve (an explicit Runge–Kutta solver, a `PIDController`, no `adjoint`, a field
       written on vector components); else `Lanes()` where it can run the solve (the same
-      solvers and controller); else `Vmap()`. All give the same trajectories to round-off.
+      solvers and controller); else `Vmap()` (for `LiePoissonSplitting`, whose fixed steps
+      run in lockstep). All give the same trajectories to round-off.
     - `adjoint`: for `Vmap` only (default there `diffrax.RecursiveCheckpointAdjoint()`);
       giving one selects `Vmap` by default.
     - `throw`: default `False`: a failing trajectory (`max_steps_reached`,
@@ -210,7 +220,7 @@ def simulate_batch(
     `stats` and `result`).
     """
     ts, controller, max_steps = _prepare(model, y0s, ts, stepsize_controller, rtol, atol,
-                                         max_steps)
+                                         max_steps, solver, dt0)
     if batching is None:
         batching = default_batching(solver, controller, adjoint, model, y0s, model_axes)
     elif not isinstance(batching, AbstractBatching):
