@@ -117,7 +117,7 @@ def _solve_block(scenario: Scenario, dists, key, idx, lanes):
     traj = simulate_batch(models, y0s, scenario.ts, model_axes=0,
                           solver=scenario.diffrax_solver,
                           stepsize_controller=scenario.stepsize_controller,
-                          dt0=scenario.dt0, max_steps=scenario.max_steps, batching=batching)
+                          dt0=scenario.dt, max_steps=scenario.max_steps, batching=batching)
     status = jnp.where(ok, result_code(traj.result), result_code(RESULTS.nonfinite_state))
 
     def summaries(m, tr):

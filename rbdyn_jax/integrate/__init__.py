@@ -41,7 +41,11 @@ from ._batching import (
     device_memory as device_memory,
 )
 from ._field import MODE_DEPENDENT_JITS as MODE_DEPENDENT_JITS
-from ._lie_poisson import LiePoissonSplitting as LiePoissonSplitting
+from ._lie_poisson import (
+    ORDERS as SPLITTING_ORDERS,
+    LiePoissonSplitting as LiePoissonSplitting,
+    fixed_steps as fixed_steps,
+)
 from ._simulate import (
     default_tolerance as default_tolerance,
     make_controller as make_controller,
@@ -56,7 +60,7 @@ from ._solution import (
     result_names as result_names,
 )
 
-__all__ = ["COMPILER_OPTIONS", "RESULTS", "AbstractBatching", "Lanes", "LiePoissonSplitting",
-           "Trajectory", "Vmap", "configure_xla", "default_lanes", "default_tolerance",
-           "device_memory", "make_controller", "min_rtol", "result_code", "result_names",
-           "simulate", "simulate_batch"]
+__all__ = ["COMPILER_OPTIONS", "RESULTS", "SPLITTING_ORDERS", "AbstractBatching", "Lanes",
+           "LiePoissonSplitting", "Trajectory", "Vmap", "configure_xla", "default_lanes",
+           "default_tolerance", "device_memory", "fixed_steps", "make_controller", "min_rtol",
+           "result_code", "result_names", "simulate", "simulate_batch"]
