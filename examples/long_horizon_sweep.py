@@ -27,7 +27,6 @@ jax.config.update("jax_enable_x64", True)
 
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
-import zarr  # noqa: E402
 
 import rbdyn_jax as rb  # noqa: E402
 from rbdyn_jax import sweep  # noqa: E402
@@ -62,9 +61,9 @@ def run(sc: Scenario, n: int, folder: pathlib.Path, name: str):
     t0 = time.perf_counter()
     out = sweep.run(sc, n, folder / f"{name}.zarr", seed=0, lanes=lanes)
     wall = time.perf_counter() - t0
-    g = zarr.open_group(str(out), mode="r")
-    return {k: g[k][:] for k in ("omega", "quat", "inertia", "status", "num_steps",
-                                 "energy_drift")}, wall
+    ds = sweep.open_dataset(out)
+    return {k: ds[k].values for k in ("omega", "quat", "inertia", "status", "num_steps",
+                                      "energy_drift")}, wall
 
 
 def energy_error(sc: Scenario, store: dict, i: int) -> np.ndarray:

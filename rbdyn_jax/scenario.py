@@ -36,9 +36,11 @@ from ._vector import parse_seq
 from .frames import CircularOrbit, ConstantRate, EulerAngleFrame, HarmonicAngles, Inertial
 from .integrate import (
     RESULTS,
+    SPLITTING_ORDERS,
     LiePoissonSplitting,
     Trajectory,
     default_tolerance,
+    fixed_steps,
     min_rtol,
 )
 from .models import RelativeRigidBody, RigidBody
@@ -725,9 +727,9 @@ class Scenario:
             if dt > t1 - t0:
                 raise _fail("solver.dt", f"a step no longer than t1 − t0 = {t1 - t0:g}", dt)
             order = int(_number(s.get("order", 6), "solver.order", integer=True))
-            if order not in (2, 4, 6):
-                raise _fail("solver.order", "2, 4 or 6", order)
-            steps = math.ceil((t1 - t0) / dt * (1.0 - 1e-12))
+            if order not in SPLITTING_ORDERS:
+                raise _fail("solver.order", " or ".join(map(str, SPLITTING_ORDERS)), order)
+            steps = fixed_steps(t1 - t0, dt)
             # One more by default: the rounding of the step's times may leave a short last one.
             max_steps = int(_number(s.get("max_steps", steps + 1), "solver.max_steps",
                                     integer=True, positive=True))
@@ -811,16 +813,10 @@ class Scenario:
     def stepsize_controller(self) -> diffrax.AbstractStepSizeController:
         """The step-size controller of the `[solver]` settings: a `diffrax.PIDController`
         of the tolerances for an adaptive method, `diffrax.ConstantStepSize()` (steps of
-        `dt0`) for a fixed-step one."""
+        `dt`, the solve's `dt0`) for a fixed-step one."""
         if self.fixed_step:
             return diffrax.ConstantStepSize()
         return diffrax.PIDController(rtol=self.rtol, atol=self.atol)
-
-    @property
-    def dt0(self) -> float | None:
-        """The `dt0` a solve takes: the fixed step `[solver] dt`, or `None` (the adaptive
-        methods' default first step)."""
-        return self.dt
 
     # -- building one trajectory ----------------------------------------------------------
 

@@ -120,7 +120,7 @@ def _solve_block(scenario: Scenario, dists, key, idx, lanes):
     traj = simulate_batch(models, y0s, scenario.ts, model_axes=0,
                           solver=scenario.diffrax_solver,
                           stepsize_controller=scenario.stepsize_controller,
-                          dt0=scenario.dt0, max_steps=scenario.max_steps,
+                          dt0=scenario.dt, max_steps=scenario.max_steps,
                           batching=_batching(scenario, models, y0s, lanes))
     status = jnp.where(ok, result_code(traj.result), result_code(RESULTS.nonfinite_state))
 

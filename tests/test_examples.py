@@ -61,7 +61,7 @@ CASES = [
     ("satellite_pitch", dict(orbits=1.5, n_out=301), _check_satellite_pitch),
     ("lagrange_top", dict(eps=0.05, n_out=201), _check_lagrange_top),
     ("gg_integrable", dict(t_end=8.0, n_out=401), _check_gg_integrable),
-    # needs `rbdyn_jax.sweep` to run a fixed-step scenario (`Vmap`, its `dt0`)
+    # needs `rbdyn_jax.sweep` to run a fixed-step scenario (`Vmap`, its `dt` as `dt0`)
     ("long_horizon_sweep", dict(n=4, t_end=500.0, n_out=401), _check_long_horizon_sweep),
 ]
 

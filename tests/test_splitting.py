@@ -451,8 +451,8 @@ def test_a_scenario_takes_the_splitting_with_its_step():
     assert isinstance(sc.diffrax_solver, rb.LiePoissonSplitting)
     assert sc.diffrax_solver.order(None) == 4
     assert isinstance(sc.stepsize_controller, diffrax.ConstantStepSize)
-    assert (sc.dt0, sc.max_steps, sc.fixed_step) == (0.01, 401, True)
-    assert Scenario.from_dict(small_scenario()).dt0 is None
+    assert (sc.dt, sc.max_steps, sc.fixed_step) == (0.01, 401, True)
+    assert Scenario.from_dict(small_scenario()).dt is None
 
 
 @pytest.mark.parametrize("solver, key", [
@@ -486,7 +486,7 @@ def test_a_sweep_with_the_splitting_matches_simulate(tmp_path):
     vectorised), its energy drift the method's (order 6 at dt = 0.01 on rates of order 1:
     below 1e-12).
 
-    Needs `sweep` to pass the scenario's `dt0` and to batch a fixed-step method with
+    Needs `sweep` to pass the scenario's `dt` as `dt0` and to batch a fixed-step method with
     `Vmap` (`Lanes` refuses it)."""
     sc = Scenario.from_dict(_splitting_scenario())
     out = sweep.run(sc, 6, tmp_path / "s.zarr", chunk=6, seed=1, lanes=4)
@@ -497,7 +497,7 @@ def test_a_sweep_with_the_splitting_matches_simulate(tmp_path):
         one = rb.simulate(rb.RigidBody(jnp.asarray(store["inertia"][i])),
                           rb.State(jnp.asarray(store["omega"][i, 0]),
                                    jnp.asarray(store["quat"][i, 0])),
-                          jnp.asarray(sc.ts), solver=sc.diffrax_solver, dt0=sc.dt0,
+                          jnp.asarray(sc.ts), solver=sc.diffrax_solver, dt0=sc.dt,
                           max_steps=sc.max_steps)
         np.testing.assert_allclose(store["omega"][i], one.ys.omega, rtol=0, atol=1e-13)
         np.testing.assert_allclose(store["quat"][i], one.ys.quat, rtol=0, atol=1e-13)

@@ -45,7 +45,11 @@ from ._batching import (
     device_memory as device_memory,
 )
 from ._field import MODE_DEPENDENT_JITS as MODE_DEPENDENT_JITS
-from ._lie_poisson import LiePoissonSplitting as LiePoissonSplitting
+from ._lie_poisson import (
+    ORDERS as SPLITTING_ORDERS,
+    LiePoissonSplitting as LiePoissonSplitting,
+    fixed_steps as fixed_steps,
+)
 from ._simulate import (
     default_tolerance as default_tolerance,
     make_controller as make_controller,
@@ -60,8 +64,8 @@ from ._solution import (
     result_names as result_names,
 )
 
-__all__ = ["COMPILER_OPTIONS", "RESULTS", "AbstractBatching", "Kernel", "Lanes",
-           "LiePoissonSplitting", "Trajectory", "Vmap", "configure_xla", "default_batching",
-           "default_lanes", "default_tolerance",
-           "device_memory", "make_controller", "min_rtol", "result_code", "result_names",
+__all__ = ["COMPILER_OPTIONS", "RESULTS", "SPLITTING_ORDERS", "AbstractBatching", "Kernel",
+           "Lanes", "LiePoissonSplitting", "Trajectory", "Vmap", "configure_xla",
+           "default_batching", "default_lanes", "default_tolerance", "device_memory",
+           "fixed_steps", "make_controller", "min_rtol", "result_code", "result_names",
            "simulate", "simulate_batch"]

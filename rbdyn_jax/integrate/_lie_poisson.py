@@ -110,6 +110,13 @@ def check_splittable(model) -> bool:
     return kicked
 
 
+def fixed_steps(span: float, dt: float) -> int:
+    """The steps of `dt` that cover `span`: ⌈span / dt⌉, a quotient within rounding of a
+    whole number counting as that number (a last step that rounding would leave shorter
+    than 1e-12 of `dt` is not one)."""
+    return math.ceil(span / dt * (1.0 - 1e-12))
+
+
 def fixed_step_controller(model, ts, controller, rtol, atol, dt0, max_steps):
     """The step-size controller of a `LiePoissonSplitting` solve, checked before it is
     traced: the model and its torque (`check_splittable`), no tolerances, a fixed-step
@@ -137,7 +144,7 @@ def fixed_step_controller(model, ts, controller, rtol, atol, dt0, max_steps):
     if not float(dt0) > 0:
         raise ValueError(f"`dt0` must be a positive step, got {dt0!r}.")
     t = np.asarray(ts)
-    steps = math.ceil((float(t[-1]) - float(t[0])) / float(dt0) * (1.0 - 1e-12))
+    steps = fixed_steps(float(t[-1]) - float(t[0]), float(dt0))
     if max_steps < steps:
         raise ValueError(f"`max_steps` = {max_steps} is fewer than the {steps} steps of "
                          f"`dt0` = {float(dt0):g} from ts[0] to ts[-1]: give `max_steps` ≥ "
@@ -509,4 +516,5 @@ class LiePoissonSplitting(diffrax.AbstractSolver):
         return terms.vf(t0, y0, args)
 
 
-__all__ = ["LiePoissonSplitting", "check_splittable", "fixed_step_controller"]
+__all__ = ["ORDERS", "LiePoissonSplitting", "check_splittable", "fixed_step_controller",
+           "fixed_steps"]
