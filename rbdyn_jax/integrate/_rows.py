@@ -46,13 +46,28 @@ _BINARY = {"add": jax.lax.add_p, "max": jax.lax.max_p, "min": jax.lax.min_p,
            "mul": jax.lax.mul_p, "and": jax.lax.and_p, "or": jax.lax.or_p}
 
 
+# The parameters read below are JAX's jaxpr internals, which change between releases;
+# tests/test_rows.py checks each form against `jax.vmap` and runs under the next JAX too.
+
+def _open(j):
+    """A jaxpr parameter as (jaxpr, constants): a closed jaxpr, or an open one (a scan's
+    body and a cond's branches are open from jax 0.11)."""
+    return (j.jaxpr, j.consts) if hasattr(j, "consts") else (j, ())
+
+
+def _scan_counts(p) -> tuple[int, int]:
+    """A scan's numbers of constants and of carries: its parameters' counts, or the groups
+    of its flat input tree (jax ≥ 0.11)."""
+    if "num_consts" in p:
+        return p["num_consts"], p["num_carry"]
+    consts, carry, _ = p["ft_in"].unpack()
+    return len(consts), len(carry)
+
+
 def _inner(eqn):
     """The jaxpr (and its constants) an eqn calls, or `None`."""
     name = CALLS.get(eqn.primitive.name)
-    if name is None:
-        return None
-    j = eqn.params[name]
-    return (j.jaxpr, j.consts) if hasattr(j, "consts") else (j, ())
+    return None if name is None else _open(eqn.params[name])
 
 
 def _subjaxprs(eqn):
@@ -60,9 +75,9 @@ def _subjaxprs(eqn):
     if inner is not None:
         return [inner[0]]
     if eqn.primitive.name == "scan":
-        return [eqn.params["jaxpr"].jaxpr]
+        return [_open(eqn.params["jaxpr"])[0]]
     if eqn.primitive.name == "cond":
-        return [b.jaxpr for b in eqn.params["branches"]]
+        return [_open(b)[0] for b in eqn.params["branches"]]
     return []
 
 
@@ -159,13 +174,12 @@ def _first(x, i):
 
 def _scan(eqn, ins):
     p = eqn.params
-    nc, ncar, length = p["num_consts"], p["num_carry"], p["length"]
+    (nc, ncar), length, body = _scan_counts(p), p["length"], _open(p["jaxpr"])
     consts, carry, xs = ins[:nc], list(ins[nc:nc + ncar]), ins[nc + ncar:]
     ys = []
     steps = range(length - 1, -1, -1) if p["reverse"] else range(length)
     for i in steps:
-        outs = eval_jaxpr(p["jaxpr"].jaxpr, p["jaxpr"].consts,
-                          [*consts, *carry, *(_first(x, i) for x in xs)])
+        outs = eval_jaxpr(*body, [*consts, *carry, *(_first(x, i) for x in xs)])
         carry, y = outs[:ncar], outs[ncar:]
         ys.append(y)
     if p["reverse"]:
@@ -178,7 +192,7 @@ def _scan(eqn, ins):
 
 def _cond(eqn, ins):
     index, ops = ins[0], ins[1:]
-    branches = [eval_jaxpr(b.jaxpr, b.consts, ops) for b in eqn.params["branches"]]
+    branches = [eval_jaxpr(*_open(b), ops) for b in eqn.params["branches"]]
     if len(branches) == 1:
         return branches[0]
     i = index[()]
