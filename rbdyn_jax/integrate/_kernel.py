@@ -74,7 +74,37 @@ def kernel_refuse(model, solver, controller, adjoint) -> str | None:
 def field_refuse(model, y0s, model_axes) -> str | None:
     """Why the kernel cannot evaluate `model`'s vector field on rows of lanes (the
     operations it cannot run, by name), or `None`. Traces the field for one trajectory
-    from the shapes of `model` (mapped by `model_axes`) and `y0s` (a leading batch axis)."""
+    from the shapes of `model` (mapped by `model_axes`) and `y0s` (a leading batch axis);
+    the verdict is kept for the next call with the same structure, static values, shapes
+    and dtypes (the default's choice on a GPU then costs no trace per call)."""
+    key = _signature(model, y0s, model_axes)
+    if key is None:
+        return _field_refuse(model, y0s, model_axes)
+    if key not in _VERDICTS:
+        if len(_VERDICTS) >= 256:
+            _VERDICTS.clear()
+        _VERDICTS[key] = _field_refuse(model, y0s, model_axes)
+    return _VERDICTS[key]
+
+
+_VERDICTS: dict = {}
+
+
+def _signature(model, y0s, model_axes):
+    """What `field_refuse`'s verdict depends on, hashable: the pytrees' structure (static
+    fields included), each array's shape and dtype and each other leaf's value; `None`
+    where a static value is unhashable."""
+    leaves, tree = jax.tree_util.tree_flatten((model, y0s, model_axes))
+    key = (tree, tuple((type(x), x.shape, x.dtype) if hasattr(x, "shape") else (type(x), x)
+                       for x in leaves))
+    try:
+        hash(key)
+    except TypeError:
+        return None
+    return key
+
+
+def _field_refuse(model, y0s, model_axes) -> str | None:
     def one(x):
         return jax.ShapeDtypeStruct(x.shape[1:], x.dtype)
 
