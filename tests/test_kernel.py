@@ -11,6 +11,8 @@ tests use for the same difference. Small batches (8–12) and short horizons: ea
 runs in seconds in interpret mode.
 """
 
+import contextlib
+
 import diffrax
 import equinox as eqx
 import jax
@@ -213,8 +215,6 @@ def test_the_kernel_lowers_to_triton_for_a_gpu(dtype):
     (rows of lanes, the loops, the stores of one output row, the scalar read of an output
     time) has a Triton lowering, and the kernel is a Triton call, not Mosaic GPU (JAX's
     default for `pallas_call` on a GPU). Compiling the Triton IR needs a GPU."""
-    from rbdyn_jax._checks import checks_as_nan
-    from rbdyn_jax.integrate._field import MODE_DEPENDENT_JITS
     from rbdyn_jax.integrate._kernel import kernel_solve
 
     y0s = initial_states(16, dtype=dtype)
@@ -225,13 +225,29 @@ def test_the_kernel_lowers_to_triton_for_a_gpu(dtype):
     def solve(y0s, ts):
         return kernel_solve(model, y0s, ts, diffrax.Tsit5(), pid, 1000, None, None, 16, False)
 
-    with checks_as_nan(jitted=MODE_DEPENDENT_JITS):  # no host callback in the program
-        exported = jax.export.export(
-            jax.jit(solve), platforms=["cuda"],
-            disabled_checks=[jax.export.DisabledSafetyCheck.custom_call(
-                "__gpu$xla.gpu.triton")])(y0s, ts)
-    text = exported.mlir_module()
+    text = exported_for_cuda(solve, y0s, ts).mlir_module()
     assert "__gpu$xla.gpu.triton" in text and "mosaic" not in text.lower()
+
+
+def exported_for_cuda(fn, *args):
+    """`fn` exported for CUDA from this CPU (its checks as NaN: no host callback), its
+    Triton calls allowed. Pallas's Triton lowering asks for the GPU's compute capability:
+    from JAX 0.11 a machine without one names its target, an H100, by an abstract mesh."""
+    from rbdyn_jax._checks import checks_as_nan
+    from rbdyn_jax.integrate._field import MODE_DEPENDENT_JITS
+
+    mesh = jax.sharding.AbstractMesh(
+        (1,), ("x",), (jax.sharding.AxisType.Explicit,),
+        abstract_device=jax.sharding.AbstractDevice(
+            device_kind="NVIDIA H100 80GB HBM3", num_cores=132, platform="gpu"))
+    target = (jax.sharding.use_abstract_mesh(mesh)
+              if tuple(map(int, jax.__version__.split(".")[:2])) >= (0, 11)
+              else contextlib.nullcontext())
+    with checks_as_nan(jitted=MODE_DEPENDENT_JITS), target:
+        return jax.export.export(
+            jax.jit(fn), platforms=["cuda"],
+            disabled_checks=[jax.export.DisabledSafetyCheck.custom_call(
+                "__gpu$xla.gpu.triton")])(*args)
 
 
 GRAD_TS = jnp.linspace(0.0, 3.0, 3)
@@ -330,23 +346,17 @@ def test_the_gradient_kernel_lowers_to_triton_for_a_gpu():
     attitude, six inertia parameters: 7 + 7 × 6 output rows) and lowers to Triton, every
     operation of the sensitivities' field (a `jax.jvp` of the model's, vmapped over the
     columns, on rows) included."""
-    from rbdyn_jax._checks import checks_as_nan
-    from rbdyn_jax.integrate._field import MODE_DEPENDENT_JITS
-
     y0s, ts = initial_states(16), np.linspace(0.0, 3.0, 7)
     body = rb.RigidBody(J)
+
+    ts = jnp.asarray(ts)  # a JAX array: closed over, as constants of the program
 
     def loss(theta):
         tr = rb.simulate_batch(rb.with_log_cholesky(body, theta), y0s, ts,
                                batching=rb.Kernel(block=16, interpret=False))
         return jnp.sum(tr.ys.omega ** 2) + jnp.sum(tr.ys.quat[..., 1:] ** 2)
 
-    with checks_as_nan(jitted=MODE_DEPENDENT_JITS):
-        exported = jax.export.export(
-            jax.jit(jax.grad(loss)), platforms=["cuda"],
-            disabled_checks=[jax.export.DisabledSafetyCheck.custom_call(
-                "__gpu$xla.gpu.triton")])(rb.inertia.to_log_cholesky(J))
-    text = exported.mlir_module()
+    text = exported_for_cuda(jax.grad(loss), rb.inertia.to_log_cholesky(J)).mlir_module()
     calls = [line for line in text.splitlines()
              if "custom_call" in line and "__gpu$xla.gpu.triton" in line]
     assert len(calls) == 1 and "mosaic" not in text.lower()

@@ -92,6 +92,21 @@ def test_cond_selects_per_lane_and_calls_are_followed(data):
     check(fn, v)
 
 
+def test_negated_constants_keep_their_signed_zeros(data):
+    """A constant of the trace is negated as a product by −1 (Pallas's Triton lowering
+    cannot negate a literal): exactly −x, the sign of a zero included."""
+    _, v, _ = data
+
+    def fn(v):
+        return jnp.stack([-jnp.zeros(()), -jnp.ones(()) * 0.0, -v[0]]), 1.0 / -jnp.zeros(())
+
+    expected, got = jax.vmap(fn)(v), _rows.rowwise(fn, as_rows(v))
+    for e, g in zip(expected, got):
+        g = np.asarray(from_rows(g))
+        np.testing.assert_array_equal(g, e)
+        np.testing.assert_array_equal(np.signbit(g), np.signbit(e))
+
+
 def test_what_has_no_form_on_rows_is_named(data):
     _, v, _ = data
 

@@ -115,7 +115,12 @@ def _lifted(elems):
 
 
 def _bind(prim, *elems, **params):
-    return prim.bind(*_lifted([jnp.asarray(e) for e in elems]), **params)
+    elems = _lifted([jnp.asarray(e) for e in elems])
+    if prim is jax.lax.neg_p and elems[0].shape == ():
+        # A constant negated as a product by −1 (exact, signed zeros included): Pallas's
+        # Triton lowering cannot negate a literal (JAX 0.11).
+        return jax.lax.mul_p.bind(elems[0], jnp.asarray(-1, elems[0].dtype))
+    return prim.bind(*elems, **params)
 
 
 def _elementwise(eqn, ins):
