@@ -107,16 +107,25 @@ def test_same_steps_and_values_as_vmapped_diffeqsolve(case):
     assert kernel.ys.omega.shape == (N, len(TS), 3)
 
 
-def test_blocks_of_the_batch_give_the_same_solves():
+def test_blocks_of_the_batch_and_the_default_on_a_faked_gpu_give_the_same_solves(
+        monkeypatch):
     """Several programs (blocks of 4, the batch padded from 10 to 12): each trajectory's
-    solve is its own, to the bit, whatever block it ran in."""
+    solve is its own, to the bit, whatever block it ran in. With JAX's backend reported as
+    a GPU, `simulate_batch`'s default runs the kernel (here in interpret mode, asked for:
+    the CPU has no Triton) and gives its solve."""
+    import rbdyn_jax.integrate._batching as batching
+
     y0s = initial_states()
     kw = dict(rtol=RTOL, atol=RTOL)
     one = rb.simulate_batch(rb.RigidBody(J), y0s, TS, batching=rb.Kernel(), **kw)
     blocks = rb.simulate_batch(rb.RigidBody(J), y0s, TS, batching=rb.Kernel(block=4), **kw)
-    for x, y in zip(jax.tree_util.tree_leaves((one.ys, one.stats)),
-                    jax.tree_util.tree_leaves((blocks.ys, blocks.stats))):
-        np.testing.assert_array_equal(x, y)
+    monkeypatch.setattr(batching, "Kernel", lambda: rb.Kernel(interpret=True))
+    monkeypatch.setattr(batching.jax, "default_backend", lambda: "gpu")
+    default = rb.simulate_batch(rb.RigidBody(J), y0s, TS, **kw)
+    for other in (blocks, default):
+        for x, y in zip(jax.tree_util.tree_leaves((one.ys, one.stats)),
+                        jax.tree_util.tree_leaves((other.ys, other.stats))):
+            np.testing.assert_array_equal(x, y)
 
 
 def test_failures_stay_in_their_lane():
@@ -193,22 +202,7 @@ def test_the_default_takes_the_kernel_only_on_a_gpu_backend():
     assert type(default_batching(diffrax.Tsit5(), pid, None, backend="gpu")) is rb.Lanes
 
 
-def test_the_default_call_on_a_faked_gpu_is_the_kernels(monkeypatch):
-    """With JAX's backend reported as a GPU, `simulate_batch`'s default runs the kernel
-    (here in interpret mode, asked for: the CPU has no Triton) and gives its solve."""
-    import rbdyn_jax.integrate._batching as batching
-
-    y0s = initial_states(4)
-    kernel = rb.simulate_batch(rb.RigidBody(J), y0s, TS, rtol=RTOL, atol=RTOL,
-                               batching=rb.Kernel())
-    monkeypatch.setattr(batching, "Kernel", lambda: rb.Kernel(interpret=True))
-    monkeypatch.setattr(batching.jax, "default_backend", lambda: "gpu")
-    default = rb.simulate_batch(rb.RigidBody(J), y0s, TS, rtol=RTOL, atol=RTOL)
-    for x, y in zip(jax.tree_util.tree_leaves((kernel.ys, kernel.stats)),
-                    jax.tree_util.tree_leaves((default.ys, default.stats))):
-        np.testing.assert_array_equal(x, y)
-
-
+@pytest.mark.core  # also under the next JAX: its Triton lowering changes
 @pytest.mark.parametrize("dtype", [np.float64, np.float32])
 def test_the_kernel_lowers_to_triton_for_a_gpu(dtype):
     """Exported for CUDA from this CPU (`jax.export`): every operation of the kernel body
@@ -315,24 +309,23 @@ def test_jacfwd_through_the_kernel():
     np.testing.assert_allclose(kernel, lanes, rtol=1e-9, atol=1e-12 * scale)
 
 
-def test_gradients_for_per_trajectory_models_whole_states_and_times():
+def test_gradients_for_per_trajectory_models_and_times():
     """A heavy top per trajectory (its weight), a loss on the attitude and the rates:
-    gravity couples ω̇ to q, so the kernel integrates the whole state's sensitivities, with
-    each lane's own model. Gradients w.r.t. the weights, the initial states (ω0 and q0)
-    and the output times equal the lane solver's to round-off (bound as above). A minute or
-    two in interpret mode (the whole state's sensitivities: 7 + 7 × 12 rows)."""
+    gravity couples ω̇ to q, so the kernel integrates the whole state's sensitivities to
+    each lane's own weight (7 + 7 rows). Gradients w.r.t. the weights and the output times
+    equal the lane solver's to round-off (bound as above)."""
     y0s = initial_states(4, seed=2)
     weights = jnp.linspace(0.5, 2.0, 4)
 
-    def loss(w, y0s, ts, batching):
+    def loss(w, ts, batching):
         model = eqx.filter_vmap(heavy_top)(w)
         tr = rb.simulate_batch(model, y0s, ts, model_axes=0, solver=diffrax.Bosh3(),
                                rtol=GRAD_RTOL, atol=GRAD_RTOL, batching=batching)
         return jnp.sum(tr.ys.quat[..., 1:] ** 2) + jnp.sum(jnp.sin(tr.ys.omega))
 
-    grad = jax.jit(jax.grad(loss, argnums=(0, 1, 2)), static_argnums=3)
-    kernel = grad(weights, y0s, GRAD_TS, rb.Kernel())
-    lanes = grad(weights, y0s, GRAD_TS, rb.Lanes())
+    grad = jax.jit(jax.grad(loss, argnums=(0, 1)), static_argnums=2)
+    kernel = grad(weights, GRAD_TS, rb.Kernel())
+    lanes = grad(weights, GRAD_TS, rb.Lanes())
     leaves = jax.tree_util.tree_leaves(lanes)
     scale = max(float(jnp.max(jnp.abs(x))) for x in leaves)
     assert min(float(jnp.max(jnp.abs(x))) for x in leaves) > 1e-2  # every one real
@@ -340,6 +333,7 @@ def test_gradients_for_per_trajectory_models_whole_states_and_times():
         np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12 * scale)
 
 
+@pytest.mark.core
 def test_the_gradient_kernel_lowers_to_triton_for_a_gpu():
     """`jax.grad` through the kernel, exported for CUDA from this CPU: the one kernel of
     the gradient program integrates the state and its sensitivities (a loss on ω and the
