@@ -22,7 +22,8 @@ from .inertia import planar
 # that is computed upstream of it and recomputes that, unvectorised, for every component it
 # writes; a stack between two operations (a vector sum, say) is one that XLA cannot cancel
 # against the slices that follow. It matters for the sensitivities' field, whose vectors
-# carry a column axis (`integrate._Sensitivity` says what it saves), not for the model's own.
+# carry a column axis (the integrator's sensitivities, `integrate/_sensitivity.py`), not for
+# the model's own.
 
 
 def _prepare(J, vectors: dict[str, VectorLike]) -> tuple[Matrix, list[Vector]]:
@@ -80,7 +81,7 @@ def _inverse_parts(L):
 def _solve_jvp(primals, tangents):
     """`dx = J⁻¹ (db − dJ x)` with the factor of the solve itself, dJ the symmetric matrix
     of dJ's lower triangle (what `_solve` reads). The factor's own tangents are never
-    formed: a sensitivity column per inertia element (`integrate._Sensitivity`) costs a
+    formed: a sensitivity column per inertia element (`integrate/_sensitivity.py`) costs a
     product with J⁻¹ instead of the derivative of the factorisation, a markedly cheaper
     gradient of a loss w.r.t. the inertia through the lane solver. J⁻¹'s six entries are
     formed from the factor, so that each component of dx is a three-term sum: by two

@@ -1,9 +1,10 @@
-"""Integration of a model with diffrax: the only part of rbdyn_jax that calls diffrax.
+"""Integration of a model with diffrax: the solves, their batching strategies and solvers.
 
 `simulate(model, y0, ts, ...)` solves one trajectory; `simulate_batch(model, y0s, ts, ...)`
 a batch, over initial conditions and, with `model_axes`, model parameters, by a batching
-strategy (`Lanes`, the lane solver, or `Vmap`, `diffeqsolve` vmapped; the default picks the
-faster one that can run the solve). Both are compiled once per model *structure*.
+strategy (`Kernel`, one Pallas kernel integrating a block of trajectories a program;
+`Lanes`, the lane solver; or `Vmap`, `diffeqsolve` vmapped; the default picks the fastest
+that can run the solve on the backend). Both are compiled once per model *structure*.
 
 The modules, one idea each:
 
@@ -25,7 +26,9 @@ The modules, one idea each:
 - `_compile`: when a solve is compiled, and which of its traces are stored on disk
   (`rbdyn_jax/_traces.py`, the package's cache of traced programs).
 
-Every use of diffrax's, equinox's or JAX's internals is in `rbdyn_jax/_compat.py`.
+Every use of diffrax's, equinox's or JAX's internals is in `rbdyn_jax/_compat.py`, except
+the jaxpr parameters `_rows` reads to replay a trace (a scan's counts, a call's jaxpr),
+which tests/test_rows.py checks against `jax.vmap` under the pinned and the next JAX.
 
 `COMPILER_OPTIONS` are the XLA options of every program rbdyn_jax compiles. Pass them to
 your own `jax.jit` around a solve: `jax.jit(jax.grad(loss), compiler_options=
