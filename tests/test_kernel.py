@@ -12,6 +12,7 @@ runs in seconds in interpret mode.
 """
 
 import contextlib
+import warnings
 
 import diffrax
 import equinox as eqx
@@ -29,6 +30,10 @@ RTOL = 1e-9
 # Same steps (asserted exactly); the saved values differ by round-off only (states of
 # size ≲ 3 here; measured ≤ 5e-14).
 ROUND_OFF = 1e-12
+# The gradient tests' own jits (of a kernel in interpret mode and of the lane solver they
+# compare it with) compile at XLA's backend optimisation level 0, in about half the time;
+# they compare values to a tolerance, never steps decided in float32.
+QUICK = {"xla_backend_optimization_level": 0}
 
 
 def initial_states(n=N, seed=0, dtype=np.float64):
@@ -74,25 +79,18 @@ CASES = {
         rb.RelativeRigidBody(J, rb.CircularOrbit(0.5),
                              rb.GravityGradient(0.75) + rb.BalancingTransport()), None,
         diffrax.Tsit5()),
-    "torque_free_dopri8": lambda: (rb.RigidBody(J), None, diffrax.Dopri8()),
 }
 # Where the round-off grows further (measured, with a margin of 4 or more):
 TOL = {
     # the relative field's longer chain of operations (transport and Coriolis terms):
     # 1.1e-12 measured
     "relative_rotating_frame_tsit5": 5e-12,
-    # Dopri8's 7th-order interpolant weighs the stages by large coefficients of both signs,
-    # which multiply the stages' round-off (unrolled sums here, dot products in diffrax's
-    # step), and its steps are long here (6–15 over the span): 4e-9 at outputs inside a
-    # step, 1e-12 at a step's end; the lane solver's array layout (the same unrolled
-    # stages) is as far from `Vmap` (4.0e-9), and 8e-11 from the kernel.
-    "torque_free_dopri8": 2e-8,
 }
 
 
 @pytest.mark.parametrize("case", CASES)
 def test_same_steps_and_values_as_vmapped_diffeqsolve(case):
-    """From a start time that is not 0 (the field is read at t0 + s·span); four solvers
+    """From a start time that is not 0 (the field is read at t0 + s·span); three solvers
     (their tableaus and interpolants), a shared and a per-trajectory model, a sum of
     torques, a polynomial restoring moment, relative models in a turning frame and on a
     circular orbit."""
@@ -158,6 +156,22 @@ def test_float32():
     assert_same_solves(kernel, plain, tol=2e-5)
 
 
+def test_float32_times_with_a_float64_state():
+    """float32 output times with a float64 model and state (JAX's standard promotion, as
+    diffrax needs for them): the solve and its saved states are float64, as `Vmap`'s,
+    with the same steps."""
+    model, y0s = rb.RigidBody(J), initial_states()
+    ts = np.linspace(0.0, 3.0, 7, dtype=np.float32)
+    with jax.numpy_dtype_promotion("standard"):
+        kernel = rb.simulate_batch(model, y0s, ts, rtol=RTOL, atol=RTOL,
+                                   batching=rb.Kernel())
+        plain = rb.simulate_batch(model, y0s, ts, rtol=RTOL, atol=RTOL, batching=rb.Vmap())
+    assert kernel.ys.omega.dtype == plain.ys.omega.dtype == jnp.float64
+    # Same steps; the values differ by the rounding of the float32 times themselves (the
+    # kernel reads them in unit time, diffrax as they are): ε₃₂·|t|·|ẏ| ≲ 6e-8·3·3 ≈ 5e-7.
+    assert_same_solves(kernel, plain, tol=1e-6)
+
+
 class _Looped(rb.AbstractTorque):
     """A torque whose evaluation holds a while loop: no form on rows of lanes."""
 
@@ -179,6 +193,37 @@ def test_what_the_kernel_cannot_run_is_refused_by_name():
     for bad in (3, 0, True, 2.0):
         with pytest.raises(ValueError, match="power of two"):
             rb.Kernel(block=bad)
+
+
+class _Tabulated(eqx.Module):
+    """A model holding an array as a static field (hashed by its structure, but not
+    comparable to another: `==` is elementwise)."""
+
+    body: rb.RigidBody
+    table: np.ndarray = eqx.field(static=True)
+
+    def vector_field(self, t, y, args):
+        return self.body.vector_field(t, y, args)
+
+
+def test_the_fields_verdict_is_kept_per_structure():
+    """`field_refuse` decides once per structure, static values, shapes and dtypes: the
+    same verdict for another model of that structure, its own for another structure, and
+    a verdict traced anew where a static value cannot be compared."""
+    from rbdyn_jax.integrate import _kernel
+
+    y0s = initial_states(4)
+    _kernel._VERDICTS.clear()
+    assert _kernel.field_refuse(rb.RigidBody(J), y0s, None) is None
+    assert _kernel.field_refuse(rb.RigidBody(2.0 * J), y0s, None) is None
+    assert len(_kernel._VERDICTS) == 1
+    assert "while" in _kernel.field_refuse(rb.RigidBody(J, _Looped()), y0s, None)
+    assert len(_kernel._VERDICTS) == 2
+    with warnings.catch_warnings():  # equinox warns of an array as a static value
+        warnings.simplefilter("ignore")
+        table = _Tabulated(rb.RigidBody(J), np.arange(3.0))
+    for _ in range(2):  # the second lookup compares the arrays (ambiguous): traced again
+        assert _kernel.field_refuse(table, y0s, None) is None
 
 
 def test_the_default_takes_the_kernel_only_on_a_gpu_backend():
@@ -255,7 +300,7 @@ def _omega_loss(J, omega0, quat0, batching, solver=diffrax.Bosh3()):
     return jnp.sum(jnp.sin(tr.ys.omega), axis=(1, 2))
 
 
-def test_gradients_through_the_kernel():
+def test_gradients_and_jacobians_through_the_kernel():
     """`jax.grad` through the kernel w.r.t. the inertia and the initial rates: the forward
     sensitivities integrated in the kernel by the same steps, as the lane solver's, so the
     two agree to round-off (bound 1e-9 relative, as the lane solver's own tests against
@@ -263,8 +308,7 @@ def test_gradients_through_the_kernel():
     only (`_cheapest` chooses that program: ω's group of a free body). Against central
     differences of the kernel's own solve along a random direction (a symmetric δJ and a
     δω0): h = 1e-5 on O(1) inputs at rtol 1e-11 gives O(h²) + rtol/h ≈ 1e-6 relative
-    error, bound 1e-5. Bosh3 and 4 trajectories: the sensitivities' kernel compiles in
-    interpret mode in about a minute."""
+    error, bound 1e-5. `jax.jacfwd` too. Bosh3 and 4 trajectories."""
     from helpers import cheapest_call
 
     y0s = initial_states(4, seed=1)
@@ -272,7 +316,8 @@ def test_gradients_through_the_kernel():
     def loss(J, omega0, batching):
         return jnp.sum(_omega_loss(J, omega0, y0s.quat, batching))
 
-    grad = jax.jit(jax.grad(loss, argnums=(0, 1)), static_argnums=2)
+    grad = jax.jit(jax.grad(loss, argnums=(0, 1)), static_argnums=2,
+                   compiler_options=QUICK)
     traced = grad.trace(J, y0s.omega, rb.Kernel())
     call = cheapest_call(traced.jaxpr)
     carried = {k[1] for k in call.params["keys"][call.params["chosen"]] if k[0] == "S"}
@@ -287,26 +332,18 @@ def test_gradients_through_the_kernel():
     dJ = rng.normal(size=(3, 3))
     dJ = jnp.asarray(dJ + dJ.T)
     dw = jnp.asarray(rng.normal(size=y0s.omega.shape))
-    f = jax.jit(lambda h: loss(J + h * dJ, y0s.omega + h * dw, rb.Kernel()))
+    f = jax.jit(lambda h: loss(J + h * dJ, y0s.omega + h * dw, rb.Kernel()),
+                compiler_options=QUICK)
     h = 1e-5
     fd = (f(h) - f(-h)) / (2 * h)
     exact = jnp.sum(gJ * dJ) + jnp.sum(gw * dw)
     np.testing.assert_allclose(exact, fd, rtol=1e-5)
-
-
-def test_jacfwd_through_the_kernel():
-    """`jax.jacfwd` of the per-trajectory losses w.r.t. the inertia: the tangents share the
-    one sensitivities' solve; equal to the lane solver's to round-off (as above)."""
-    y0s = initial_states(4, seed=1)
-
-    def jac(batching):
-        return jax.jit(jax.jacfwd(lambda J: _omega_loss(J, y0s.omega, y0s.quat, batching)))(J)
-
-    kernel, lanes = jac(rb.Kernel()), jac(rb.Lanes())
-    assert kernel.shape == (4, 3, 3)
-    scale = float(jnp.max(jnp.abs(lanes)))
-    assert scale > 1e-2
-    np.testing.assert_allclose(kernel, lanes, rtol=1e-9, atol=1e-12 * scale)
+    # `jax.jacfwd` of the per-trajectory losses: the tangents share the one sensitivities'
+    # solve; summed over the trajectories, the gradient above (to round-off).
+    jac = jax.jit(jax.jacfwd(lambda J: _omega_loss(J, y0s.omega, y0s.quat, rb.Kernel())),
+                  compiler_options=QUICK)(J)
+    assert jac.shape == (4, 3, 3)
+    np.testing.assert_allclose(jnp.sum(jac, axis=0), gJ, rtol=1e-9, atol=1e-12 * scale)
 
 
 def test_gradients_for_per_trajectory_models_and_times():
@@ -323,7 +360,8 @@ def test_gradients_for_per_trajectory_models_and_times():
                                rtol=GRAD_RTOL, atol=GRAD_RTOL, batching=batching)
         return jnp.sum(tr.ys.quat[..., 1:] ** 2) + jnp.sum(jnp.sin(tr.ys.omega))
 
-    grad = jax.jit(jax.grad(loss, argnums=(0, 1)), static_argnums=2)
+    grad = jax.jit(jax.grad(loss, argnums=(0, 1)), static_argnums=2,
+                   compiler_options=QUICK)
     kernel = grad(weights, GRAD_TS, rb.Kernel())
     lanes = grad(weights, GRAD_TS, rb.Lanes())
     leaves = jax.tree_util.tree_leaves(lanes)

@@ -5,8 +5,8 @@ change between JAX releases: these tests exercise each form, and run under the n
 too (`core`), so a change there fails here by name rather than inside a kernel.
 
 Both sides do the same float64 operations in possibly different order (a contraction is
-unrolled into a sum of rows), so they agree to a few ulps: 1e-14 relative (the scan's carries grow to O(100)) and
-absolute.
+unrolled into a sum of rows), so they agree to a few ulps: 1e-14 relative (the scan's
+carries grow to O(100)) and absolute.
 """
 
 import jax
@@ -35,8 +35,11 @@ def from_rows(obj):
 def check(fn, *args):
     expected = jax.vmap(fn)(*args)
     got = _rows.rowwise(fn, *(as_rows(a) for a in args))
+    assert jax.tree_util.tree_structure(expected) == jax.tree_util.tree_structure(got)
     for e, g in zip(jax.tree_util.tree_leaves(expected), jax.tree_util.tree_leaves(got)):
-        np.testing.assert_allclose(from_rows(g), e, rtol=ROUND_OFF, atol=ROUND_OFF)
+        g = from_rows(g)
+        assert g.dtype == e.dtype
+        np.testing.assert_allclose(g, e, rtol=ROUND_OFF, atol=ROUND_OFF)
 
 
 @pytest.fixture
@@ -105,6 +108,23 @@ def test_negated_constants_keep_their_signed_zeros(data):
         g = np.asarray(from_rows(g))
         np.testing.assert_array_equal(g, e)
         np.testing.assert_array_equal(np.signbit(g), np.signbit(e))
+
+
+def test_mixed_dtypes_empty_reductions_signed_zero_sums_and_unsigned_constants(data):
+    """A float32 operand contracted with a float64 one (a float64 result), reductions over
+    no elements (their identities), sums of negative zeros (+0, as XLA's reduction from
+    0 gives; seen through 1/x = +inf and atan2) and a negated unsigned constant (wrapping)."""
+    m, v, _ = data
+
+    def fn(m, v):
+        w = jax.lax.dot(m.astype(jnp.float32), v, preferred_element_type=jnp.float64)
+        none = v[:0]
+        zeros = jnp.zeros((3, 3)) @ -jnp.abs(v)
+        return (w, jnp.sum(none), jnp.max(none, initial=-1.0), jnp.prod(none),
+                1.0 / zeros, 1.0 / jnp.sum(0.0 * -jnp.abs(v)), jnp.arctan2(0.0, zeros),
+                -jnp.asarray(3, jnp.uint32) + jnp.abs(v).astype(jnp.uint32))
+
+    check(fn, m, v)
 
 
 def test_what_has_no_form_on_rows_is_named(data):

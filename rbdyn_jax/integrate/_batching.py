@@ -174,8 +174,9 @@ class Kernel(AbstractBatching):
         gpu = jax.default_backend() == "gpu"
         interpret = (not gpu) if self.interpret is None else self.interpret
         block = kernel_block(self.block, jax.tree_util.tree_leaves(y0s)[0].shape[0], gpu)
-        return kernel_solved[cacheable](model, y0s, ts, solver, controller, max_steps, dt0,
-                                         model_axes, block, interpret)
+        return kernel_solved[interpret][cacheable](model, y0s, ts, solver, controller,
+                                                    max_steps, dt0, model_axes, block,
+                                                    interpret)
 
 
 def _lanes_refuse(solver, controller, adjoint) -> str | None:

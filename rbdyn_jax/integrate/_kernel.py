@@ -31,7 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._checks import checks_as_nan
-from .._xla import filter_jit
+from .._xla import COMPILER_OPTIONS, filter_jit
 from ._field import (
     MODE_DEPENDENT_JITS,
     checked_times,
@@ -78,28 +78,33 @@ def field_refuse(model, y0s, model_axes) -> str | None:
     the verdict is kept for the next call with the same structure, static values, shapes
     and dtypes (the default's choice on a GPU then costs no trace per call)."""
     key = _signature(model, y0s, model_axes)
-    if key is None:
-        return _field_refuse(model, y0s, model_axes)
-    if key not in _VERDICTS:
-        if len(_VERDICTS) >= 256:
-            _VERDICTS.clear()
-        _VERDICTS[key] = _field_refuse(model, y0s, model_axes)
-    return _VERDICTS[key]
+    try:
+        verdict = _VERDICTS.get(key, _MISSING) if key is not None else _MISSING
+    except (TypeError, ValueError):  # a static value that cannot be compared (an array)
+        key, verdict = None, _MISSING
+    if verdict is _MISSING:
+        verdict = _field_refuse(model, y0s, model_axes)
+        if key is not None:
+            _VERDICTS[key] = verdict
+            while len(_VERDICTS) > 256:  # the oldest first
+                del _VERDICTS[next(iter(_VERDICTS))]
+    return verdict
 
 
 _VERDICTS: dict = {}
+_MISSING = object()
 
 
 def _signature(model, y0s, model_axes):
-    """What `field_refuse`'s verdict depends on, hashable: the pytrees' structure (static
-    fields included), each array's shape and dtype and each other leaf's value; `None`
-    where a static value is unhashable."""
+    """What `field_refuse`'s verdict depends on: the pytrees' structure (static fields
+    included), each array's shape and dtype and each other leaf's value; `None` where a
+    value is unhashable."""
     leaves, tree = jax.tree_util.tree_flatten((model, y0s, model_axes))
-    key = (tree, tuple((type(x), x.shape, x.dtype) if hasattr(x, "shape") else (type(x), x)
+    key = (tree, tuple((type(x), x.shape, x.dtype) if hasattr(x, "dtype") else (type(x), x)
                        for x in leaves))
     try:
         hash(key)
-    except TypeError:
+    except (TypeError, ValueError):
         return None
     return key
 
@@ -297,7 +302,9 @@ def kernel_run(system, y0s, ts, controller, solver, max_steps, dt0, batched, blo
         raise ValueError(f"`Kernel` {reason}; `batching=Lanes()` or `Vmap()` takes it.")
 
     y_spec = [x.shape[1:] for x in jax.tree_util.tree_leaves(y0s)]
-    n_y = sum(int(np.prod(x.shape, dtype=int)) for x in jax.tree_util.tree_leaves(ex_y))
+    # Each saved row in its state element's dtype (a float64 state with float32 times too)
+    y_dtypes = [e.dtype for x in jax.tree_util.tree_leaves(ex_y) for e in x.flat]
+    n_y = len(y_dtypes)
     n_pad = next_power_of_two(n)
     ts_pad = jnp.concatenate([uts, jnp.ones((n_pad - n,), dtype)])
     int_t = jnp.int32
@@ -375,7 +382,7 @@ def kernel_run(system, y0s, ts, controller, solver, max_steps, dt0, batched, blo
                            s["dense"], obj(lambda idx: full(t_i)))
             reached = s["dt1"] >= t_i
             for ref, v in zip(ys_refs, _elements(vals)):
-                ref[i, :] = jnp.where(reached, full(v), jnp.inf).astype(dtype)
+                ref[i, :] = jnp.where(reached, full(v), jnp.inf).astype(ref.dtype)
             return pack(s)
 
         s = unpack(jax.lax.fori_loop(0, n, output, pack(state)))
@@ -384,7 +391,7 @@ def kernel_run(system, y0s, ts, controller, solver, max_steps, dt0, batched, blo
         result_ref[...] = s["result"]
 
     row_spec = pl.BlockSpec((block,), lambda i: (i,))
-    out_shape = ([jax.ShapeDtypeStruct((n_pad, P), dtype)] * n_y
+    out_shape = ([jax.ShapeDtypeStruct((n_pad, P), d) for d in y_dtypes]
                  + [jax.ShapeDtypeStruct((P,), int_t)] * 4)
     out_specs = ([pl.BlockSpec((n_pad, block), lambda i: (0, i))] * n_y + [row_spec] * 4)
     call = pl.pallas_call(
@@ -431,16 +438,23 @@ def _undifferentiated(call):
     return run
 
 
-def _compiled(fn):
-    """`fn` under `eqx.filter_jit`, `[True]` traced with the runtime checks as NaN (for
-    inputs validated before tracing, as `_compile.compiled`)."""
+def _compiled(fn, options=COMPILER_OPTIONS):
+    """`fn` under `eqx.filter_jit` (compiled with `options`), `[True]` traced with the
+    runtime checks as NaN (for inputs validated before tracing, as `_compile.compiled`)."""
 
     @functools.wraps(fn)
     def checks_nan(*args):
         with checks_as_nan(jitted=MODE_DEPENDENT_JITS):
             return fn(*args)
 
-    return {False: filter_jit(fn), True: filter_jit(checks_nan)}
+    return {False: filter_jit(fn, options), True: filter_jit(checks_nan, options)}
 
 
-kernel_solved = _compiled(kernel_solve)
+# In interpret mode (a CPU: for checking, not for speed) the kernel is thousands of
+# operations on rows, which XLA compiles at its backend optimisation level 1 in two thirds
+# of its default's time (a first call of 3.5 s against 5.2 s: the torque-free body, Tsit5).
+# Level 0 would take half, but rounds some float32 operations otherwise than `Vmap`'s
+# program, and the steps would then differ. `kernel_solved[interpret][cacheable]`.
+INTERPRET_OPTIONS = {**COMPILER_OPTIONS, "xla_backend_optimization_level": 1}
+kernel_solved = {False: _compiled(kernel_solve), True: _compiled(kernel_solve,
+                                                                 INTERPRET_OPTIONS)}

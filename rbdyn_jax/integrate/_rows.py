@@ -117,9 +117,12 @@ def _lifted(elems):
 def _bind(prim, *elems, **params):
     elems = _lifted([jnp.asarray(e) for e in elems])
     if prim is jax.lax.neg_p and elems[0].shape == ():
-        # A constant negated as a product by −1 (exact, signed zeros included): Pallas's
-        # Triton lowering cannot negate a literal (JAX 0.11).
-        return jax.lax.mul_p.bind(elems[0], jnp.asarray(-1, elems[0].dtype))
+        # A constant negated as a product by −1 (exact, signed zeros included; an unsigned
+        # one as 0 − x): Pallas's Triton lowering cannot negate a literal (JAX 0.11).
+        x = elems[0]
+        if jnp.issubdtype(x.dtype, jnp.unsignedinteger):
+            return jax.lax.sub_p.bind(jnp.zeros((), x.dtype), x)
+        return jax.lax.mul_p.bind(x, jnp.asarray(-1, x.dtype))
     return prim.bind(*elems, **params)
 
 
@@ -134,10 +137,31 @@ def _elementwise(eqn, ins):
                                              **eqn.params))]
 
 
-def _fold(op, elems):
+def _identity(op, dtype):
+    """The value a reduction by `op` starts from (its result over no elements)."""
+    dtype = np.dtype(dtype)
+    if op in ("add", "or"):
+        return jnp.zeros((), dtype)
+    if op in ("mul", "and"):
+        return jnp.ones((), dtype)
+    if dtype == np.bool_:
+        return jnp.asarray(op == "min")
+    info = jnp.finfo(dtype) if jnp.issubdtype(dtype, jnp.inexact) else jnp.iinfo(dtype)
+    big = np.inf if jnp.issubdtype(dtype, jnp.inexact) else info.max
+    low = -np.inf if jnp.issubdtype(dtype, jnp.inexact) else info.min
+    return jnp.asarray(low if op == "max" else big, dtype)
+
+
+def _fold(op, elems, dtype):
+    """`elems` reduced by `op`, left to right; none: the identity. A sum of several terms
+    ends with + 0 as XLA's reduction starts from 0: −0 + −0 is then +0, as there."""
+    if not elems:
+        return _identity(op, dtype)
     acc = elems[0]
     for e in elems[1:]:
         acc = _bind(_BINARY[op], acc, e)
+    if op == "add" and len(elems) > 1:
+        acc = _bind(jax.lax.add_p, acc, jnp.zeros((), acc.dtype))
     return acc
 
 
@@ -154,10 +178,11 @@ def _dot_general(eqn, lhs, rhs):
 
     def entry(idx):
         b, i, j = idx[:nb], idx[nb:nb + nl], idx[nb + nl:]
-        terms = [_bind(jax.lax.mul_p, L[b + i + k], R[b + k + j])
+        # The operands in the result's dtype (JAX takes a float32 and a float64 one)
+        terms = [_bind(jax.lax.mul_p, jnp.asarray(L[b + i + k]).astype(aval.dtype),
+                       jnp.asarray(R[b + k + j]).astype(aval.dtype))
                  for k in np.ndindex(*kshape)]
-        out = _fold("add", terms) if terms else jnp.zeros((), aval.dtype)
-        return out.astype(aval.dtype)
+        return _fold("add", terms, aval.dtype).astype(aval.dtype)
 
     return [objects(bshape + lshape + rshape, entry)]
 
@@ -168,8 +193,9 @@ def _reduce(eqn, x):
     moved = np.transpose(x, (*keep, *axes))
     shape = moved.shape[:len(keep)]
     flat = moved.reshape(shape + (-1,))
+    dtype = eqn.outvars[0].aval.dtype
     return [objects(shape, lambda idx: _fold(REDUCTIONS[eqn.primitive.name],
-                                             list(flat[idx])))]
+                                             list(flat[idx]), dtype))]
 
 
 def _first(x, i):
