@@ -146,10 +146,10 @@ def _identity(op, dtype):
         return jnp.ones((), dtype)
     if dtype == np.bool_:
         return jnp.asarray(op == "min")
-    info = jnp.finfo(dtype) if jnp.issubdtype(dtype, jnp.inexact) else jnp.iinfo(dtype)
-    big = np.inf if jnp.issubdtype(dtype, jnp.inexact) else info.max
-    low = -np.inf if jnp.issubdtype(dtype, jnp.inexact) else info.min
-    return jnp.asarray(low if op == "max" else big, dtype)
+    if jnp.issubdtype(dtype, jnp.inexact):
+        return jnp.asarray(-np.inf if op == "max" else np.inf, dtype)
+    info = jnp.iinfo(dtype)
+    return jnp.asarray(info.min if op == "max" else info.max, dtype)
 
 
 def _fold(op, elems, dtype):
