@@ -140,7 +140,8 @@ def cluster_worker(cfg):
     ticks = []
     t0 = time.perf_counter()
     with (LocalCluster(n_workers=k, threads_per_worker=1, processes=True,
-                       dashboard_address=None) as cluster, Client(cluster) as client):
+                       dashboard_address=None, env={"JAX_ENABLE_X64": "1"}) as cluster,
+          Client(cluster) as client):
         client.wait_for_workers(k)
         start = time.perf_counter() - t0
         t1 = time.perf_counter()

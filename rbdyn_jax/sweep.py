@@ -995,6 +995,35 @@ def _solve_region(g, runner: _Runner, key, start: int, stop: int) -> tuple[int, 
     return _finish_region(g, _launch_region(g, runner, key, start, stop))
 
 
+def _x64() -> bool:
+    return bool(jax.config.jax_enable_x64)
+
+
+def _check_types(dtype: str, n: int, where: str, x64: bool | None = None) -> None:
+    """`ValueError` unless a process with (`x64`; default: this one's setting) or without
+    64-bit types can run a sweep of `n` trajectories in `dtype` (float64 values; indices
+    past int32). rbdyn_jax never switches them on itself: `where` says how."""
+    if _x64() if x64 is None else x64:
+        return
+    if dtype == "float64":
+        raise ValueError(f"a float64 sweep needs 64-bit types (`jax_enable_x64`) {where}.")
+    if n > np.iinfo(np.int32).max:
+        raise ValueError(f"`n` = {n} trajectories need 64-bit indices (`jax_enable_x64`) "
+                         f"{where}.")
+
+
+def _check_workers(client, dtype: str, n: int) -> None:
+    """`_check_types` on every worker of `client`, before any task is sent."""
+    on = client.run(_x64)  # {worker address: whether it has 64-bit types}
+    off = sorted(w for w, x64 in on.items() if not x64)
+    if off:
+        shown = ", ".join(off[:3]) + (", …" if len(off) > 3 else "")
+        _check_types(dtype, n, f"on every worker ({len(off)} of {len(on)} lack them: "
+                     f"{shown}): start the workers with JAX_ENABLE_X64=1 in their environment "
+                     "(`LocalCluster(..., env={'JAX_ENABLE_X64': '1'})`, or exported before "
+                     "`dask worker`)", x64=False)
+
+
 def solve_chunk(store: str, source: dict, name: str, start: int, stop: int, *, seed: int,
                 lanes: int, chunk: int, devices: int | None = None,
                 storage_options: dict | None = None) -> tuple[int, int]:
@@ -1002,12 +1031,14 @@ def solve_chunk(store: str, source: dict, name: str, start: int, stop: int, *, s
     into its `store` (`status` last): the task `run(..., client=...)` sends to a Dask worker
     for each store chunk.
 
-    `store` is a local path or a URL fsspec opens with `storage_options`. The task turns on
-    64-bit types in its process (`jax_enable_x64`) and runs on the first `devices` of the
-    process's `jax.local_devices()` (default all). The scenario travels as its `source` dict
-    (with the `dtype` and `trajectories` of the run) and is rebuilt here, after 64-bit types
-    are on: a float64 scenario computes in float64, a float32 one in float32 (its arrays
-    are float32 explicitly). `lanes` and `chunk` are the store's. The compiled solver is kept
+    `store` is a local path or a URL fsspec opens with `storage_options`. The task runs on
+    the first `devices` of the process's `jax.local_devices()` (default all). The scenario
+    travels as its `source` dict (with the `dtype` and `trajectories` of the run) and is
+    rebuilt here: a float64 scenario needs 64-bit types in the worker's process (start it
+    with `JAX_ENABLE_X64=1` in its environment, as `rbdyn sweep --workers` does for the
+    cluster it starts), and a float32 one computes in float32 either way (its arrays are
+    float32 explicitly). The task changes no setting of the process. `lanes` and `chunk`
+    are the store's. The compiled solver is kept
     for the process's next chunk. A task run again (its worker lost after it wrote) finds its
     trajectories done and solves nothing; one lost before it wrote `status` solves them again
     into the same region, with the same bits.
@@ -1015,8 +1046,9 @@ def solve_chunk(store: str, source: dict, name: str, start: int, stop: int, *, s
     **Returns:** `(done, failed)`: how many trajectories of `start:stop` are done and how
     many of them failed, once it has finished (the same for a task run again).
     """
-    jax.config.update("jax_enable_x64", True)
     sc = Scenario.from_dict(source, default_name=name)
+    _check_types(sc.dtype, stop, "on this worker: start its process with JAX_ENABLE_X64=1 "
+                 "in its environment")
     local = jax.local_devices()
     devices = len(local) if devices is None else devices
     if not 1 <= devices <= len(local):
@@ -1073,8 +1105,9 @@ def run(
       (default): the scenario's `[outputs] trajectories`. The other variables are kept for
       every trajectory, and hold the same bits whatever is chosen.
     - `dtype`: `"float64"` or `"float32"`, what the sweep samples, solves, summarises and
-      stores in; `None` (default): the scenario's `[solver] dtype`. A float64 sweep in this
-      process needs `jax_enable_x64`; a float32 one runs with it on or off.
+      stores in; `None` (default): the scenario's `[solver] dtype`. A float64 sweep needs
+      `jax_enable_x64` in this process, or with `client` on every worker (checked before
+      any task is sent); a float32 one runs with it on or off.
     - `resume`: continue an interrupted run in `out` (same scenario, n, seed, lanes,
       trajectories and dtype; `lanes=None` takes the store's), solving only the
       trajectories not yet written, in the store's own chunks.
@@ -1110,19 +1143,17 @@ def run(
     if isinstance(seed, bool) or not isinstance(seed, int | np.integer) or seed < 0:
         raise ValueError(f"`seed` must be a non-negative integer, got {seed!r}.")
     if client is None:
-        if sc.dtype == "float64" and not jax.config.jax_enable_x64:
-            raise ValueError("sweeps run in float64: call "
-                             "`jax.config.update('jax_enable_x64', True)` first.")
-        if n > np.iinfo(_index_dtype()).max:
-            raise ValueError(f"`n` = {n} trajectories need 64-bit indices: call "
-                             "`jax.config.update('jax_enable_x64', True)` first.")
+        _check_types(sc.dtype, n, "in this process: call "
+                     "`jax.config.update('jax_enable_x64', True)` first")
         all_devices = jax.devices()
         devices = len(all_devices) if devices is None else devices
         if isinstance(devices, bool) or not 1 <= devices <= len(all_devices):
             raise ValueError(f"`devices` must be in 1..{len(all_devices)} (jax.devices()), "
                              f"got {devices!r}.")
-    elif devices is not None and (isinstance(devices, bool) or devices < 1):
-        raise ValueError(f"`devices` must be a positive integer, got {devices!r}.")
+    else:
+        if devices is not None and (isinstance(devices, bool) or devices < 1):
+            raise ValueError(f"`devices` must be a positive integer, got {devices!r}.")
+        _check_workers(client, sc.dtype, n)
 
     def layout() -> tuple[int, int]:
         """The chunk and lanes of a new store, for this process's devices or a worker's."""

@@ -33,7 +33,8 @@ def no_cache(monkeypatch):
 @pytest.fixture(scope="module")
 def client():
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
-                                  dashboard_address=":0") as cluster:
+                                  dashboard_address=":0",
+                                  env={"JAX_ENABLE_X64": "1"}) as cluster:
         with distributed.Client(cluster) as c:
             yield c
 
@@ -111,8 +112,8 @@ def test_workers_keep_the_states_asked_for(client, reference, tmp_path, keep):
 
 
 def test_workers_solve_a_float32_sweep_in_float32(client, tmp_path):
-    """A task turns on 64-bit types in its worker; a float32 scenario still computes there
-    in float32, and gives the bits of the in-process run with 64-bit types off."""
+    """On workers with 64-bit types a float32 scenario still computes in float32, and gives
+    the bits of the in-process run with 64-bit types off."""
     import jax
 
     sc = Scenario.from_dict(small(solver={"rtol": 1e-6, "atol": 1e-6, "dtype": "float32"}))
@@ -217,3 +218,23 @@ def test_store_by_url_through_fsspec(client, reference, tmp_path):
     sweep.to_netcdf(url, tmp_path / "u.nc")
     sweep.run(Scenario.from_dict(small()), N, url, chunk=32, seed=3, lanes=16, overwrite=True)
     assert_same(load(reference), load(tmp_path / "u.zarr"))
+
+
+def test_workers_without_64_bit_types_are_refused_before_any_task(tmp_path):
+    """rbdyn_jax never switches `jax_enable_x64` on: a float64 sweep on workers started
+    without it is refused before a task is sent (nothing solved, no store written), naming
+    the setting and the workers; the task itself refuses too, and changes no setting."""
+    import jax
+
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
+                                  dashboard_address=":0",
+                                  env={"JAX_ENABLE_X64": "0"}) as cluster:
+        with distributed.Client(cluster) as c:
+            assert list(c.run(lambda: jax.config.jax_enable_x64).values()) == [False]
+            with pytest.raises(ValueError, match=r"1 of 1 lack them.*JAX_ENABLE_X64=1"):
+                sweep.run(Scenario.from_dict(small()), N, tmp_path / "d.zarr", client=c)
+            assert not (tmp_path / "d.zarr").exists()
+            with pytest.raises(ValueError, match="float64 sweep needs 64-bit types"):
+                c.submit(sweep.solve_chunk, str(tmp_path / "d.zarr"), small(), "small", 0, N,
+                         seed=3, lanes=16, chunk=N).result()
+            assert list(c.run(lambda: jax.config.jax_enable_x64).values()) == [False]
