@@ -13,8 +13,8 @@ imported when first used. The import sets XLA's flags for the solves, unless
 import importlib as _importlib
 from typing import TYPE_CHECKING
 
+from ._program.flags import configure_on_import as _configure_on_import
 from ._version import __version__ as __version__
-from ._xla_flags import configure_on_import as _configure_on_import
 
 if TYPE_CHECKING:  # what the lazy names below resolve to, for type checkers and IDEs
     from . import (

@@ -4,14 +4,10 @@ Static mistakes (shapes, strings) raise `ValueError` at trace time naming the ar
 value-dependent mistakes go through `eqx.error_if`, whose returned value must be used.
 """
 
-import contextlib
-
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike
-
-from . import _compat
 
 
 def as_float_array(x: ArrayLike, name: str) -> Array:
@@ -74,22 +70,3 @@ def sqrt_eps(dtype) -> float:
     """√(machine epsilon) of `dtype` as a Python float (safe under `jit`): the relative
     tolerance of value checks."""
     return float(jnp.finfo(dtype).eps) ** 0.5
-
-
-@contextlib.contextmanager
-def checks_as_nan(enabled: bool = True, jitted=()):
-    """While a solve is traced, make `eqx.error_if` checks (the models' inertia checks,
-    diffrax's checks of `ts`, …) give NaN instead of raising through a host callback.
-
-    A NaN in a trajectory is reported per trajectory (`RESULTS.nonfinite_state`), and the
-    compiled program then holds no host callback, so JAX's persistent compilation cache can
-    store it (a program with callbacks is never cached). Use it only where the inputs were
-    validated before tracing, so the checks cannot fire on good input. `jitted`: further
-    `eqx.filter_jit` functions called inside (e.g. `diffrax.diffeqsolve`) whose cached
-    traces must not cross between the modes. Where equinox has no such mode this is a
-    no-op (the program is then still correct, only not cacheable)."""
-    if not enabled:
-        yield
-        return
-    with _compat.error_mode_set("nan", jitted):
-        yield

@@ -78,10 +78,14 @@ def error_mode() -> str | None:
 
 
 def forget_error_traces(jitted=()) -> None:
-    """Drop the cached traces of equinox's jitted `error_if` helper and of the
-    `eqx.filter_jit` functions `jitted`: JAX keys a cached trace by its inputs, not by the
-    error mode, so a trace made in one mode must not be reused in the other."""
-    for f in (getattr(_errors_module(), "branched_error_if_impl_jit", None), *jitted):
+    """Drop the cached traces of equinox's jitted `error_if` helper, of
+    `diffrax.diffeqsolve` (an `eqx.filter_jit` function) and of the `eqx.filter_jit`
+    functions `jitted`: JAX keys a cached trace by its inputs, not by the error mode, so a
+    trace made in one mode must not be reused in the other."""
+    import diffrax
+
+    helper = getattr(_errors_module(), "branched_error_if_impl_jit", None)
+    for f in (helper, diffrax.diffeqsolve, *jitted):
         clear = getattr(getattr(f, "_cached", None), "clear_cache", None)
         if clear is not None:
             clear()

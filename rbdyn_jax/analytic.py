@@ -34,7 +34,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from ._checks import as_float_array, check_trailing
 from ._custom_types import QuaternionLike, Scalar, ScalarLike, VectorLike
-from ._xla import filter_jit, jit
+from ._program.xla import filter_jit, jit
 from .rotation import quat_from_rotvec, quat_multiply, quat_normalize, quat_rotate
 
 __all__ = [

@@ -139,7 +139,7 @@ def _configure_xla(devices: int) -> None:
     `import rbdyn_jax` set; a count in the user's `XLA_FLAGS` wins), when this process has
     not started JAX yet (when it has, e.g. a test calling a command in-process, it runs as
     it is). No effect on GPU/TPU."""
-    from ._xla_flags import backend_started, configure_xla
+    from ._program.flags import backend_started, configure_xla
 
     if not backend_started():
         configure_xla(devices)
@@ -251,7 +251,7 @@ def sweep_command(args) -> int:
     # with --workers, cores // workers for each worker (whose environment comes from this
     # process; on GPUs each worker sees its GPUs); with --scheduler, the workers' own.
     if args.workers is not None:
-        from ._xla_flags import usable_cores
+        from ._program.flags import usable_cores
 
         _configure_xla(args.devices or max(1, usable_cores() // args.workers))
     elif args.devices is not None:
@@ -614,7 +614,7 @@ def _compile_meter(jax):
     loaded from the caches (JAX's persistent cache, rbdyn_jax's traced programs)."""
     import contextlib
 
-    from . import _traces
+    from ._program import traces
 
     meter = {"tracing_s": 0.0, "loaded": 0, "hit": False}
     work = ("/jax/core/compile/jaxpr_trace_duration",
@@ -635,7 +635,7 @@ def _compile_meter(jax):
 
     @contextlib.contextmanager
     def metering():
-        hits = _traces.stats["hits"]
+        hits = traces.stats["hits"]
         jax.monitoring.register_event_listener(event)
         jax.monitoring.register_event_duration_secs_listener(duration)
         try:
@@ -643,7 +643,7 @@ def _compile_meter(jax):
         finally:
             jax.monitoring.unregister_event_listener(event)
             jax.monitoring.unregister_event_duration_listener(duration)
-            meter["loaded"] += _traces.stats["hits"] - hits
+            meter["loaded"] += traces.stats["hits"] - hits
 
     return metering()
 

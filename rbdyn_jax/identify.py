@@ -40,11 +40,11 @@ import optax
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, ArrayLike, Bool, Float, PyTree
 
-from . import _traces, rotation
-from ._checks import checks_as_nan
-from ._xla import QUICK_COMPILE_OPTIONS
+from . import rotation
+from ._program.program import Program
+from ._program.xla import QUICK_COMPILE_OPTIONS
 from .inertia import from_log_cholesky, to_log_cholesky
-from .integrate import MODE_DEPENDENT_JITS, RESULTS, make_controller, simulate
+from .integrate import RESULTS, make_controller, simulate
 from .models import RigidBody
 from .state import State
 
@@ -845,21 +845,20 @@ def _fit_program(model, y0, torque_dyn, data, cfg: _Config) -> _Optimum:
     )
 
 
-def _fit_checks_as_nan(*args) -> _Optimum:
-    """`_fit_program` traced with the solves' checks as NaN (`checks_as_nan`): `fit` has
-    validated its inputs, and a trial point whose solve fails gives NaN residuals, which
-    Levenberg–Marquardt rejects. The program then holds no host callback, so JAX's
-    persistent compilation cache stores it, and rbdyn_jax's cache of traced programs its
-    trace (`_traces`; a later process with the cache configured loads it instead of tracing
-    the fit again). Its matrix products (the Gauss–Newton normal equations, the covariance)
-    are traced at full precision: at JAX's default a GPU multiplies float32 in TF32."""
-    with checks_as_nan(jitted=MODE_DEPENDENT_JITS), jax.default_matmul_precision("highest"):
+def _fit_at_full_precision(*args) -> _Optimum:
+    """`_fit_program` with its matrix products (the Gauss–Newton normal equations, the
+    covariance) traced at full precision: at JAX's default a GPU multiplies float32 in
+    TF32."""
+    with jax.default_matmul_precision("highest"):
         return _fit_program(*args)
 
 
-# The whole fit, one compiled program, compiled for a short first call (`QUICK_COMPILE_OPTIONS`):
-# `fit` calls it at the top level on concrete inputs.
-_run = _traces.cached(_fit_checks_as_nan, QUICK_COMPILE_OPTIONS)
+# The whole fit, one compiled program, compiled for a short first call
+# (`QUICK_COMPILE_OPTIONS`). `fit` has validated its inputs, so the program is traced with
+# the solves' checks as NaN: a trial point whose solve fails gives NaN residuals, which
+# Levenberg–Marquardt rejects, and the program, holding no host callback, is stored by the
+# caches (a later process with the cache configured loads it instead of tracing the fit).
+_run = Program(_fit_at_full_precision, options=QUICK_COMPILE_OPTIONS)
 
 
 __all__ = ["FitResult", "MomentScale", "Observations", "TraceScale", "fit", "loss",

@@ -67,12 +67,10 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import NamedSharding, PartitionSpec as P
 
-from . import _traces
-from ._checks import checks_as_nan
 from ._plots import plots_dir
-from ._xla import jit
+from ._program.program import Program
+from ._program.xla import jit
 from .integrate import (
-    MODE_DEPENDENT_JITS,
     RESULTS,
     Kernel,
     Lanes,
@@ -189,11 +187,11 @@ def _chunk_program(source: str, lanes: int, mesh, idx, dists, key) -> dict:
     """Sample and solve the trajectories `idx` (sharded over `mesh`'s devices) of the
     scenario whose `source` is the JSON text `source`, with `dists` its distributions.
 
-    The scenario enters as its source text, which the trace cache can describe exactly
-    (`_traces`): a later process with the cache configured loads this program instead of
-    tracing it. Traced with the solves' checks as NaN (`checks_as_nan`: the scenario was
-    validated, and a failing trajectory is reported in `status`), so the program holds no
-    host callback and can be stored."""
+    The scenario enters as its source text, which the cache of traced programs can
+    describe exactly: a later process with the cache configured loads this program instead
+    of tracing it. Traced with the solves' checks as NaN (a `Program` of validated inputs:
+    the scenario was validated, and a failing trajectory is reported in `status`), so the
+    program holds no host callback and can be stored."""
     sc = _SCENARIOS[source]
     quantum = _quantum(mesh.devices.flat[0].platform, lanes)
 
@@ -218,11 +216,11 @@ def _chunk_program(source: str, lanes: int, mesh, idx, dists, key) -> dict:
     # mantissa), errors of 1e-4 in a float32 sweep's energy drifts where float32 gives 1e-6.
     precision = (jax.default_matmul_precision("highest") if sc.dtype == "float32"
                  else contextlib.nullcontext())
-    with checks_as_nan(jitted=MODE_DEPENDENT_JITS), precision:
+    with precision:
         return sharded(idx, dists, key)
 
 
-_solve_chunk = _traces.cached(_chunk_program)
+_solve_chunk = Program(_chunk_program)
 
 
 @jit

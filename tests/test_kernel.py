@@ -278,14 +278,13 @@ def exported_for_cuda(fn, *args):
     """`fn` exported for CUDA from this CPU (its checks as NaN: no host callback), its
     Triton calls allowed. Pallas's Triton lowering asks for the GPU's compute capability
     (from JAX 0.11): a machine without one names its target, an H100, by an abstract mesh."""
-    from rbdyn_jax._checks import checks_as_nan
-    from rbdyn_jax.integrate._field import MODE_DEPENDENT_JITS
+    from rbdyn_jax._program import checks
 
     mesh = jax.sharding.AbstractMesh(
         (1,), ("x",), (jax.sharding.AxisType.Explicit,),
         abstract_device=jax.sharding.AbstractDevice(
             device_kind="NVIDIA H100 80GB HBM3", num_cores=132, platform="gpu"))
-    with checks_as_nan(jitted=MODE_DEPENDENT_JITS), jax.sharding.use_abstract_mesh(mesh):
+    with checks.as_nan(), jax.sharding.use_abstract_mesh(mesh):
         return jax.export.export(
             jax.jit(fn), platforms=["cuda"],
             disabled_checks=[jax.export.DisabledSafetyCheck.custom_call(

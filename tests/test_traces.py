@@ -1,4 +1,4 @@
-"""The on-disk cache of traced programs (`rbdyn_jax/_traces.py`): a later process gets the
+"""The on-disk cache of traced programs (`rbdyn_jax/_program/traces.py`): a later process gets the
 same results from a loaded trace as from tracing, and a key never lets one call's program
 serve another's."""
 
@@ -16,8 +16,8 @@ import pytest
 from helpers import host_callbacks
 
 import rbdyn_jax as rb
-from rbdyn_jax import _traces
-from rbdyn_jax._xla import QUICK_COMPILE_OPTIONS
+from rbdyn_jax._program import traces as _traces
+from rbdyn_jax._program.xla import QUICK_COMPILE_OPTIONS
 from rbdyn_jax.integrate import _simulate
 
 J = jnp.array([[2.0, 0.05, 0.0], [0.05, 3.0, 0.02], [0.0, 0.02, 4.0]])
@@ -99,7 +99,7 @@ SCRIPT = textwrap.dedent("""
         jax.config.update("jax_compilation_cache_dir", sys.argv[1])
     import jax.numpy as jnp, numpy as np
     import rbdyn_jax as rb
-    from rbdyn_jax import _traces
+    from rbdyn_jax._program import traces as _traces
     J = jnp.array([[2.0, 0.05, 0.0], [0.05, 3.0, 0.02], [0.0, 0.02, 4.0]])
     w = np.random.default_rng(1).normal(size=(12, 3)) * np.linspace(0.05, 3, 12)[:, None]
     w = jnp.asarray(w)
@@ -239,7 +239,7 @@ CALLER = textwrap.dedent("""
         jax.config.update("jax_compilation_cache_dir", sys.argv[1])
     import jax.numpy as jnp, numpy as np
     import rbdyn_jax as rb
-    from rbdyn_jax import _traces
+    from rbdyn_jax._program import traces as _traces
     from rbdyn_jax.integrate import _batching
     traced = []  # the lane loops traced in this process
     loop = _batching.lane_loop
@@ -297,7 +297,8 @@ FIT = textwrap.dedent("""
         jax.config.update("jax_compilation_cache_dir", sys.argv[1])
     import jax.numpy as jnp, numpy as np
     import rbdyn_jax as rb
-    from rbdyn_jax import _traces, identify
+    from rbdyn_jax import identify
+    from rbdyn_jax._program import traces as _traces
     J = jnp.array([[2.0, 0.05, 0.0], [0.05, 3.0, 0.02], [0.0, 0.02, 4.0]])
     model = rb.RigidBody(J, rb.UniformGravity(2.0, jnp.array([0.0, 0.0, 0.1])))
     w = jnp.asarray(np.random.default_rng(2).normal(size=(2, 3)))
@@ -330,7 +331,8 @@ SWEEP = textwrap.dedent("""
     if sys.argv[1] != "none":
         jax.config.update("jax_compilation_cache_dir", sys.argv[1])
     import numpy as np, xarray as xr
-    from rbdyn_jax import _traces, sweep
+    from rbdyn_jax import sweep
+    from rbdyn_jax._program import traces as _traces
     out = sys.argv[2] + ".zarr"
     sweep.run("torque_free_flip", 96, out, chunk=64, lanes=4, overwrite=True)
     ds = xr.open_zarr(out)

@@ -1,4 +1,4 @@
-"""`_xla`: every program rbdyn_jax compiles gets `COMPILER_OPTIONS` when it is compiled at
+"""`_program.xla`: every program rbdyn_jax compiles gets `COMPILER_OPTIONS` when it is compiled at
 the top level, and stays callable inside a caller's transformations (JAX refuses compiler
 options on a nested jit); `configure_xla` sets XLA's flags, and a process started with them
 compiles every loop whole and gets the same trajectories and gradients. `import rbdyn_jax`
@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 import rbdyn_jax as rb
-from rbdyn_jax import _xla, _xla_flags
+from rbdyn_jax._program import flags as _xla_flags, xla as _xla
 
 PACKAGE = pathlib.Path(rb.__file__).parent
 
@@ -102,10 +102,11 @@ def direct_jits(path: pathlib.Path) -> list[int]:
 
 
 def test_every_program_is_compiled_through_xla():
-    """`_xla.py` owns how rbdyn_jax compiles: every other module jits through its `jit` and
+    """`_program/xla.py` owns how rbdyn_jax compiles: every other module jits through its `jit` and
     `filter_jit`, which pass `COMPILER_OPTIONS` (a jit of its own would compile without
     them, ~1/3 slower on CPU)."""
-    found = {p.name: direct_jits(p) for p in PACKAGE.glob("*.py") if p.name != "_xla.py"}
+    found = {str(p.relative_to(PACKAGE)): direct_jits(p) for p in PACKAGE.rglob("*.py")
+             if p.relative_to(PACKAGE).as_posix() != "_program/xla.py"}
     assert not {k: v for k, v in found.items() if v}
 
 

@@ -22,9 +22,11 @@ The modules, one idea each:
 - `_lie_poisson`: `LiePoissonSplitting`, the structure-preserving solver of the rigid body
   (exact flows of the kinetic energy's terms, potential torques as kicks), and
   `_composition`, the symmetric compositions that raise it to orders 4 and 6;
-- `_cheapest`: the equation that runs the cheapest program giving what is read;
-- `_compile`: when a solve is compiled, and which of its traces are stored on disk
-  (`rbdyn_jax/_traces.py`, the package's cache of traced programs).
+- `_cheapest`: the equation that runs the cheapest program giving what is read.
+
+Each solve is compiled as a `Program` of the compile layer (`rbdyn_jax/_program/`): once
+per input structure, its checks as NaN where the times and tolerances were checked before
+tracing, and its trace then stored by the layer's cache of traced programs.
 
 Every use of diffrax's, equinox's or JAX's internals is in `rbdyn_jax/_compat.py`, except
 the jaxpr parameters `_rows` reads to replay a trace (a scan's counts, a call's jaxpr),
@@ -37,7 +39,7 @@ CPU, before JAX computes anything; `import rbdyn_jax` calls it (one device per c
 `RBDYN_JAX_CONFIGURE_XLA=0`.
 """
 
-from .._xla import COMPILER_OPTIONS as COMPILER_OPTIONS, configure_xla as configure_xla
+from .._program.xla import COMPILER_OPTIONS as COMPILER_OPTIONS, configure_xla as configure_xla
 from ._batching import (
     AbstractBatching as AbstractBatching,
     Kernel as Kernel,
@@ -47,7 +49,6 @@ from ._batching import (
     default_lanes as default_lanes,
     device_memory as device_memory,
 )
-from ._field import MODE_DEPENDENT_JITS as MODE_DEPENDENT_JITS
 from ._lie_poisson import (
     ORDERS as SPLITTING_ORDERS,
     LiePoissonSplitting as LiePoissonSplitting,

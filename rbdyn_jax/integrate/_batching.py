@@ -13,11 +13,11 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import PartitionSpec
 
-from .. import _traces
-from .._xla import loops_compiled_whole
-from ._compile import compiled
+from .._program import traces
+from .._program.flags import loops_compiled_whole
+from .._program.program import Program, concrete
 from ._diffeqsolve import solve_vmapped
-from ._field import checked_times, finish, promoted
+from ._field import checked_before_tracing, checked_times, finish, promoted
 from ._kernel import field_refuse, kernel_block, kernel_refuse, kernel_solved
 from ._lanes import LAYOUTS, Plain, lane_loop
 from ._sensitivity import lane_jvp
@@ -31,7 +31,7 @@ class AbstractBatching(eqx.Module):
 
     @abc.abstractmethod
     def solve(self, model, y0s, ts, *, solver, controller, adjoint, max_steps, dt0,
-              model_axes, cacheable) -> Trajectory:
+              model_axes) -> Trajectory:
         """The batch's `Trajectory` (leading batch axis on every leaf)."""
 
 
@@ -43,10 +43,10 @@ class Vmap(AbstractBatching):
     derivatives; the default takes it where `Lanes` cannot run the solve."""
 
     def solve(self, model, y0s, ts, *, solver, controller, adjoint, max_steps, dt0,
-              model_axes, cacheable) -> Trajectory:
+              model_axes) -> Trajectory:
         adjoint = diffrax.RecursiveCheckpointAdjoint() if adjoint is None else adjoint
-        return _vmapped[cacheable](model, y0s, ts, solver, controller, adjoint, max_steps,
-                                   dt0, model_axes)
+        return _vmapped(model, y0s, ts, solver, controller, adjoint, max_steps, dt0,
+                        model_axes)
 
 
 class Lanes(AbstractBatching):
@@ -109,14 +109,14 @@ class Lanes(AbstractBatching):
                              f"{self.layout!r}.")
 
     def solve(self, model, y0s, ts, *, solver, controller, adjoint, max_steps, dt0,
-              model_axes, cacheable) -> Trajectory:
+              model_axes) -> Trajectory:
         reason = _lanes_refuse(solver, controller, adjoint)
         if reason is not None:
             raise ValueError(f"`Lanes` {reason}; `batching=Vmap()` takes any solver, "
                              "controller and adjoint diffeqsolve takes.")
         # A solve whose times or tolerances are traced checks them at run time: on one
         # device, since a check raising on one of several devices aborts the process.
-        mesh = _mesh(self.devices if cacheable else 1)
+        mesh = _mesh(self.devices if concrete(ts, controller) else 1)
         platform = mesh.devices.flat[0].platform
         layout = self.layout or default_layout(platform)
         n = jax.tree_util.tree_leaves(y0s)[0].shape[0]
@@ -126,8 +126,8 @@ class Lanes(AbstractBatching):
                                   device_memory(mesh.devices.flat[0]))
         else:
             lanes = int(self.lanes)
-        return _lane_solved[cacheable](model, y0s, ts, solver, controller, max_steps, dt0,
-                                       model_axes, lanes, mesh, layout)
+        return _lane_solved(model, y0s, ts, solver, controller, max_steps, dt0, model_axes,
+                            lanes, mesh, layout)
 
 
 class Kernel(AbstractBatching):
@@ -167,16 +167,15 @@ class Kernel(AbstractBatching):
             raise ValueError(f"`interpret` must be a bool or None, got {self.interpret!r}.")
 
     def solve(self, model, y0s, ts, *, solver, controller, adjoint, max_steps, dt0,
-              model_axes, cacheable) -> Trajectory:
+              model_axes) -> Trajectory:
         reason = kernel_refuse(model, solver, controller, adjoint)
         if reason is not None:
             raise ValueError(f"`Kernel` {reason}; `batching=Lanes()` or `Vmap()` takes it.")
         gpu = jax.default_backend() == "gpu"
         interpret = (not gpu) if self.interpret is None else self.interpret
         block = kernel_block(self.block, jax.tree_util.tree_leaves(y0s)[0].shape[0], gpu)
-        return kernel_solved[interpret][cacheable](model, y0s, ts, solver, controller,
-                                                    max_steps, dt0, model_axes, block,
-                                                    interpret)
+        return kernel_solved[interpret](model, y0s, ts, solver, controller, max_steps, dt0,
+                                        model_axes, block, interpret)
 
 
 def _lanes_refuse(solver, controller, adjoint) -> str | None:
@@ -300,7 +299,7 @@ def lane_solve(model, y0s, ts, solver, controller, max_steps, dt0, model_axes, l
     y0s = promoted(dyn, y0s, ts)  # before the loop's buffers take its dtype
     tols, cstatic = eqx.partition(controller, eqx.is_array)
 
-    stored = _traces.embedder()  # inside a caller's transformation, stored programs
+    stored = traces.embedder()  # inside a caller's transformation, stored programs
 
     def loop(system, y0s, ts, tols):
         return stored(lane_run, system, y0s, ts, tols, cstatic, solver, max_steps, dt0,
@@ -364,5 +363,5 @@ def _sharded(run, system, y0s, ts, tols, cstatic, batched, mesh):
     return jax.tree_util.tree_map(collected, out)
 
 
-_vmapped = compiled(solve_vmapped)
-_lane_solved = compiled(lane_solve)
+_vmapped = Program(solve_vmapped, validated=checked_before_tracing)
+_lane_solved = Program(lane_solve, validated=checked_before_tracing)

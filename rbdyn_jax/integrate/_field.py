@@ -10,7 +10,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array
 
-from .._xla import nested_filter_jit
+from .._program.xla import nested_filter_jit
 from ..models import AbstractRigidBody
 from ._solution import RESULTS, Trajectory, as_result, result_code
 
@@ -29,6 +29,13 @@ def where_tree(pred, tree, fill):
 # takes 0.01. Kept in the unit of `ts` when the solves run in the unit time (`unit_time`),
 # so that they take the steps they took in t (tested against a plain `diffeqsolve` in t).
 FIRST_STEP = 0.01
+
+
+def checked_before_tracing(model, y0, ts, solver, controller, *rest):
+    """What a solve's own checks have validated before it is traced where it is concrete
+    (`simulate`'s checks of the times and tolerances, in NumPy): the solve's `Program` then
+    traces it with its runtime checks as NaN. Every solve program takes these five first."""
+    return ts, controller
 
 
 def checked_times(ts):
@@ -93,11 +100,6 @@ def field(model, t, y):
     loop body for its structure and for the loop, and more under `vmap`); as one `jit` it
     is traced, batched and lowered once, and XLA inlines it again: the same program."""
     return model.vector_field(t, y, None)
-
-
-# The jitted functions a solve traces whose traces depend on the check mode (`_checks.
-# checks_as_nan`): their cached traces are dropped when the mode changes.
-MODE_DEPENDENT_JITS = (diffrax.diffeqsolve, field)
 
 
 class Guarded(eqx.Module):

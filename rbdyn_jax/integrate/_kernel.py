@@ -30,10 +30,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._checks import checks_as_nan
-from .._xla import COMPILER_OPTIONS, filter_jit
+from .._program.program import Program
+from .._program.xla import COMPILER_OPTIONS
 from ._field import (
-    MODE_DEPENDENT_JITS,
+    checked_before_tracing,
     checked_times,
     controller_in_unit_time,
     finish,
@@ -438,23 +438,14 @@ def _undifferentiated(call):
     return run
 
 
-def _compiled(fn, options=COMPILER_OPTIONS):
-    """`fn` under `eqx.filter_jit` (compiled with `options`), `[True]` traced with the
-    runtime checks as NaN (for inputs validated before tracing, as `_compile.compiled`)."""
-
-    @functools.wraps(fn)
-    def checks_nan(*args):
-        with checks_as_nan(jitted=MODE_DEPENDENT_JITS):
-            return fn(*args)
-
-    return {False: filter_jit(fn, options), True: filter_jit(checks_nan, options)}
-
-
 # In interpret mode (a CPU: for checking, not for speed) the kernel is thousands of
 # operations on rows, which XLA compiles at its backend optimisation level 1 in two thirds
 # of its default's time (a first call of 3.5 s against 5.2 s: the torque-free body, Tsit5).
 # Level 0 would take half, but rounds some float32 operations otherwise than `Vmap`'s
-# program, and the steps would then differ. `kernel_solved[interpret][cacheable]`.
+# program, and the steps would then differ. `kernel_solved[interpret]`; a Pallas program
+# is not stored by the cache of traced programs (`jax.export` does not serialize it).
 INTERPRET_OPTIONS = {**COMPILER_OPTIONS, "xla_backend_optimization_level": 1}
-kernel_solved = {False: _compiled(kernel_solve), True: _compiled(kernel_solve,
-                                                                 INTERPRET_OPTIONS)}
+kernel_solved = {interpret: Program(kernel_solve, validated=checked_before_tracing,
+                                    options=INTERPRET_OPTIONS if interpret else COMPILER_OPTIONS,
+                                    store=False)
+                 for interpret in (False, True)}

@@ -188,7 +188,7 @@ def write_rows(buf, index, vals):
     """`buf` with `vals[l]` written at `buf[index[0][l], index[1][l], …]` for each lane l,
     in turn (a loop of `dynamic_update_slice`s, not a scatter: XLA:CPU compiles a while
     loop holding a scatter as a sequence of kernels its runtime dispatches one by one at
-    every iteration, and one without as a single function, `_xla_flags.LOOP_OPTION`)."""
+    every iteration, and one without as a single function, `_program.flags.LOOP_OPTION`)."""
 
     def one(l, buf):
         start = tuple(i[l].astype(jnp.int32) for i in index)

@@ -11,14 +11,14 @@ import numpy as np
 from jaxtyping import ArrayLike, Float, PyTree
 
 from .._checks import as_float_array
-from .._xla import top_level
+from .._program.program import Program
+from .._program.xla import top_level
 from ..models import AbstractRigidBody
 from ._batching import AbstractBatching, Lanes, default_batching
-from ._compile import cacheable, compiled, thrown
 from ._diffeqsolve import solve
-from ._field import solve_dtype
+from ._field import checked_before_tracing, solve_dtype
 from ._lie_poisson import LiePoissonSplitting, fixed_step_controller
-from ._solution import Trajectory
+from ._solution import Trajectory, thrown
 
 DEFAULT_TOL = 1e-8  # rtol and atol of the default PIDController
 # The smallest relative tolerance a solve takes, in units of its dtype's machine epsilon:
@@ -121,7 +121,7 @@ def _prepare(model, y0, ts, stepsize_controller, rtol, atol, max_steps, solver=N
     return ts, controller, int(max_steps)
 
 
-_solved = compiled(solve)
+_solved = Program(solve, validated=checked_before_tracing)
 
 
 def simulate(
@@ -170,8 +170,7 @@ def simulate(
     """
     ts, controller, max_steps = _prepare(model, y0, ts, stepsize_controller, rtol, atol,
                                          max_steps, solver, dt0)
-    traj = _solved[cacheable(ts, controller)](model, y0, ts, solver, controller, adjoint,
-                                              max_steps, dt0)
+    traj = _solved(model, y0, ts, solver, controller, adjoint, max_steps, dt0)
     return thrown(traj) if throw else traj
 
 
@@ -230,5 +229,5 @@ def simulate_batch(
         batching = Lanes(batching.lanes, devices=1, layout=batching.layout)
     traj = batching.solve(model, y0s, ts, solver=solver, controller=controller,
                           adjoint=adjoint, max_steps=max_steps, dt0=dt0,
-                          model_axes=model_axes, cacheable=cacheable(ts, controller))
+                          model_axes=model_axes)
     return thrown(traj) if throw else traj

@@ -2,7 +2,9 @@
 
 import diffrax
 import equinox as eqx
+import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float, PyTree
 
 from .. import _compat
@@ -60,3 +62,24 @@ class Trajectory(eqx.Module):
     ys: PyTree
     stats: dict
     result: RESULTS
+
+
+def succeeded_now(result: RESULTS) -> bool:
+    """Whether every code of a concrete `result` is `successful`, read on the host (`False`
+    for a traced one): `throw`'s check then needs no `error_if`, whose eager comparison
+    compiles two programs on first use."""
+    code = _compat.result_value(result)
+    return not isinstance(code, jax.core.Tracer) and bool(
+        np.all(np.asarray(code) == np.asarray(_compat.result_value(RESULTS.successful))))
+
+
+def thrown(traj: Trajectory) -> Trajectory:
+    """`traj`, raising at run time (`eqx.error_if`) if any of its results failed."""
+    if succeeded_now(traj.result):
+        return traj
+    if not isinstance(_compat.result_value(traj.result), jax.core.Tracer):
+        # A concrete batch may lie across several devices (the lane solver's); XLA aborts
+        # the process when a host callback raises in a program over several devices, so
+        # the check runs on one.
+        traj = jax.device_put(traj, jax.local_devices()[0])
+    return traj.result.error_if(traj, jnp.any(traj.result != RESULTS.successful))

@@ -47,8 +47,8 @@ import equinox as eqx
 import jax
 import numpy as np
 
-from . import _compat
-from ._xla import COMPILER_OPTIONS, export, filter_jit, jit, top_level
+from .. import _compat
+from .xla import COMPILER_OPTIONS, export, filter_jit, jit, top_level
 
 # The modules whose classes and functions a key may name: their code is versioned by
 # `_environment` (builtins by the Python version, which changes the bytecode cache anyway).
@@ -91,7 +91,7 @@ def _environment() -> str:
             h.update(f"{name}={importlib.metadata.version(name)};".encode())
         except importlib.metadata.PackageNotFoundError:
             h.update(f"{name}=none;".encode())
-    root = pathlib.Path(__file__).parent  # the rbdyn_jax package
+    root = pathlib.Path(__file__).parent.parent  # the rbdyn_jax package
     for path in sorted(root.rglob("*.py")):
         h.update(str(path.relative_to(root)).encode())
         h.update(path.read_bytes())

@@ -14,7 +14,7 @@ raises). So the wrappers here pass them when called at the top level and are pla
 inside a caller's transformation, whose program compiles with the caller's options: pass
 `compiler_options=rbdyn_jax.COMPILER_OPTIONS` to your own `jax.jit` for the same saving.
 
-`_xla_flags.py` sets what compiler options cannot: XLA's process-wide flags (`XLA_FLAGS`),
+`flags.py` sets what compiler options cannot: XLA's process-wide flags (`XLA_FLAGS`),
 read once when JAX starts its backend. `import rbdyn_jax` sets them (one XLA CPU device
 per core, every while loop compiled whole; flags already in `XLA_FLAGS` win) unless
 `RBDYN_JAX_CONFIGURE_XLA=0` is in the environment or JAX's backend is already running;
@@ -27,8 +27,9 @@ import equinox as eqx
 import jax
 import jaxlib
 
-from . import _compat
-from ._xla_flags import (
+from .. import _compat
+from . import checks
+from .flags import (
     configure_xla as configure_xla,
     loops_compiled_whole as loops_compiled_whole,
 )
@@ -90,12 +91,11 @@ def nested_filter_jit(fn):
     compiles a program of its own, so it needs no options). JAX traces it once per input
     structure and the enclosing program holds one `jit` call per use; the trace, its
     batching under `vmap` and its lowering are then shared by every use of that structure.
-    Its cached traces are cleared like `diffrax.diffeqsolve`'s when the check mode
-    changes (`_checks.checks_as_nan`)."""
-    return eqx.filter_jit(fn)
+    Its cached traces are dropped when the check mode changes (`checks.as_nan`)."""
+    return checks.mode_dependent(eqx.filter_jit(fn))
 
 
 def export(fn):
-    """`jax.export.export(jax.jit(fn))`: `fn` traced and lowered, for storing (`_traces.py`).
+    """`jax.export.export(jax.jit(fn))`: `fn` traced and lowered, for storing (`traces.py`).
     Nothing is compiled here; the exported program is compiled through `jit`."""
     return jax.export.export(jax.jit(fn))

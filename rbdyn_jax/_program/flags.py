@@ -49,7 +49,7 @@ def backend_started() -> bool:
     cannot be, and JAX is not imported to find out."""
     if "jax" not in sys.modules:
         return False
-    from . import _compat
+    from .. import _compat
 
     return _compat.backends_are_initialized()
 

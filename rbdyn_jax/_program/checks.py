@@ -1,0 +1,40 @@
+"""Runtime checks as NaN while a program is traced.
+
+`eqx.error_if` checks (a model's inertia checks, diffrax's checks of `ts` and `dt0`, …)
+raise through a host callback. A program holding a host callback is never stored by JAX's
+persistent compilation cache, and XLA aborts a program over several devices whose callback
+raises. Where a program's inputs were validated before tracing, its checks cannot fire on
+good input, so `Program` traces it with its checks giving NaN instead: a NaN state is then
+reported per trajectory (`RESULTS.nonfinite_state`), and the program can be stored.
+
+Equinox reads its check mode from a process-wide setting (its error mode) when a check is
+traced, and diffrax's own checks take no other: `as_nan` sets it for the duration of one
+trace only, under a lock (two threads never trace in different modes at once), and drops
+the cached traces that depend on it on the way in and out (`_compat.error_mode_set`): the
+`eqx.filter_jit` functions JAX traces once per input structure (`diffrax.diffeqsolve`,
+and those registered by `mode_dependent`), whose cache is keyed by their inputs, not the mode.
+"""
+
+import contextlib
+import threading
+
+from .. import _compat
+
+_LOCK = threading.RLock()
+_MODE_DEPENDENT: list = []  # jitted functions whose traces to drop on a switch
+
+
+def mode_dependent(jitted):
+    """Register the `eqx.filter_jit` function `jitted`, traced inside programs: its cached
+    traces are dropped when `as_nan` switches the check mode. Returns it."""
+    _MODE_DEPENDENT.append(jitted)
+    return jitted
+
+
+@contextlib.contextmanager
+def as_nan():
+    """While the block traces a program, `eqx.error_if` checks give NaN instead of raising
+    (a no-op where equinox has no such mode: the program is then still correct, only not
+    storable)."""
+    with _LOCK, _compat.error_mode_set("nan", tuple(_MODE_DEPENDENT)):
+        yield
