@@ -24,8 +24,8 @@ def rng():
 CORE = {"test_analytic.py", "test_batching.py", "test_cheapest.py", "test_compat.py",
         "test_dynamics.py", "test_float32.py", "test_frames.py", "test_identify.py",
         "test_inertia.py", "test_integrate.py", "test_lanes.py", "test_layering.py",
-        "test_models.py", "test_reference.py", "test_rotation.py", "test_rows.py",
-        "test_splitting.py", "test_torques.py", "test_vector.py", "test_xla.py"}
+        "test_models.py", "test_program.py", "test_reference.py", "test_rotation.py",
+        "test_rows.py", "test_splitting.py", "test_torques.py", "test_vector.py", "test_xla.py"}
 
 
 def pytest_collection_modifyitems(config, items):

@@ -61,7 +61,12 @@ class Program:
             with checks.as_nan():
                 return fn(*args)
 
-        self._checked = filter_jit(fn, options)
+        @functools.wraps(fn)
+        def checks_raising(*args):
+            with checks.raising():
+                return fn(*args)
+
+        self._checked = filter_jit(checks_raising, options)
         self._as_nan = (traces.cached(checks_nan, options) if store
                         else filter_jit(checks_nan, options))
         functools.update_wrapper(self, fn)
