@@ -2,9 +2,10 @@
 
 The order is the layer table of the developer docs, bottom layer first. Private helpers
 (`_x.py`) sit below everything and import no public module; `__init__` only re-exports, and
-nothing imports from it. `integrate/` is a package: its files import each other and the
-layers below `integrate`. No module imports another's private name, and diffrax is used
-only where its objects are built or run (see `DIFFRAX`).
+nothing imports from it. `integrate/` and `scenario/` are packages: a package's files import
+each other (their private names too: they are one module) and the layers below it. No module
+imports another's private name, and diffrax is used only where its objects are built or run
+(see `DIFFRAX`).
 """
 
 import ast
@@ -52,11 +53,16 @@ def _top_modules() -> set[str]:
     return set(module_files())
 
 
+def in_subpackage(path: pathlib.Path) -> bool:
+    """Whether the file at `path` is one of a subpackage's (`integrate/_field.py`)."""
+    return path.parent != PACKAGE and path.parent.parent == PACKAGE
+
+
 def package_imports(path: pathlib.Path) -> set[str]:
     """The rbdyn_jax modules (top-level names) imported by the file at `path`, absolute or
     relative; `"__init__"` for a name imported from the package itself (`from . import
     __version__`), and a file inside a subpackage does not count its own package."""
-    inside = path.parent != PACKAGE and path.parent.parent == PACKAGE  # in a subpackage
+    inside = in_subpackage(path)
     own = path.parent.name if inside else None
     top = _top_modules()
     found = set()
@@ -84,10 +90,14 @@ def package_imports(path: pathlib.Path) -> set[str]:
 
 def private_names_imported(path: pathlib.Path) -> set[str]:
     """`module._name` for every private name (not a private module) imported from another
-    rbdyn_jax module."""
+    rbdyn_jax module. A subpackage's file may import its sibling files' private names
+    (`from ._validate import _fail`: one module), not another module's."""
     modules = _top_modules() | {p.stem for p in path.parent.glob("*.py")}
+    inside = in_subpackage(path)
     found = set()
     for node in ast.walk(ast.parse(path.read_text())):
+        if inside and isinstance(node, ast.ImportFrom) and node.level == 1:
+            continue  # from ._x import _y: the file's own package
         if isinstance(node, ast.ImportFrom) and (node.level or (node.module or "").startswith(
                 "rbdyn_jax")):
             for a in node.names:
@@ -158,7 +168,25 @@ def test_checker_sees_a_violation(tmp_path):
     assert imports_diffrax(bad)
 
 
-@pytest.mark.parametrize("init", ["__init__.py", "integrate/__init__.py"])
+def test_checker_allows_private_names_only_between_a_packages_files(tmp_path, monkeypatch):
+    """Inside a subpackage, a sibling file's private name is the package's own; another
+    module's private name, absolute or relative, is still detected."""
+    monkeypatch.setitem(globals(), "PACKAGE", tmp_path)  # a package of the files below
+    (tmp_path / "dynamics.py").write_text("_matvec = None\n")
+    (tmp_path / "_compat.py").write_text("")
+    (tmp_path / "pkg").mkdir()
+    (tmp_path / "pkg" / "__init__.py").write_text("")
+    (tmp_path / "pkg" / "_b.py").write_text("_y = None\n")
+    bad = tmp_path / "pkg" / "_a.py"
+    bad.write_text("from ._b import _y\nfrom ..dynamics import _matvec\n"
+                   "from rbdyn_jax.torques import _private\nfrom .. import _compat\n")
+    assert in_subpackage(bad)
+    assert private_names_imported(bad) == {"dynamics._matvec", "rbdyn_jax.torques._private"}
+    assert package_imports(bad) == {"dynamics", "torques", "_compat"}
+
+
+@pytest.mark.parametrize("init", ["__init__.py", "integrate/__init__.py",
+                                  "scenario/__init__.py"])
 def test_reexports_are_grouped_by_module(init):
     """One `from .x import (a as a, b as b)` per module (ruff's combine-as-imports), not a
     statement per name."""

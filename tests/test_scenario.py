@@ -17,7 +17,7 @@ from helpers import small_scenario as small
 from scipy.spatial.transform import Rotation
 
 import rbdyn_jax as rb
-from rbdyn_jax import rotation, scenario
+from rbdyn_jax import rotation
 from rbdyn_jax.scenario import (
     FRAMES,
     TORQUES,
@@ -31,6 +31,7 @@ from rbdyn_jax.scenario import (
     ScenarioError,
     Uniform,
     UniformSO3,
+    _summaries,
     list_scenarios,
 )
 
@@ -330,10 +331,10 @@ def test_first_flip_time_against_the_elliptic_solution():
     wf = np.asarray(rb.analytic.torque_free_elliptic(jnp.asarray(J), w0, jnp.asarray(fine)))
     t_true = fine[np.argmax(np.sign(wf[:, 1]) != np.sign(wf[0, 1]))]
     coarse = ts[::10]
-    got = scenario._first_flip(coarse, jnp.asarray(w[::10]), jnp.diag(jnp.asarray(J)))
+    got = _summaries._first_flip(coarse, jnp.asarray(w[::10]), jnp.diag(jnp.asarray(J)))
     # linear interpolation over Δt = 0.1 where ω₂ is nearly linear: error ≪ Δt
     assert abs(float(got) - t_true) < 2e-3
-    never = scenario._first_flip(coarse[:5], jnp.asarray(w[:50:10]), jnp.diag(jnp.asarray(J)))
+    never = _summaries._first_flip(coarse[:5], jnp.asarray(w[:50:10]), jnp.diag(jnp.asarray(J)))
     assert np.isnan(float(never))
 
 
