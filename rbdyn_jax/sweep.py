@@ -170,29 +170,16 @@ def _quantum(platform: str, lanes: int) -> int:
     return _PER_LANE * lanes if platform == "cpu" else 1
 
 
-def _program_source(sc: Scenario) -> str:
-    """The JSON text of the scenario's source less `outputs.trajectories`, the key of its
-    chunk program: which states a store keeps is chosen after the solve, so stores keeping
-    all, some or none of them run one program and hold the same bits."""
-    source = json.loads(json.dumps(sc.source))
-    source.get("outputs", {}).pop("trajectories", None)
-    return json.dumps(source, sort_keys=True)
-
-
-# The scenarios of this process's runners by their source's JSON text (`_Runner`).
-_SCENARIOS: dict[str, Scenario] = {}
-
-
-def _chunk_program(source: str, lanes: int, mesh, idx, dists, key) -> dict:
+def _chunk_program(sc: Scenario, lanes: int, mesh, idx, key) -> dict:
     """Sample and solve the trajectories `idx` (sharded over `mesh`'s devices) of the
-    scenario whose `source` is the JSON text `source`, with `dists` its distributions.
+    scenario `sc`, a pytree whose leaves are its distributions' parameters.
 
-    The scenario enters as its source text, which the cache of traced programs can
-    describe exactly: a later process with the cache configured loads this program instead
-    of tracing it. Traced with the solves' checks as NaN (a `Program` of validated inputs:
-    the scenario was validated, and a failing trajectory is reported in `status`), so the
-    program holds no host callback and can be stored."""
-    sc = _SCENARIOS[source]
+    The scenario's structure is static and exactly described by its source, so the cache
+    of traced programs can store the program: a later process with the cache configured
+    loads it instead of tracing it. Traced with the solves' checks as NaN (a `Program` of
+    validated inputs: the scenario was validated, and a failing trajectory is reported in
+    `status`), so the program holds no host callback and can be stored."""
+    dists = sc.dists
     quantum = _quantum(mesh.devices.flat[0].platform, lanes)
 
     def per_device(idx, dists, key):
@@ -238,13 +225,14 @@ class _Runner:
     lanes: int
     devices: list
     chunk: int
-    source: str  # the scenario's program source (`_program_source`, `_chunk_program`)
     mesh: Any = dataclasses.field(init=False)
+    solved: Scenario = dataclasses.field(init=False)  # what the chunk program solves
 
     def __post_init__(self):
         self.mesh = jax.sharding.Mesh(np.asarray(self.devices), ("batch",))
-        _SCENARIOS.clear()  # as `_RUNNERS`, keep one
-        _SCENARIOS[self.source] = self.scenario
+        # Which states a store keeps is chosen after the solve: stores keeping all, some or
+        # none of them run one program, and hold the same bits.
+        self.solved = self.scenario.with_settings(trajectories="all")
 
     @property
     def size(self) -> int:
@@ -267,8 +255,7 @@ class _Runner:
         full = full.astype(_index_dtype())
         arr = jax.make_array_from_callback(
             (self.size,), NamedSharding(self.mesh, P("batch")), lambda i: full[i])
-        out = dict(_solve_chunk(self.source, self.lanes, self.mesh, arr,
-                                self.scenario.dists, key))
+        out = dict(_solve_chunk(self.solved, self.lanes, self.mesh, arr, key))
         states = [out.pop(k) for k in _STATES]
         if self.scenario.trajectories == "all":
             out.update(zip(_STATES, states))
@@ -295,11 +282,10 @@ def _runner(sc: Scenario, lanes: int, devices: tuple, chunk: int) -> _Runner:
     """A compiled runner, reused by later runs of the same scenario and layout (a resumed
     or repeated run in the same process compiles nothing)."""
     quantum = _quantum(devices[0].platform, lanes) * len(devices)  # the compiled shape
-    source = _program_source(sc)
-    key = (source, sc.trajectories, lanes, devices, -(-chunk // quantum))
+    key = (json.dumps(sc.source, sort_keys=True), lanes, devices, -(-chunk // quantum))
     if key not in _RUNNERS:
         _RUNNERS.clear()  # keep one
-        _RUNNERS[key] = _Runner(sc, lanes, list(devices), chunk, source)
+        _RUNNERS[key] = _Runner(sc, lanes, list(devices), chunk)
     return _RUNNERS[key]
 
 

@@ -509,9 +509,9 @@ def test_a_float32_program_takes_its_matrix_products_in_full_float32():
     d["solver"].update(rtol=1e-6, atol=1e-6, dtype="float32")
     sc = Scenario.from_dict(d)
     runner = sweep._runner(sc, 16, tuple(jax.devices()), 16)
-    jaxpr = jax.make_jaxpr(lambda i, dists, key: sweep._chunk_program(
-        runner.source, runner.lanes, runner.mesh, i, dists, key))(
-        jnp.arange(runner.size), sc.dists, jax.random.key(0))
+    jaxpr = jax.make_jaxpr(lambda i, sc, key: sweep._chunk_program(
+        sc, runner.lanes, runner.mesh, i, key))(
+        jnp.arange(runner.size), runner.solved, jax.random.key(0))
     dots = [e for e in equations(jaxpr) if e.primitive.name == "dot_general"]
     assert dots and all(e.params["precision"] == (jax.lax.Precision.HIGHEST,) * 2
                         for e in dots)

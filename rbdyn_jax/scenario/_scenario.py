@@ -64,6 +64,11 @@ class Scenario:
     format is documented in docs/scenarios.md (the shipped examples are
     `rbdyn_jax/scenarios/*.toml`); `TORQUES`, `FRAMES`, `DISTRIBUTIONS` and `SUMMARIES` list
     the accepted kinds.
+
+    A scenario is a pytree: its leaves are those of `dists` (arrays, traced inside a
+    compiled program), and everything else is its static structure, equal between two
+    scenarios of the same source (`Structure`). A compiled program takes it as an argument,
+    compiled once per source.
     """
 
     name: str
@@ -354,3 +359,32 @@ class Scenario:
             except (ValueError, NotImplementedError, AttributeError) as e:
                 raise ScenarioError(f"`outputs.summaries`: {name!r} is not defined for this "
                                     f"model: {e}") from None
+
+
+class Structure:
+    """The static part of a `Scenario`'s pytree (all but its distributions' leaves): equal
+    and hashed by the JSON text of the scenario's source, which is also its `repr` (an
+    exact description, which the cache of traced programs keys a stored program by)."""
+
+    __slots__ = ("scenario", "text")
+
+    def __init__(self, scenario: Scenario):
+        self.scenario = scenario
+        self.text = json.dumps(scenario.source, sort_keys=True)
+
+    def __eq__(self, other) -> bool:
+        return isinstance(other, Structure) and self.text == other.text
+
+    def __hash__(self) -> int:
+        return hash(self.text)
+
+    def __repr__(self) -> str:
+        return f"Structure({self.text})"
+
+
+jax.tree_util.register_pytree_with_keys(
+    Scenario,
+    lambda sc: (((jax.tree_util.GetAttrKey("dists"), sc.dists),), Structure(sc)),
+    lambda structure, children: dataclasses.replace(structure.scenario, dists=children[0]),
+    flatten_func=lambda sc: ((sc.dists,), Structure(sc)),
+)
