@@ -68,6 +68,7 @@ if TYPE_CHECKING:  # what the lazy names below resolve to, for type checkers and
         State as State,
     )
     from .torques import (
+        AbstractConservativeTorque as AbstractConservativeTorque,
         AbstractTorque as AbstractTorque,
         BalancingTransport as BalancingTransport,
         BodyTorque as BodyTorque,
@@ -92,9 +93,9 @@ _EXPORTS = {
     "models": ("AbstractRigidBody", "EulerAngleRigidBody", "PoissonRigidBody",
                "RelativeRigidBody", "RigidBody", "with_log_cholesky"),
     "state": ("EulerState", "Kinematics", "PoissonState", "State"),
-    "torques": ("AbstractTorque", "BalancingTransport", "BodyTorque", "GravityGradient",
-                "InertialTorque", "NoTorque", "PolynomialSinPsi", "RestoringMoment",
-                "SumTorque", "UniformGravity"),
+    "torques": ("AbstractConservativeTorque", "AbstractTorque", "BalancingTransport",
+                "BodyTorque", "GravityGradient", "InertialTorque", "NoTorque",
+                "PolynomialSinPsi", "RestoringMoment", "SumTorque", "UniformGravity"),
 }
 _ORIGIN = {name: module for module, names in _EXPORTS.items() for name in names}
 

@@ -19,6 +19,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from ._checks import check_batch, check_trailing, holds_now, sqrt_eps
 from ._custom_types import BoolArray, Matrix, MatrixLike, Scalar, Vector, VectorLike
+from ._program.xla import jit
 from ._vector import HIGHEST
 
 LogCholesky = Float[Array, "*batch 6"]
@@ -189,8 +190,8 @@ def from_planar(Jp: MatrixLike) -> Matrix:
     return _from_planar(Jp)
 
 
-def _from_planar(Jp: Array, xp=jnp) -> Array:
-    return _trace(Jp, xp)[..., None, None] * _eye_like(Jp, xp) - Jp
+def _from_planar(Jp: Array) -> Array:
+    return _trace(Jp)[..., None, None] * _eye_like(Jp) - Jp
 
 
 def principal_axes(J: MatrixLike) -> tuple[Vector, Matrix]:
@@ -371,36 +372,31 @@ def to_log_cholesky(J: MatrixLike) -> LogCholesky:
     `theta`, shape `(*batch, 6)`; [`from_log_cholesky`][] is its inverse.
     """
     J = check_inertia(J, "J")
-    if not isinstance(J, jax.core.Tracer):  # concrete: in NumPy, compiling nothing
-        theta = _log_cholesky_now(np.asarray(J))
-        if theta is not None:
-            return jnp.asarray(theta, dtype=J.dtype)
-    L = jnp.linalg.cholesky(_planar(0.5 * (J + _transpose(J))))
-    d = jnp.diagonal(L, axis1=-2, axis2=-1)
-    bad = ~jnp.all(jax.lax.stop_gradient(d) > 0, axis=-1)  # NaN where cholesky fails
+    if isinstance(J, jax.core.Tracer):
+        return _checked_theta(*_log_cholesky(J))
+    with jax.ensure_compile_time_eval():  # concrete, also in a caller's trace: now
+        theta, bad = _log_cholesky(J)
+        return theta if not np.any(bad) else _checked_theta(theta, bad)
+
+
+def _checked_theta(theta, bad):
     msg = (
         "`J` is not strictly physical: its planar inertia J' is singular (a flat body or a "
         "rod), which has no finite log-Cholesky parameters."
     )
-    return _theta_of(eqx.error_if(L, bad, msg))
+    return eqx.error_if(theta, bad, msg)
 
 
-def _theta_of(L, xp=jnp):
-    """`(log L00, log L11, log L22, L10, L20, L21)` of lower-triangular factors `L`."""
-    d = xp.diagonal(L, axis1=-2, axis2=-1)
-    return xp.concatenate([xp.log(d), L[..., 1, :1], L[..., 2, :2]], axis=-1)
-
-
-def _log_cholesky_now(J):
-    """`to_log_cholesky` of a concrete, physical `J` in NumPy (an eager JAX evaluation
-    compiles each of its operations on first use, a noticeable wait in a fresh process), or
-    `None` where J' is singular, for the JAX path to raise its error."""
-    try:
-        L = np.linalg.cholesky(_planar(0.5 * (J + _transpose(J, np)), np))
-    except np.linalg.LinAlgError:
-        return None
-    ok = np.all(np.diagonal(L, axis1=-2, axis2=-1) > 0)
-    return _theta_of(L, np) if ok else None
+@jit
+def _log_cholesky(J):
+    """`theta` of `J`, and where J' has no Cholesky factor. One compiled program for a
+    concrete `J` (eager JAX would compile each operation on first use, and may round
+    differently from a program), part of the caller's for a traced one: the same arithmetic
+    either way. The check is the caller's, outside, so that this trace holds none."""
+    L = jnp.linalg.cholesky(_planar(0.5 * (J + _transpose(J))))
+    d = jnp.diagonal(L, axis1=-2, axis2=-1)
+    bad = ~jnp.all(jax.lax.stop_gradient(d) > 0, axis=-1)  # NaN where cholesky fails
+    return jnp.concatenate([jnp.log(d), L[..., 1, :1], L[..., 2, :2]], axis=-1), bad
 
 
 def from_log_cholesky(theta: LogCholeskyLike) -> Matrix:
@@ -419,24 +415,24 @@ def from_log_cholesky(theta: LogCholeskyLike) -> Matrix:
     `J`, shape `(*batch, 3, 3)`; [`to_log_cholesky`][] is its inverse.
     """
     theta = check_trailing(theta, (6,), "theta")
-    if not isinstance(theta, jax.core.Tracer):  # concrete: in NumPy, compiling nothing
-        with np.errstate(all="ignore"):  # IEEE results, silently, as in JAX
-            J = _from_log_cholesky(np.asarray(theta), np)
-        return jnp.asarray(J, dtype=theta.dtype)
-    return _from_log_cholesky(theta)
+    if isinstance(theta, jax.core.Tracer):
+        return _from_log_cholesky(theta)
+    with jax.ensure_compile_time_eval():  # concrete, also in a caller's trace: now
+        return _from_log_cholesky(theta)
 
 
-def _from_log_cholesky(theta, xp=jnp):
-    l00, l11, l22, l10, l20, l21 = xp.moveaxis(theta, -1, 0)
-    zero = xp.zeros_like(l00)
-    L = xp.stack(
+@jit
+def _from_log_cholesky(theta):
+    """`J` of `theta`: one compiled program for a concrete `theta`, part of the caller's for
+    a traced one (as `_log_cholesky`)."""
+    l00, l11, l22, l10, l20, l21 = jnp.moveaxis(theta, -1, 0)
+    zero = jnp.zeros_like(l00)
+    L = jnp.stack(
         [
-            xp.stack([xp.exp(l00), zero, zero], axis=-1),
-            xp.stack([l10, xp.exp(l11), zero], axis=-1),
-            xp.stack([l20, l21, xp.exp(l22)], axis=-1),
+            jnp.stack([jnp.exp(l00), zero, zero], axis=-1),
+            jnp.stack([l10, jnp.exp(l11), zero], axis=-1),
+            jnp.stack([l20, l21, jnp.exp(l22)], axis=-1),
         ],
         axis=-2,
     )
-    LLt = (jnp.matmul(L, _transpose(L), precision=HIGHEST) if xp is jnp
-           else L @ _transpose(L, xp))
-    return _from_planar(LLt, xp)
+    return _from_planar(jnp.matmul(L, _transpose(L), precision=HIGHEST))

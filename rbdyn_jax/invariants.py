@@ -24,7 +24,7 @@ from ._vector import HIGHEST
 from .frames import Inertial
 from .integrate import Trajectory
 from .models import AbstractRigidBody, RelativeRigidBody
-from .torques import GravityGradient, SumTorque
+from .torques import AbstractConservativeTorque, GravityGradient, SumTorque
 
 
 def _over_batch(f):
@@ -59,14 +59,18 @@ def kinetic_energy(model: AbstractRigidBody, traj: Trajectory) -> Float[Array, "
 def energy(model: AbstractRigidBody, traj: Trajectory) -> Float[Array, " n"]:
     """Total energy `T + V` of an absolute model with conservative torques: the heavy top
     (`V = mg r_c·γ₀`), the constant-k restoring moment (`V = k cosθ`), the gravity gradient
-    (`V = ½ ε γᵀ J γ`, docs/physics.md#torque-and-integrals). Raises `NotImplementedError`
-    for a torque with no potential. For a relative model in a moving frame this sum is not
-    an integral (use the frame's own integral, e.g. the Jacobi integral of a circular
-    orbit): a `ValueError`."""
+    (`V = ½ ε γᵀ J γ`, docs/physics.md#torque-and-integrals). Raises a `ValueError` naming
+    a torque with no potential (one that is not an `AbstractConservativeTorque`, a sum with
+    such a term, or a restoring moment with a callable k). For a relative model in a moving
+    frame this sum is not an integral (use the frame's own integral, e.g. the Jacobi
+    integral of a circular orbit): a `ValueError`."""
     if isinstance(model, RelativeRigidBody) and not isinstance(model.frame, Inertial):
         raise ValueError("`energy` is the absolute-motion energy; a RelativeRigidBody in a "
                          "moving frame does not conserve it.")
     kin = _kinematics(model, traj)
+    if not isinstance(model.torque, AbstractConservativeTorque | SumTorque):
+        raise ValueError(f"{type(model.torque).__name__} has no potential energy (it is not "
+                         "an `AbstractConservativeTorque`).")
     V = jax.vmap(lambda k: model.torque.potential(k, model.inertia))(kin)
     return 0.5 * _quad(model.inertia, kin.omega) + V
 

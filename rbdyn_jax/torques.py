@@ -8,8 +8,9 @@ A torque is called as `torque(kin, inertia)` with the `Kinematics` record of `st
 returns the moment about the fixed point / centre of mass in **body components**. The same
 torque works in absolute and relative models. Torques compose with `+` into a `SumTorque`.
 
-Conservative torques also give their potential energy (`potential(kin, inertia)`), used by
-`invariants.energy`.
+Conservative torques are `AbstractConservativeTorque`s: they also give their potential
+energy (`potential(kin, inertia)`), used by `invariants.energy`. A sum has one when each of
+its terms has.
 """
 
 import abc
@@ -49,19 +50,26 @@ class AbstractTorque(eqx.Module):
     def __call__(self, kin: Kinematics, inertia: Float[Array, "3 3"]) -> Float[Array, "3"]:
         """The moment in body components at the instant described by `kin`."""
 
-    def potential(self, kin: Kinematics, inertia: Float[Array, "3 3"]) -> Float[Array, ""]:
-        """Potential energy whose negative gradient is this torque; conservative torques
-        override it."""
-        raise NotImplementedError(f"{type(self).__name__} has no potential energy.")
-
     def __add__(self, other: "AbstractTorque") -> "SumTorque":
         if not isinstance(other, AbstractTorque):
             return NotImplemented
         return SumTorque(self, other)
 
 
+class AbstractConservativeTorque(AbstractTorque):
+    """A torque that derives from a potential energy `V`: the moment is `−∂V/∂θ` for a
+    rotation θ of the body, so `T + V` is conserved in an absolute model
+    (`invariants.energy`)."""
+
+    @abc.abstractmethod
+    def potential(self, kin: Kinematics, inertia: Float[Array, "3 3"]) -> Float[Array, ""]:
+        """Potential energy whose negative gradient is this torque."""
+
+
 class SumTorque(AbstractTorque):
-    """The sum of several torques (a container, like diffrax's `MultiTerm`)."""
+    """The sum of several torques (a container, like diffrax's `MultiTerm`). Its
+    `potential` is the sum of its terms' when each is an `AbstractConservativeTorque`; a
+    `ValueError` naming the first term that is not, otherwise."""
 
     torques: tuple[AbstractTorque, ...]
 
@@ -80,13 +88,18 @@ class SumTorque(AbstractTorque):
         return total
 
     def potential(self, kin, inertia):
+        for t in self.torques:
+            if not isinstance(t, AbstractConservativeTorque):
+                raise ValueError(f"{type(t).__name__} has no potential energy (it is not an "
+                                 "`AbstractConservativeTorque`), so neither has the "
+                                 f"`SumTorque` of {[type(u).__name__ for u in self.torques]}.")
         total = jnp.zeros_like(kin.t)
         for t in self.torques:
             total = total + t.potential(kin, inertia)
         return total
 
 
-class NoTorque(AbstractTorque):
+class NoTorque(AbstractConservativeTorque):
     """Zero moment (Euler–Poinsot motion, docs/physics.md#torque-free-motion)."""
 
     def __call__(self, kin, inertia):
@@ -122,7 +135,7 @@ class InertialTorque(AbstractTorque):
         return rotation.quat_rotate(rotation.quat_conjugate(q), self.moment)
 
 
-class UniformGravity(AbstractTorque):
+class UniformGravity(AbstractConservativeTorque):
     """Weight in a uniform field along −z0 acting at the centre of mass (heavy top).
 
     `M = r_c × (−mg γ₀) = mg γ₀ × r_c` with γ₀ the body components of the inertial z0-axis
@@ -179,7 +192,7 @@ class PolynomialSinPsi(eqx.Module):
         return self.eps * self.K(tau) * jnp.sin(psi)
 
 
-class RestoringMoment(AbstractTorque):
+class RestoringMoment(AbstractConservativeTorque):
     """Non-stationary restoring moment (Zinkevich & Kozachenko (2008), eq. (1);
     docs/physics.md#equations-of-motion):
 
@@ -193,6 +206,10 @@ class RestoringMoment(AbstractTorque):
 
     `eps` (the slow-time scale ε of τ = ε t) defaults to `k.eps` when `k` has one (as
     `PolynomialSinPsi` does), else to 1.
+
+    A number `k` derives from the potential `V = k cosθ`; a callable `k(τ, ψ)` from none
+    (docs/physics.md#potential-torques-as-kicks), and `potential` then raises a
+    `ValueError`.
     """
 
     k: Float[Array, ""] | Callable
@@ -216,11 +233,12 @@ class RestoringMoment(AbstractTorque):
 
     def potential(self, kin, inertia):
         if callable(self.k):
-            return super().potential(kin, inertia)
+            raise ValueError("RestoringMoment with a callable k(τ, ψ) has no potential energy "
+                             "(only a number k has one, k cosθ).")
         return self.k * kin.gamma[..., 2]  # k cosθ: the heavy top's mgl cosθ
 
 
-class GravityGradient(AbstractTorque):
+class GravityGradient(AbstractConservativeTorque):
     """Gravity-gradient torque `M = ε γ × J γ`, ε = 3μ/R³.
 
     Shinibaev et al. (2013), eq. (2); docs/physics.md#torque-and-integrals.
@@ -260,6 +278,7 @@ class BalancingTransport(AbstractTorque):
 
 
 __all__ = [
+    "AbstractConservativeTorque",
     "AbstractTorque",
     "BalancingTransport",
     "BodyTorque",

@@ -346,25 +346,32 @@ def test_log_cholesky_of_random_physical_round_trips(rng):
     np.testing.assert_allclose(theta, ref, atol=1e-12)
 
 
-def test_log_cholesky_of_concrete_input_in_numpy_equals_the_traced(rng):
-    """Concrete `to_log_cholesky` / `from_log_cholesky` run in NumPy (eagerly in JAX each
-    operation compiled on first use: ~0.8 s and ~0.2 s in a fresh process, measured); traced
-    ones in JAX. Both must give the same θ and J, in the input's dtype: NumPy's and XLA's
-    Cholesky factor J' by the same algorithm (different LAPACK builds), so θ agrees to a
-    few ulps times cond(J') ≲ 2e2 here (seen ≤ 1 ulp); J = tr(L Lᵀ) I − L Lᵀ is a few
-    roundings either way (seen ≤ 2 ulps of max|J|)."""
-    J = random_physical(rng, batch=(N,))
+def test_log_cholesky_eager_equals_jitted_bit_for_bit(rng):
+    """Concrete `to_log_cholesky` / `from_log_cholesky` compute as traced ones do, in one JAX
+    program (not NumPy, nor JAX operation by operation): eager and jitted calls give the
+    same θ and J bit for bit, in the input's dtype, one inertia at a time and batched; a
+    concrete input inside a caller's trace is computed now, as an eager call."""
     for dtype in (np.float64, np.float32):
-        Jd = jnp.asarray(J, dtype)
-        eps = float(jnp.finfo(dtype).eps)
-        theta = inertia.to_log_cholesky(Jd)
-        assert theta.dtype == dtype and theta.shape == (N, 6)
-        np.testing.assert_allclose(theta, jax.jit(inertia.to_log_cholesky)(Jd), rtol=0,
-                                   atol=1e3 * eps * float(np.abs(theta).max()))
+        for J in [*random_physical(rng, batch=(4,)), random_physical(rng, batch=(N,))]:
+            Jd = jnp.asarray(J, dtype)
+            theta = inertia.to_log_cholesky(Jd)
+            assert theta.dtype == dtype and theta.shape == Jd.shape[:-2] + (6,)
+            np.testing.assert_array_equal(theta, jax.jit(inertia.to_log_cholesky)(Jd))
+            back = inertia.from_log_cholesky(theta)
+            assert back.dtype == dtype
+            np.testing.assert_array_equal(back, jax.jit(inertia.from_log_cholesky)(theta))
+    seen = []
+
+    def f(x):
+        theta = inertia.to_log_cholesky(J)  # closed over: concrete
         back = inertia.from_log_cholesky(theta)
-        assert back.dtype == dtype
-        np.testing.assert_allclose(back, jax.jit(inertia.from_log_cholesky)(theta), rtol=0,
-                                   atol=10 * eps * float(np.abs(J).max()))
+        seen.extend([theta, back])
+        return x + theta.sum() + back.sum()
+
+    jax.make_jaxpr(f)(1.0)
+    assert not any(isinstance(a, jax.core.Tracer) for a in seen)
+    np.testing.assert_array_equal(seen[0], inertia.to_log_cholesky(J))
+    np.testing.assert_array_equal(seen[1], inertia.from_log_cholesky(seen[0]))
 
 
 @pytest.mark.parametrize("moments", [(1.0, 1.0, 2.0), (1.0, 1.0, 0.0)], ids=["lamina", "rod"])

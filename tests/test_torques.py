@@ -184,9 +184,10 @@ def test_torque_parameter_gradients_match_finite_differences(rel_setup, rng):
                                atol=TIGHT)
 
 
-@pytest.mark.parametrize("name", ["uniform_gravity", "restoring_moment", "gravity_gradient"])
+@pytest.mark.parametrize("name", ["uniform_gravity", "restoring_moment", "gravity_gradient",
+                                  "sum"])
 def test_potential_rate_is_minus_power(name, rng):
-    """−dV/dt = ω·M for a conservative torque along any motion.
+    """−dV/dt = ω·M for a conservative torque along any motion, and for a sum of them.
 
     (a) V along an explicit rotation path q(s) = q0 ⊗ exp(ω s) built with scipy, central FD;
     (b) `jax.jvp` of V along the hand kinematics q' = ½ q ⊗ (0, ω), exact to rounding.
@@ -194,7 +195,9 @@ def test_potential_rate_is_minus_power(name, rng):
     J = general_inertia(rng, [1.0, 1.5, 2.2])
     torque = {"uniform_gravity": rb.UniformGravity(1.4, rng.normal(size=3)),
               "restoring_moment": rb.RestoringMoment(0.9),
-              "gravity_gradient": rb.GravityGradient(2.1)}[name]
+              "gravity_gradient": rb.GravityGradient(2.1),
+              "sum": rb.UniformGravity(1.4, rng.normal(size=3)) + rb.GravityGradient(2.1)
+              + rb.RestoringMoment(0.9) + rb.NoTorque()}[name]
     model = rb.RigidBody(J, torque)
     Jj = model.inertia
     t = jnp.asarray(0.0)
@@ -218,3 +221,57 @@ def test_potential_rate_is_minus_power(name, rng):
         _, dV = jax.jvp(V, (jnp.asarray(q0),), (jnp.asarray(q_dot),))
         np.testing.assert_allclose(dV, -power, atol=TIGHT)
     assert abs(power) > 1e-3  # a non-trivial check
+
+
+def test_conservative_torques_are_abstract_conservative_torques(rng):
+    """The torques with a potential are `AbstractConservativeTorque`s (abstract: `potential`
+    must be implemented); the others are not, and a sum has a potential exactly when each
+    of its terms has one, the refusal naming the term that has none."""
+    conservative = [rb.NoTorque(), rb.UniformGravity(1.4, rng.normal(size=3)),
+                    rb.GravityGradient(2.1), rb.RestoringMoment(0.9)]
+    other = [rb.BodyTorque(rng.normal(size=3)), rb.InertialTorque(rng.normal(size=3)),
+             rb.BalancingTransport(), conservative[1] + conservative[2]]
+    for torque in conservative:
+        assert isinstance(torque, rb.AbstractConservativeTorque), type(torque).__name__
+    for torque in other:
+        assert not isinstance(torque, rb.AbstractConservativeTorque), type(torque).__name__
+    assert rb.AbstractConservativeTorque is rb.torques.AbstractConservativeTorque
+    assert issubclass(rb.AbstractConservativeTorque, rb.AbstractTorque)
+
+    class NoPotential(rb.AbstractConservativeTorque):
+        def __call__(self, kin, inertia):
+            return jnp.zeros_like(kin.omega)
+
+    with pytest.raises(TypeError, match="abstract"):
+        NoPotential()
+
+    model = rb.RigidBody(general_inertia(rng, [1.0, 1.5, 2.2]))
+    kin = model.kinematics(jnp.asarray(0.3), rb.State(jnp.asarray(rng.normal(size=3)),
+                                                      jnp.asarray(random_quat(rng))))
+    J = model.inertia
+    assert float(rb.NoTorque().potential(kin, J)) == 0.0
+    total = sum(conservative[1:], conservative[0])
+    np.testing.assert_allclose(total.potential(kin, J),
+                               sum(float(t.potential(kin, J)) for t in conservative),
+                               rtol=TIGHT)
+    with pytest.raises(ValueError, match="BodyTorque has no potential energy.*GravityGradient"):
+        (rb.GravityGradient(2.1) + other[0]).potential(kin, J)
+    k = rb.RestoringMoment(rb.PolynomialSinPsi(jnp.array([0.7, -0.4]), 0.3))
+    with pytest.raises(ValueError, match="callable k"):
+        k.potential(kin, J)
+    with pytest.raises(ValueError, match="callable k"):
+        (rb.GravityGradient(2.1) + k).potential(kin, J)
+
+
+@pytest.mark.parametrize("name", ["BodyTorque", "InertialTorque"])
+def test_energy_refuses_a_torque_with_no_potential(name):
+    """`invariants.energy` names the torque with no potential, alone or in a sum (at trace
+    time: shapes only)."""
+    torque = (rb.BodyTorque(jnp.ones(3)) if name == "BodyTorque"
+              else rb.NoTorque() + rb.InertialTorque(jnp.ones(3)))
+    model = rb.RigidBody(jnp.diag(jnp.array([1.0, 1.5, 2.2])), torque)
+    traj = rb.Trajectory(ts=jnp.zeros(2), ys=rb.State(jnp.zeros((2, 3)),
+                                                      jnp.tile(jnp.eye(4)[0], (2, 1))),
+                         stats={}, result=rb.RESULTS.successful)
+    with pytest.raises(ValueError, match=f"{name} has no potential energy"):
+        jax.eval_shape(rb.invariants.energy, model, traj)
