@@ -430,7 +430,7 @@ def plot_command(args) -> int:
     if (code := _store_problem(sweep, "plot", args.path)) is not None:
         return code
     try:
-        with sweep._reading(args.path, None):
+        with sweep.reading(args.path):
             files = plot_sweep(args.path, args.out)
     except sweep.StoreDamagedError as e:
         print(f"rbdyn plot: {e}", file=sys.stderr)

@@ -456,7 +456,7 @@ def test_a_sweep_on_a_gpu_takes_the_kernel(monkeypatch, tmp_path):
 
     sc = Scenario.from_dict(small_scenario(time={"t1": 2.0, "n": 5}))
     chosen = []
-    real = sweep._batching
+    real = sweep._chunk._batching
 
     def recorded(*args):
         out = real(*args)
@@ -467,13 +467,13 @@ def test_a_sweep_on_a_gpu_takes_the_kernel(monkeypatch, tmp_path):
         return load_store(sweep.run(sc, SWEEP_N, tmp_path / name, chunk=chunk, seed=3,
                                     lanes=4))
 
-    monkeypatch.setattr(sweep, "_batching", recorded)
+    monkeypatch.setattr(sweep._chunk, "_batching", recorded)
     lanes = run("lanes.zarr", SWEEP_N)
     assert set(chosen) == {rb.Lanes}
     chosen.clear()
     monkeypatch.setattr(batching, "Kernel", lambda: rb.Kernel(interpret=True))
     monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
-    monkeypatch.setattr(sweep, "_quantum", lambda platform, lanes: 1)
+    monkeypatch.setattr(sweep._chunk, "_quantum", lambda platform, lanes: 1)
     jax.clear_caches()  # the chunk program compiled for the CPU's choice
     one = run("k12.zarr", SWEEP_N)
     split = run("k5.zarr", 5)

@@ -186,7 +186,8 @@ def test_checker_allows_private_names_only_between_a_packages_files(tmp_path, mo
 
 
 @pytest.mark.parametrize("init", ["__init__.py", "integrate/__init__.py",
-                                  "analytic/__init__.py", "scenario/__init__.py"])
+                                  "analytic/__init__.py", "scenario/__init__.py",
+                                  "sweep/__init__.py", "_program/__init__.py"])
 def test_reexports_are_grouped_by_module(init):
     """One `from .x import (a as a, b as b)` per module (ruff's combine-as-imports), not a
     statement per name."""

@@ -5,7 +5,7 @@ chunk, a lost coordinate) is made in a copy of a finished store; `sweep.verify` 
 the chunk and the trajectories it holds, the readers must refuse the store, and
 `run(..., resume=True)` must leave it bitwise equal to the uninterrupted run. Equality is
 bitwise because a resumed trajectory is solved by the same compiled block program from the
-same drawn values (sweep.py's docstring), whichever other trajectories share its block.
+same drawn values (`rbdyn_jax.sweep`'s docstring), whichever other trajectories share its block.
 """
 
 import os

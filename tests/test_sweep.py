@@ -31,7 +31,7 @@ N = 14
 
 # 16 lanes in the bitwise comparisons: at 8, with XLA's while loops compiled whole (the
 # import's setting), a trajectory's last bits can depend on its lane within the block
-# (sweep.py's docstring).
+# (the docstring of `rbdyn_jax.sweep`).
 @pytest.fixture(scope="module")
 def reference_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("sweep") / "ref.zarr"
@@ -357,7 +357,7 @@ def test_summarize_through_dask_equals_numpy(failing_run, rows):
 def test_summarize_approximates_quantiles_of_a_large_store(failing_run, monkeypatch):
     """Beyond the exact limit the quantiles are Dask's, merged from per-block ones: within
     the neighbouring order statistics of the exact ones."""
-    monkeypatch.setattr(sweep, "_EXACT_ROWS", 0)
+    monkeypatch.setattr(sweep._read, "_EXACT_ROWS", 0)
     g = zarr.open_group(str(failing_run), mode="r")
     status = g["status"][:]
     x = g["energy_drift"][:][status == 0]
@@ -508,8 +508,8 @@ def test_a_float32_program_takes_its_matrix_products_in_full_float32():
     d = Scenario.load("gg_axisymmetric").source
     d["solver"].update(rtol=1e-6, atol=1e-6, dtype="float32")
     sc = Scenario.from_dict(d)
-    runner = sweep._runner(sc, 16, tuple(jax.devices()), 16)
-    jaxpr = jax.make_jaxpr(lambda i, sc, key: sweep._chunk_program(
+    runner = sweep._chunk._runner(sc, 16, tuple(jax.devices()), 16)
+    jaxpr = jax.make_jaxpr(lambda i, sc, key: sweep._chunk._chunk_program(
         sc, runner.lanes, runner.mesh, i, key))(
         jnp.arange(runner.size), runner.solved, jax.random.key(0))
     dots = [e for e in equations(jaxpr) if e.primitive.name == "dot_general"]
