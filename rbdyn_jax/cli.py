@@ -478,96 +478,6 @@ def verify_command(args) -> int:
     return EXIT_DAMAGED if not found.whole else EXIT_INCOMPLETE
 
 
-def load_observations(path: str, *, sigma_omega=None, sigma_quat=None, trajectories=None,
-                      seq: str = "ZXZ"):
-    """Observations from a file: `.npz` (arrays `ts` (n,) or (K, n), `omega` (K, n, 3),
-    `quat` (K, n, 4) or `euler` (K, n, 3) of `seq`, optional `sigma_omega`, `sigma_quat`,
-    `mask`), `.csv` (a header with `t` and `wx, wy, wz` and/or `qw, qx, qy, qz`, optional
-    `trajectory` column; trajectories of different lengths are padded and masked), or
-    anything xarray opens (a sweep store or netCDF with `omega`/`quat` over `trajectory`,
-    `time`; only successful trajectories when it has `status`). `trajectories` keeps the
-    first K. Noise levels given here override the file's (default 1)."""
-    import pathlib
-
-    import numpy as np
-
-    from .identify import Observations
-
-    p = pathlib.Path(path)
-    fields: dict = {}
-    if p.suffix == ".npz":
-        with np.load(p) as z:
-            unknown = set(z.files) - {"ts", "omega", "quat", "euler", "seq", "sigma_omega",
-                                      "sigma_quat", "mask"}
-            if unknown:
-                raise ValueError(f"{p}: unknown arrays {sorted(unknown)}")
-            if "ts" not in z.files:
-                raise ValueError(f"{p}: no `ts` array")
-            fields = {k: z[k] for k in z.files}
-            if "seq" in fields:
-                seq = str(fields.pop("seq"))
-    elif p.suffix == ".csv":
-        table = np.genfromtxt(p, delimiter=",", names=True)
-        names = table.dtype.names or ()
-        if "t" not in names:
-            raise ValueError(f"{p}: the header must name a `t` column, got {names}")
-        traj = table["trajectory"].astype(int) if "trajectory" in names else np.zeros(len(table),
-                                                                                    int)
-        ids = np.unique(traj)
-        n = max(int(np.sum(traj == i)) for i in ids)
-        K = len(ids)
-        ts = np.full((K, n), np.nan)
-        mask = np.zeros((K, n), bool)
-        groups = {"omega": ("wx", "wy", "wz"), "quat": ("qw", "qx", "qy", "qz")}
-        for name, cols in groups.items():
-            if all(c in names for c in cols):
-                fields[name] = np.full((K, n, len(cols)), np.nan)
-            elif any(c in names for c in cols):
-                raise ValueError(f"{p}: `{name}` needs all of the columns {cols}")
-        for k, i in enumerate(ids):
-            rows = table[traj == i]
-            ts[k, : len(rows)] = rows["t"]
-            mask[k, : len(rows)] = True
-            for name, cols in groups.items():
-                if name in fields:
-                    fields[name][k, : len(rows)] = np.stack([rows[c] for c in cols], -1)
-        fields.update(ts=ts, mask=mask)
-    else:
-        import xarray as xr
-
-        ds = xr.open_zarr(p) if p.is_dir() else xr.open_dataset(p)
-        if "omega" not in ds and "quat" not in ds:
-            raise ValueError(f"{path} holds no ω or attitude to fit (a sweep store keeping no "
-                             "states: sweep with --trajectories all or K)")
-        # A sweep keeping every K-th trajectory's states has them over `sampled_trajectory`.
-        dim = "sampled_trajectory" if "sampled_trajectory" in ds.dims else "trajectory"
-        if "status" in ds:
-            status = ds.status.values
-            if dim == "sampled_trajectory":
-                status = ds.status.sel(trajectory=ds.sampled_trajectory.values).values
-            ds = ds.isel({dim: np.nonzero(status == 0)[0]})
-        if trajectories is not None:
-            ds = ds.isel({dim: slice(0, trajectories)})
-        fields["ts"] = ds["time"].values
-        for name in ("omega", "quat"):
-            if name in ds:
-                fields[name] = ds[name].values
-    if trajectories is not None and p.suffix in (".npz", ".csv"):  # xarray: sliced above
-        for k in ("omega", "quat", "euler", "mask", "sigma_omega", "sigma_quat"):
-            if k in fields and np.ndim(fields[k]) >= 2:
-                fields[k] = fields[k][:trajectories]
-        if np.ndim(fields["ts"]) == 2:
-            fields["ts"] = fields["ts"][:trajectories]
-    if sigma_omega is not None:
-        fields["sigma_omega"] = sigma_omega
-    if sigma_quat is not None:
-        fields["sigma_quat"] = sigma_quat
-    return Observations(fields.pop("ts"), omega=fields.get("omega"), quat=fields.get("quat"),
-                        sigma_omega=fields.get("sigma_omega"),
-                        sigma_quat=fields.get("sigma_quat"), mask=fields.get("mask"),
-                        euler=fields.get("euler"), seq=seq)
-
-
 def _free_params(names: list[str], torque):
     """`--free` names → (`params`, `torque_where`) for `identify.fit`: `inertia`,
     `initial_conditions` (or `ic`), `torque` (every array leaf of the torque), `k` (the
@@ -744,9 +654,9 @@ def fit_command(args) -> int:
               file=sys.stderr)
         return 2
     try:
-        data = load_observations(args.data, sigma_omega=args.sigma_omega,
-                                 sigma_quat=args.sigma_quat, trajectories=args.trajectories,
-                                 seq=args.seq)
+        data = identify.Observations.from_file(
+            args.data, sigma_omega=args.sigma_omega, sigma_quat=args.sigma_quat,
+            trajectories=args.trajectories, seq=args.seq)
         params, where = _free_params([s.strip() for s in args.free.split(",") if s.strip()],
                                      model.torque)
     except (ValueError, OSError) as e:
@@ -779,7 +689,7 @@ def fit_command(args) -> int:
     try:
         with _compile_meter(jax) as meter:
             res = identify.fit(model, data, params=params, torque_where=where, scale=scale,
-                               steps=args.steps,
+                               optimizer=identify.LevenbergMarquardt(steps=args.steps),
                                horizons=None if horizons == (1.0,) else horizons)
     except ValueError as e:
         print(f"rbdyn fit: {e}", file=sys.stderr)

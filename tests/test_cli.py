@@ -212,39 +212,6 @@ def test_free_k_picks_only_the_restoring_coefficients():
         cli._free_params(["mass"], torque)
 
 
-def test_observations_load_the_same_from_npz_netcdf_and_csv(tmp_path):
-    """One record written as NPZ, netCDF (xarray, scipy engine) and CSV loads to the same
-    `Observations` (the CSV's shorter second trajectory is padded and masked)."""
-    import xarray as xr
-
-    rng = np.random.default_rng(0)
-    ts = np.linspace(0.0, 1.0, 5)
-    w = rng.standard_normal((2, 5, 3))
-    q = rng.standard_normal((2, 5, 4))
-    q /= np.linalg.norm(q, axis=-1, keepdims=True)
-    np.savez(tmp_path / "obs.npz", ts=ts, omega=w, quat=q, sigma_omega=0.1)
-    xr.Dataset({"omega": (("trajectory", "time", "axis"), w),
-                "quat": (("trajectory", "time", "quat_component"), q)},
-               coords={"time": ts}).to_netcdf(tmp_path / "obs.nc", engine="scipy")
-    rows = ["trajectory,t,wx,wy,wz,qw,qx,qy,qz"]
-    rows += [",".join(repr(float(x)) for x in [k, ts[i], *w[k, i], *q[k, i]])
-             for k in range(2) for i in range(5)]
-    (tmp_path / "obs.csv").write_text("\n".join(rows) + "\n")
-    a = cli.load_observations(str(tmp_path / "obs.npz"))
-    b = cli.load_observations(str(tmp_path / "obs.nc"), sigma_omega=0.1)
-    c = cli.load_observations(str(tmp_path / "obs.csv"), sigma_omega=0.1)
-    for other in (b, c):
-        for name in ("ts", "omega", "quat", "sigma_omega", "mask_omega", "mask_quat"):
-            np.testing.assert_array_equal(getattr(a, name), getattr(other, name), err_msg=name)
-    one = cli.load_observations(str(tmp_path / "obs.npz"), trajectories=1)
-    assert one.omega.shape == (1, 5, 3)
-    np.savez(tmp_path / "bad.npz", ts=ts, omega=w, colour=ts)
-    import pytest
-
-    with pytest.raises(ValueError, match="unknown arrays"):
-        cli.load_observations(str(tmp_path / "bad.npz"))
-
-
 @pytest.fixture
 def no_cache(monkeypatch):
     """`rbdyn sweep` or `rbdyn fit` run in this process turns on JAX's persistent compilation
