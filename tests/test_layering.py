@@ -2,9 +2,9 @@
 
 The order is the layer table of the developer docs, bottom layer first. Private helpers
 (`_x.py`) sit below everything and import no public module; `__init__` only re-exports, and
-nothing imports from it. `integrate/` is a package: its files import each other and the
-layers below `integrate`. No module imports another's private name, and diffrax is used
-only where its objects are built or run (see `DIFFRAX`).
+nothing imports from it. `integrate/`, `identify/` and `cli/` are packages: the files of
+each import each other and the layers below it. No module imports another's private name,
+and diffrax is used only where its objects are built or run (see `DIFFRAX`).
 """
 
 import ast
@@ -158,7 +158,8 @@ def test_checker_sees_a_violation(tmp_path):
     assert imports_diffrax(bad)
 
 
-@pytest.mark.parametrize("init", ["__init__.py", "integrate/__init__.py"])
+@pytest.mark.parametrize("init", ["__init__.py", "integrate/__init__.py",
+                                  "identify/__init__.py", "cli/__init__.py"])
 def test_reexports_are_grouped_by_module(init):
     """One `from .x import (a as a, b as b)` per module (ruff's combine-as-imports), not a
     statement per name."""
