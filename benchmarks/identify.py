@@ -35,8 +35,9 @@ compiling (`--no-cache-processes` skips them).
 Reported per method: wall time, residual / Jacobian evaluations, final cost, max |J_fit −
 J_true|, and that error in units of rbdyn's standard errors (Gauss–Newton covariance of the
 same draw's rbdyn fit; max over the 6 distinct entries); the ratio of wall times
-scipy / rbdyn. rbdyn's LM runs a fixed number of iterations (`--steps`, default 30 as in
-`fit`): its time scales with it, whatever iteration the cost settled at (printed).
+scipy / rbdyn. rbdyn's LM runs a fixed number of iterations (`--steps`, default 30 as
+`identify.LevenbergMarquardt()`): its time scales with it, whatever iteration the cost
+settled at (printed).
 
 Run: `python benchmarks/identify.py [--trajectories 3] [--samples 50] [--seed 0]` — prints a
 table and writes results/benchmarks/identify.json.
@@ -244,7 +245,8 @@ def run_rbdyn(ts, w_obs, q_obs, steps):
     model = rb.RigidBody(jnp.asarray(j_guess()), gravity())
     y0 = rb.State(jnp.asarray(w_obs[:, 0]), jnp.asarray(q_obs[:, 0]))
     t0 = time.perf_counter()
-    res = jax.block_until_ready(idf.fit(model, data, y0=y0, steps=steps, rtol=TOL, atol=TOL))
+    res = jax.block_until_ready(idf.fit(model, data, y0=y0, rtol=TOL, atol=TOL,
+                                        optimizer=idf.LevenbergMarquardt(steps=steps)))
     wall = time.perf_counter() - t0
     hist = np.asarray(res.loss_history)
     final = float(res.loss)

@@ -73,11 +73,13 @@ def main(
 
     J_guess = 1.1 * np.diag(np.diag(J_TRUE))  # principal moments only, 10 % off
     guess = rb.RigidBody(jnp.asarray(J_guess), gravity)
+    optimizer = rb.identify.LevenbergMarquardt(steps=steps)
     t0 = time.perf_counter()
-    res = rb.identify.fit(guess, data, steps=steps)
+    res = rb.identify.fit(guess, data, optimizer=optimizer)
     fit_time = time.perf_counter() - t0  # compilation included (the first fit of its shape)
     t0 = time.perf_counter()
-    rb.identify.fit(guess, data, steps=steps)  # same structure: the compiled program is reused
+    # the same structure: the compiled program is reused
+    rb.identify.fit(guess, data, optimizer=optimizer)
     refit_time = time.perf_counter() - t0
 
     J_fit = np.asarray(res.model.inertia)

@@ -85,7 +85,8 @@ def main(
 
     t0 = time.perf_counter()
     res = rb.identify.fit(top(K_GUESS, eps), data, params=("torque", "initial_conditions"),
-                          torque_where=lambda t: t.k.coeffs, y0=y0_guess, steps=steps)
+                          torque_where=lambda t: t.k.coeffs, y0=y0_guess,
+                          optimizer=rb.identify.LevenbergMarquardt(steps=steps))
     fit_time = time.perf_counter() - t0  # compilation included
 
     coeffs = np.asarray(res.model.torque.k.coeffs)

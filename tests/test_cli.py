@@ -13,6 +13,7 @@ import pytest
 
 import rbdyn_jax
 from rbdyn_jax import cli
+from rbdyn_jax.cli import _fit as cli_fit
 from rbdyn_jax.scenario import Scenario, list_scenarios
 
 
@@ -52,19 +53,26 @@ def test_version_of_the_installed_command():
 
 
 def test_cli_imports_jax_only_inside_commands():
-    """`cli.py` imports nothing heavy at module level: JAX and the numerical stack are
-    imported inside the commands that compute, so `--version` and `--help` need none of
-    them from it (its version comes from `_version.py`, which imports nothing)."""
-    tree = ast.parse(pathlib.Path(cli.__file__).read_text())
-    top = set()
-    for node in tree.body:
-        if isinstance(node, ast.Import):
-            top.update(alias.name.split(".")[0] for alias in node.names)
-        elif isinstance(node, ast.ImportFrom):
-            top.add("." + (node.module or "") if node.level
-                    else (node.module or "").split(".")[0])
-    assert top <= {"argparse", "os", "shlex", "sys", "time", "warnings", "._version"}, top
-    version = pathlib.Path(cli.__file__).with_name("_version.py").read_text()
+    """The `cli` package's modules import nothing heavy at module level: JAX and the
+    numerical stack are imported inside the commands that compute, so `--help` and
+    `--version` need none of them (its version comes from `_version.py`, which imports
+    nothing). At their top they import the standard library's lightest modules, each other
+    and `_version`."""
+    package = pathlib.Path(cli.__file__).parent
+    files = sorted(package.glob("*.py"))
+    assert {f.name for f in files} >= {"__init__.py", "__main__.py", "_main.py", "_parser.py"}
+    for path in files:
+        top = set()
+        for node in ast.parse(path.read_text()).body:
+            if isinstance(node, ast.Import):
+                top.update(alias.name.split(".")[0] for alias in node.names)
+            elif isinstance(node, ast.ImportFrom):
+                top.add("." * node.level + (node.module or "") if node.level
+                        else (node.module or "").split(".")[0])
+        siblings = {"." + f.stem for f in files} | {"."}
+        assert top <= {"argparse", "os", "shlex", "sys", "time", "warnings", ".._version",
+                       *siblings}, (path.name, top)
+    version = package.with_name("_version.py").read_text()
     assert "import" not in version
 
 
@@ -200,49 +208,16 @@ def test_free_k_picks_only_the_restoring_coefficients():
 
     torque = rb.RestoringMoment(rb.PolynomialSinPsi(jnp.array([1.0, 0.5]), 0.1)) + \
         rb.BodyTorque(jnp.array([0.0, 0.0, 1e-3]))
-    params, where = cli._free_params(["inertia", "k"], torque)
+    params, where = cli_fit.free_params(["inertia", "k"], torque)
     assert params == ("inertia", "torque")
     (coeffs,) = where(torque)
     assert coeffs is torque.torques[0].k.coeffs
     import pytest
 
     with pytest.raises(ValueError, match="no restoring_moment"):
-        cli._free_params(["k"], rb.BodyTorque(jnp.zeros(3)))
+        cli_fit.free_params(["k"], rb.BodyTorque(jnp.zeros(3)))
     with pytest.raises(ValueError, match="unknown 'mass'"):
-        cli._free_params(["mass"], torque)
-
-
-def test_observations_load_the_same_from_npz_netcdf_and_csv(tmp_path):
-    """One record written as NPZ, netCDF (xarray, scipy engine) and CSV loads to the same
-    `Observations` (the CSV's shorter second trajectory is padded and masked)."""
-    import xarray as xr
-
-    rng = np.random.default_rng(0)
-    ts = np.linspace(0.0, 1.0, 5)
-    w = rng.standard_normal((2, 5, 3))
-    q = rng.standard_normal((2, 5, 4))
-    q /= np.linalg.norm(q, axis=-1, keepdims=True)
-    np.savez(tmp_path / "obs.npz", ts=ts, omega=w, quat=q, sigma_omega=0.1)
-    xr.Dataset({"omega": (("trajectory", "time", "axis"), w),
-                "quat": (("trajectory", "time", "quat_component"), q)},
-               coords={"time": ts}).to_netcdf(tmp_path / "obs.nc", engine="scipy")
-    rows = ["trajectory,t,wx,wy,wz,qw,qx,qy,qz"]
-    rows += [",".join(repr(float(x)) for x in [k, ts[i], *w[k, i], *q[k, i]])
-             for k in range(2) for i in range(5)]
-    (tmp_path / "obs.csv").write_text("\n".join(rows) + "\n")
-    a = cli.load_observations(str(tmp_path / "obs.npz"))
-    b = cli.load_observations(str(tmp_path / "obs.nc"), sigma_omega=0.1)
-    c = cli.load_observations(str(tmp_path / "obs.csv"), sigma_omega=0.1)
-    for other in (b, c):
-        for name in ("ts", "omega", "quat", "sigma_omega", "mask_omega", "mask_quat"):
-            np.testing.assert_array_equal(getattr(a, name), getattr(other, name), err_msg=name)
-    one = cli.load_observations(str(tmp_path / "obs.npz"), trajectories=1)
-    assert one.omega.shape == (1, 5, 3)
-    np.savez(tmp_path / "bad.npz", ts=ts, omega=w, colour=ts)
-    import pytest
-
-    with pytest.raises(ValueError, match="unknown arrays"):
-        cli.load_observations(str(tmp_path / "bad.npz"))
+        cli_fit.free_params(["mass"], torque)
 
 
 @pytest.fixture

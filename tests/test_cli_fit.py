@@ -9,6 +9,7 @@ import pytest
 import xarray as xr
 
 from rbdyn_jax import cli
+from rbdyn_jax.cli import _fit as cli_fit
 
 # One sweep store for the module (--dist loadgroup): its sweep compiles once.
 pytestmark = pytest.mark.xdist_group("cli_fit")
@@ -93,10 +94,10 @@ def test_a_fit_with_too_few_steps_exits_6_and_asks_for_more(flip_store, tmp_path
 def test_the_time_claims_only_what_happened():
     """The wording of the fit's time, from what `_compile_meter` counted."""
     meter = {"tracing_s": 3.94, "loaded": 0}
-    assert cli._time_text(4.71, meter) == "4.7 s (3.9 s of it tracing and compiling)"
+    assert cli_fit.time_text(4.71, meter) == "4.7 s (3.9 s of it tracing and compiling)"
     meter = {"tracing_s": 0.1, "loaded": 2}  # small programs around the loaded fit
-    assert cli._time_text(0.52, meter) == "0.5 s (program loaded from the cache)"
+    assert cli_fit.time_text(0.52, meter) == "0.5 s (program loaded from the cache)"
     meter = {"tracing_s": 2.1, "loaded": 1}  # the trace redone, the compiled program loaded
-    assert cli._time_text(2.6, meter) == ("2.6 s (program loaded from the cache, 2.1 s of it "
+    assert cli_fit.time_text(2.6, meter) == ("2.6 s (program loaded from the cache, 2.1 s of it "
                                           "tracing and compiling)")
-    assert cli._time_text(0.31, {"tracing_s": 0.0, "loaded": 0}) == "0.3 s"
+    assert cli_fit.time_text(0.31, {"tracing_s": 0.0, "loaded": 0}) == "0.3 s"

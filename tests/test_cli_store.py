@@ -14,6 +14,7 @@ import pytest
 import zarr
 
 from rbdyn_jax import cli
+from rbdyn_jax.cli import _sweep as cli_sweep
 
 
 @pytest.fixture
@@ -138,7 +139,7 @@ def test_ctrl_c_exits_130_and_names_the_resume_command(tmp_path):
 
 def test_progress_in_a_log_is_lines(tmp_path, no_cache, capsys, monkeypatch):
     """Not a terminal: a line every few seconds and at the end, never a redrawn bar."""
-    monkeypatch.setattr(cli, "LOG_EVERY", 0.0)  # every chunk
+    monkeypatch.setattr(cli_sweep, "LOG_EVERY", 0.0)  # every chunk
     assert cli.main(["sweep", str(_toml(tmp_path / "tiny.toml")), "--n", "16", "--chunk", "8",
                      "--lanes", "8", "--out", str(tmp_path / "s.zarr")]) == 0
     err = capsys.readouterr().err

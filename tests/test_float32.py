@@ -57,7 +57,7 @@ CHILD = textwrap.dedent(f"""
     observed = rb.simulate(rb.RigidBody(J, top), y0, obs_ts).ys.omega
     fit = identify.fit(rb.RigidBody(jnp.diag(jnp.array([2.2, 2.8, 4.1])), top),
                        identify.Observations(obs_ts, omega=observed[None], sigma_omega=1e-4),
-                       steps=60)
+                       optimizer=identify.LevenbergMarquardt(steps=60))
     out["fit"] = {{"inertia": np.asarray(fit.model.inertia).tolist(),
                   "dtype": str(fit.model.inertia.dtype)}}
     print(json.dumps(out))
@@ -162,19 +162,21 @@ def test_matrix_products_ask_for_full_precision(monkeypatch):
         count, default = full_precision(jax.make_jaxpr(fn)(*args))
         assert count and not default, fn
     from rbdyn_jax import identify
+    from rbdyn_jax.identify import _fit
 
     traced = []
-    run = identify._run
+    run = _fit._run
 
     def recording(*args):
         traced.append(eqx.filter_make_jaxpr(run.fn)(*args)[0])
         return run(*args)
 
-    monkeypatch.setattr(identify, "_run", recording)
+    monkeypatch.setattr(_fit, "_run", recording)
     ts = jnp.linspace(0.0, 1.0, 6)
     y0 = rb.State(jnp.array([0.3, -0.2, 1.5]), jnp.array([1.0, 0.0, 0.0, 0.0]))
     observed = rb.simulate(rb.RigidBody(jnp.asarray(J)), y0, ts).ys.omega
     identify.fit(rb.RigidBody(jnp.asarray(J) * 1.1),
-                 identify.Observations(ts, omega=observed[None], sigma_omega=1e-3), steps=2)
+                 identify.Observations(ts, omega=observed[None], sigma_omega=1e-3),
+                 optimizer=identify.LevenbergMarquardt(steps=2))
     count, default = full_precision(traced[0])
     assert count and not default

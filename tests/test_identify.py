@@ -8,6 +8,8 @@
 - torque-free data: the scale of J is detected as undetermined without a scale fix, and fixed
   by `scale=TraceScale(value)` or `scale=MomentScale(axis, value)`; the scale classes check
   their arguments, and a tuple `scale` is refused;
+- the optimisers: `LevenbergMarquardt` (the default) and `Optax(tx)` (here L-BFGS), their
+  fields checked, a bare optax transformation refused;
 - step-size control: `stepsize_controller=PIDController(r, a)` is the same fit as
   `rtol=r, atol=a`, and a new tolerance reuses the compiled fit;
 - bad data: NaN samples, non-increasing times, mismatched shapes, non-unit quaternions.
@@ -25,6 +27,7 @@ from scipy.spatial.transform import Rotation
 
 import rbdyn_jax as rb
 from rbdyn_jax import identify as idf
+from rbdyn_jax.identify import _fit
 
 _R = Rotation.from_euler("ZYX", [0.4, -0.3, 0.7]).as_matrix()
 J_TRUE = _R @ np.diag([2.0, 3.0, 4.0]) @ _R.T
@@ -37,6 +40,7 @@ Q0 = Rotation.from_euler("ZXZ", [[1.0, 0.6, 0.2], [0.3, 1.2, -0.5], [-1.0, 0.9, 
 )
 SIGMA_W, SIGMA_Q = 0.01, 0.005
 J_GUESS = np.diag(np.diag(J_TRUE)) * 1.1  # no products of inertia, moments 10% off
+LM12, LM20 = idf.LevenbergMarquardt(steps=12), idf.LevenbergMarquardt(steps=20)
 UPPER = np.triu_indices(3)
 
 
@@ -61,7 +65,7 @@ def gravity_truth():
 
 
 def fit_gravity(data):
-    return idf.fit(rb.RigidBody(jnp.asarray(J_GUESS), GRAVITY), data, steps=12)
+    return idf.fit(rb.RigidBody(jnp.asarray(J_GUESS), GRAVITY), data, optimizer=LM12)
 
 
 @pytest.fixture(scope="module")
@@ -144,7 +148,7 @@ def free_truth():
 def test_torque_free_scale_detected_and_fixed(free_truth):
     data = noisy(*free_truth, seed=3)
     guess = rb.RigidBody(jnp.asarray(J_GUESS))
-    res = idf.fit(guess, data, steps=12)
+    res = idf.fit(guess, data, optimizer=LM12)
     assert not res.scale_identified
     assert any("up to scale" in n for n in res.notes)
     assert np.all(np.isinf(np.asarray(res.stderr["inertia"])))
@@ -153,7 +157,7 @@ def test_torque_free_scale_detected_and_fixed(free_truth):
     np.testing.assert_allclose(J / np.trace(J), J_TRUE / np.trace(J_TRUE), atol=0.02)
 
     trace = float(np.trace(J_TRUE))
-    fixed = idf.fit(guess, data, steps=12, scale=idf.TraceScale(trace))
+    fixed = idf.fit(guess, data, optimizer=LM12, scale=idf.TraceScale(trace))
     assert fixed.scale_identified and fixed.converged
     assert any("fixed by the user" in n for n in fixed.notes)
     Jf = np.asarray(fixed.model.inertia)
@@ -167,7 +171,7 @@ def test_torque_free_scale_detected_and_fixed(free_truth):
     # The same optimum with the scale fixed by a moment about a non-principal axis instead:
     # nᵀ J n held at the trace fit's value gives the trace fit's J.
     n = np.array([1.0, 1.0, 0.0]) / np.sqrt(2.0)
-    by_moment = idf.fit(guess, data, steps=12, scale=idf.MomentScale((1, 1, 0), n @ Jf @ n))
+    by_moment = idf.fit(guess, data, optimizer=LM12, scale=idf.MomentScale((1, 1, 0), n @ Jf @ n))
     assert by_moment.scale_identified and by_moment.converged
     assert any("fixed by the user: nᵀ J n" in note for note in by_moment.notes)
     Jm = np.asarray(by_moment.model.inertia)
@@ -177,6 +181,11 @@ def test_torque_free_scale_detected_and_fixed(free_truth):
 
 def test_scale_classes():
     J = jnp.asarray(J_TRUE)
+    for scale in (idf.TraceScale(9), idf.MomentScale(2, 1.0)):
+        assert isinstance(scale, idf.AbstractScale)
+        np.testing.assert_allclose(scale.of(scale.rescale(J)), scale.value, rtol=1e-14)
+    with pytest.raises(TypeError):
+        idf.AbstractScale()
     assert float(idf.TraceScale(9).of(J)) == pytest.approx(np.trace(J_TRUE))
     assert float(idf.MomentScale(2, 1.0).of(J)) == pytest.approx(J_TRUE[2, 2])
     n = np.array([3.0, 0.0, 4.0]) / 5.0
@@ -272,6 +281,43 @@ def test_fit_argument_errors():
         idf.fit(model, data, rtol=-1e-8)
     with pytest.raises(ValueError, match="'torque'"):
         idf.fit(model, data, params=("torque",))
+    import optax
+
+    for optimizer in (optax.adam(1e-2), None, "lm"):
+        with pytest.raises(ValueError, match=r"`optimizer` must be identify.LevenbergMarquardt"
+                           r"\(...\) or identify.Optax\(tx, ...\)"):
+            idf.fit(model, data, optimizer=optimizer)
+
+
+def test_optimizer_classes():
+    """The optimisers' defaults and the checks of their fields; both are
+    `AbstractOptimizer`s, and `fit`'s default is Levenberg–Marquardt."""
+    import inspect
+
+    import optax
+
+    lm = idf.LevenbergMarquardt()
+    assert (lm.steps, lm.tol, lm.damping) == (30, 1e-6, 1e-3)
+    assert inspect.signature(idf.fit).parameters["optimizer"].default == lm
+    tx = optax.adam(1e-2)
+    adam = idf.Optax(tx, steps=np.int64(5))
+    assert adam.tx is tx and (adam.steps, adam.tol) == (5, 1e-6) and type(adam.steps) is int
+    assert all(isinstance(o, idf.AbstractOptimizer) for o in (lm, adam))
+    for cls, args in ((idf.LevenbergMarquardt, ()), (idf.Optax, (tx,))):
+        name = cls.__name__
+        for steps in (0, -1, 2.5, True):
+            with pytest.raises(ValueError, match=f"{name}: `steps` must be a positive int"):
+                cls(*args, steps=steps)
+        for tol in (-1e-3, np.nan):
+            with pytest.raises(ValueError, match=f"{name}: `tol` must be ≥ 0"):
+                cls(*args, tol=tol)
+    for damping in (0.0, -1.0, np.inf):
+        with pytest.raises(ValueError, match="`damping` must be finite and positive"):
+            idf.LevenbergMarquardt(damping=damping)
+    with pytest.raises(ValueError, match="Optax: `tx` must be an optax GradientTransformation"):
+        idf.Optax(lambda g: g)
+    with pytest.raises(TypeError):
+        idf.AbstractOptimizer()
 
 
 def test_stepsize_controller_is_the_tolerance_shorthand(gravity_truth, monkeypatch):
@@ -280,13 +326,13 @@ def test_stepsize_controller_is_the_tolerance_shorthand(gravity_truth, monkeypat
     it (the fit is not traced again)."""
     data = noisy(*gravity_truth, seed=0)
     guess = rb.RigidBody(jnp.asarray(J_GUESS), GRAVITY)
-    by_tol = idf.fit(guess, data, steps=12, rtol=1e-9, atol=1e-11)
+    by_tol = idf.fit(guess, data, optimizer=LM12, rtol=1e-9, atol=1e-11)
     traced = []
     residuals = idf.residuals
-    monkeypatch.setattr(idf, "residuals", lambda *a, **k: traced.append(1) or residuals(*a, **k))
+    monkeypatch.setattr(_fit, "residuals", lambda *a, **k: traced.append(1) or residuals(*a, **k))
     controller = diffrax.PIDController(rtol=3e-9, atol=3e-11)
-    idf.fit(guess, data, steps=12, stepsize_controller=controller)
-    by_controller = idf.fit(guess, data, steps=12,
+    idf.fit(guess, data, optimizer=LM12, stepsize_controller=controller)
+    by_controller = idf.fit(guess, data, optimizer=LM12,
                             stepsize_controller=diffrax.PIDController(rtol=1e-9, atol=1e-11))
     assert not traced
     np.testing.assert_array_equal(by_controller.model.inertia, by_tol.model.inertia)
@@ -304,7 +350,7 @@ def test_optax_optimizer_path_descends_and_stays_physical(gravity_truth):
     # optax's L-BFGS mixes int32/int64 internally: strict promotion is relaxed for it only.
     with jax.numpy_dtype_promotion("standard"):
         res = idf.fit(rb.RigidBody(jnp.asarray(J_GUESS), GRAVITY), data,
-                      optimizer=optax.lbfgs(), steps=20)
+                      optimizer=idf.Optax(optax.lbfgs(), steps=20))
     lh = np.asarray(res.loss_history)
     assert np.all(np.isfinite(lh)) and lh[-1] < lh[0] / 10
     assert np.all(np.asarray(rb.inertia.is_physical(res.model.inertia)))
@@ -343,9 +389,9 @@ def test_staged_horizons_rescue_a_long_record():
                         ts=ts), seed=0, ts=ts)
     guess = rb.RigidBody(jnp.asarray(np.diag(np.diag(J_TRUE)) * 1.3), GRAVITY)
     dof = 2 * 61 * 6 - (6 + 12)
-    direct = idf.fit(guess, data, steps=20)
+    direct = idf.fit(guess, data, optimizer=LM20)
     assert 2 * float(direct.loss) / dof > 10 and not direct.converged
-    staged = idf.fit(guess, data, steps=20, horizons=(0.1, 0.25, 0.5, 1.0))
+    staged = idf.fit(guess, data, optimizer=LM20, horizons=(0.1, 0.25, 0.5, 1.0))
     assert staged.converged and 2 * float(staged.loss) / dof < 1.3
     z = (np.asarray(staged.model.inertia) - J_TRUE) / np.asarray(staged.stderr["inertia"])
     assert np.max(np.abs(z[UPPER])) < 4.0

@@ -2,10 +2,11 @@
 
 The order is the layer table of the developer docs, bottom layer first. Private helpers
 (`_x.py`) sit below everything and import no public module; `__init__` only re-exports, and
-nothing imports from it. `integrate/`, `analytic/`, `scenario/` and the private compile
-layer `_program/` are packages: a package's files import each other (their private names
-too: they are one module) and the layers below it. No module imports another's private
-name, and diffrax is used only where its objects are built or run (see `DIFFRAX`).
+nothing imports from it. `integrate/`, `analytic/`, `scenario/`, `sweep/`, `identify/`,
+`cli/` and the private compile layer `_program/` are packages: a package's files import
+each other (their private names too: they are one module) and the layers below it. No
+module imports another's private name, and diffrax is used only where its objects are
+built or run (see `DIFFRAX`).
 """
 
 import ast
@@ -187,7 +188,8 @@ def test_checker_allows_private_names_only_between_a_packages_files(tmp_path, mo
 
 @pytest.mark.parametrize("init", ["__init__.py", "integrate/__init__.py",
                                   "analytic/__init__.py", "scenario/__init__.py",
-                                  "sweep/__init__.py", "_program/__init__.py"])
+                                  "sweep/__init__.py", "identify/__init__.py",
+                                  "cli/__init__.py", "_program/__init__.py"])
 def test_reexports_are_grouped_by_module(init):
     """One `from .x import (a as a, b as b)` per module (ruff's combine-as-imports), not a
     statement per name."""

@@ -307,7 +307,7 @@ FIT = textwrap.dedent("""
     truth = rb.simulate_batch(model, y0s, ts, rtol=1e-10, atol=1e-10)
     data = identify.Observations(ts, omega=truth.ys.omega, quat=truth.ys.quat)
     guess = rb.RigidBody(1.1 * jnp.diag(jnp.diag(J)), model.torque)
-    res = identify.fit(guess, data, steps=4)
+    res = identify.fit(guess, data, optimizer=identify.LevenbergMarquardt(steps=4))
     leaves = jax.tree_util.tree_leaves((res.model, res.y0, res.loss_history, res.covariance,
                                         res.stderr))
     np.savez(sys.argv[2], **{f"fit{i}": np.asarray(x) for i, x in enumerate(leaves)})

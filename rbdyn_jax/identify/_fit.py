@@ -1,0 +1,448 @@
+"""The fit: `fit` checks its arguments and reads the result (`FitResult`); the fit itself,
+from the starting point through the optimiser to the covariance at the optimum, is one
+compiled program (`_fit_program`, run as `_run`)."""
+
+import dataclasses
+from collections.abc import Callable, Sequence
+from typing import NamedTuple
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.flatten_util import ravel_pytree
+from jaxtyping import Array, PyTree
+
+from .. import rotation
+from .._program.program import Program
+from .._program.xla import QUICK_COMPILE_OPTIONS
+from ..inertia import to_log_cholesky
+from ..integrate import make_controller
+from ..models import RigidBody
+from ..state import State
+from ._observations import Observations
+from ._optimizers import AbstractOptimizer, LevenbergMarquardt, Linearisation, Minimum, Objective
+from ._residuals import DEFAULT_TOL, residuals
+from ._scale import AbstractScale, inertia_of, scale_direction
+
+
+class FitResult(eqx.Module):
+    """The outcome of `fit`.
+
+    **Fields:**
+
+    - `model`: the fitted model; `y0`: fitted initial states (`State`, leading K axis).
+    - `loss`: final ½ Σ r²; `loss_history`: `(steps + 1,)` loss before each step and at the
+      end; `inertia_history`: `(steps + 1, 3, 3)` the inertia at each iterate (all physical).
+    - `grad_norm`: |∇ loss| at the optimum over the free parameters.
+    - `decrement`: ½ gᵀ(JᵀJ)⁻¹g at the optimum, the loss decrease a further Gauss–Newton step
+      would bring (in units of χ²/2); `converged`: `decrement` below the optimiser's `tol`
+      and everything finite.
+    - `covariance`: `(P, P)` Gauss–Newton covariance `(JᵀJ)⁻¹` of the flat free parameters
+      (noise levels taken as given, not rescaled by χ²), `labels`: their P names.
+    - `stderr`: dict shaped like what it describes: `"inertia"` `(3, 3)` (delta method through
+      `from_log_cholesky`), `"torque"` (the torque's free leaves), `"omega0"` `(K, 3)`,
+      `"quat0"` `(K, 3)` (rotation vector, radians).
+    - `scale_identified`: `False` when the data leave the scale of J undetermined (no torque
+      and no `scale` fix, `TraceScale` or `MomentScale`); the inertia stderr is then `inf`.
+    - `ill_determined`: number of directions of `JᵀJ` with eigenvalue below `rcond` × largest.
+    - `notes`: tuple of sentences on identifiability and convergence.
+    """
+
+    model: RigidBody
+    y0: State
+    loss: Array
+    loss_history: Array
+    inertia_history: Array
+    grad_norm: Array
+    decrement: Array
+    converged: bool
+    covariance: Array
+    labels: tuple[str, ...] = eqx.field(static=True)
+    stderr: dict
+    scale_identified: bool
+    ill_determined: int
+    notes: tuple[str, ...] = eqx.field(static=True)
+
+
+PARAMS = ("inertia", "torque", "initial_conditions")
+
+
+def fit(
+    model: RigidBody,
+    data: Observations,
+    *,
+    params: Sequence[str] = ("inertia", "initial_conditions"),
+    torque_where: Callable | None = None,
+    y0: State | None = None,
+    scale: AbstractScale | None = None,
+    optimizer: AbstractOptimizer = LevenbergMarquardt(),
+    rcond: float = 1e-9,
+    solver: diffrax.AbstractSolver = diffrax.Tsit5(),
+    stepsize_controller: diffrax.AbstractStepSizeController | None = None,
+    rtol: float | None = None,
+    atol: float | None = None,
+    max_steps: int = 4096,
+    horizons: Sequence[float] | None = None,
+) -> FitResult:
+    """Fit the free parameters of `model` (and the initial states) to `data`.
+
+    **Arguments:**
+
+    - `model`: a `RigidBody` (absolute motion, docs/physics.md#eulers-equations) giving
+      the structure and the initial guess (its inertia must be strictly physical, J' ≻ 0).
+    - `data`: `Observations` of K trajectories.
+    - `params`: which parts are free, any of `"inertia"` (log-Cholesky θ of J',
+      docs/physics.md#log-cholesky-parametrisation),
+      `"torque"` (the array leaves of `model.torque`, or those `torque_where(torque)` picks,
+      as the `where` of `eqx.tree_at`), `"initial_conditions"` (ω0 and a rotation-vector
+      correction δ of q0 = q0_guess ⊗ exp(δ), per trajectory). Not free: held at the guess.
+    - `y0`: initial guesses `State(omega (K, 3), quat (K, 4))` at `data.ts[:, 0]`; default:
+      the first observed ω (zeros when ω is not observed) and the first observed attitude
+      (identity when attitude is not observed), of each trajectory.
+    - `scale`: fix the scale of J (an `AbstractScale`): `TraceScale(value)` (tr J = value) or
+      `MomentScale(axis, value)` (the moment of inertia about `axis`, an index 0–2 or a
+      3-vector); `None` (default): not fixed. Needed when the model has no torque (see
+      `rbdyn_jax.identify`).
+    - `optimizer`: an `AbstractOptimizer`: `LevenbergMarquardt(steps=30, tol=1e-6,
+      damping=1e-3)` (default) on the residual vector (Jacobian by forward mode), or
+      `Optax(tx, steps=30, tol=1e-6)`, an optax transformation (e.g. `optax.adam(1e-2)` or
+      `optax.lbfgs()`) run `steps` times on the loss. Its `tol` is the convergence
+      threshold on the Gauss–Newton decrement (Levenberg–Marquardt stops early once it is
+      reached).
+    - `rcond`: eigenvalues of JᵀJ below `rcond` × the largest count as ill-determined
+      directions.
+    - `solver`, `stepsize_controller`, `max_steps`: passed to `simulate`. `rtol`, `atol`:
+      shorthand for `stepsize_controller=diffrax.PIDController(rtol, atol)`, each
+      defaulting to 1e-10; giving both a controller and a tolerance is a `ValueError`.
+    - `horizons`: staged horizons for long or chaotic records, increasing fractions of each
+      trajectory's span ending at 1, e.g. `(0.25, 0.5, 1.0)`: fit the samples up to the
+      first fraction, start the next stage from that fit, and so on (the early part of a
+      record constrains the parameters before errors in them have grown over the whole of
+      it). Every stage masks samples of the same arrays, so all stages share one
+      compilation; each runs the `optimizer` in full.
+
+    The whole fit (starting point, optimisation loop, covariance and standard errors) is one
+    compiled program (`eqx.filter_jit`, `lax.scan` over the steps); a second fit of the same
+    structure and sizes reuses it, also with other values of the optimiser's `tol` and of a
+    `PIDController`'s tolerances (passed as arrays). With JAX's persistent compilation cache
+    configured (`jax_compilation_cache_dir`), a later process loads the fit's traced and
+    compiled program from it instead of tracing and compiling it again (with `Optax` only
+    where the cache can describe its transformation exactly, else it is traced).
+    The solves inside the fit run with their checks as NaN: a trial point whose solve fails
+    is rejected, as one whose loss went up.
+
+    **Returns:** a `FitResult`.
+    """
+    if not isinstance(model, RigidBody):
+        raise ValueError(f"`model` must be a RigidBody, got {type(model).__name__}.")
+    if not isinstance(data, Observations):
+        raise ValueError(f"`data` must be Observations, got {type(data).__name__}.")
+    if scale is not None and not isinstance(scale, AbstractScale):
+        raise ValueError("`scale` must be None, identify.TraceScale(value) or "
+                         f"identify.MomentScale(axis, value), got {scale!r}.")
+    if not isinstance(optimizer, AbstractOptimizer):
+        raise ValueError("`optimizer` must be identify.LevenbergMarquardt(...) or "
+                         "identify.Optax(tx, ...) (an optax transformation wrapped), got "
+                         f"{type(optimizer).__name__}.")
+    controller = make_controller(stepsize_controller, rtol, atol, default_tol=DEFAULT_TOL,
+                                 dtype=data.ts.dtype)
+    if horizons is not None:
+        return _staged_fit(model, data, horizons, params=params, torque_where=torque_where,
+                           y0=y0, scale=scale, optimizer=optimizer, rcond=rcond, solver=solver,
+                           stepsize_controller=controller, max_steps=max_steps)
+    params = tuple(params)
+    for p in params:
+        if p not in PARAMS:
+            raise ValueError(f"`params` entries must be among {PARAMS}, got {p!r}.")
+    if not params:
+        raise ValueError("`params` names no free parameter.")
+    K = data.num_trajectories
+    if y0 is not None and (jnp.shape(y0.omega) != (K, 3) or jnp.shape(y0.quat) != (K, 4)):
+        raise ValueError(f"`y0` must be a State with omega ({K}, 3) and quat ({K}, 4).")
+    torque_dyn, torque_static = _torque_parts(model.torque, torque_where)
+    if "torque" in params and not jax.tree_util.tree_leaves(torque_dyn):
+        raise ValueError("`params` names 'torque' but the model's torque has no array leaves.")
+
+    # The optimiser's `tol` as an input of the compiled fit: another value reuses it.
+    tol = jnp.asarray(optimizer.tol, data.ts.dtype)
+    cfg = _Config(solver=solver, stepsize_controller=controller, max_steps=int(max_steps),
+                  scale=scale, optimizer=eqx.tree_at(lambda o: o.tol, optimizer, tol),
+                  torque_static=torque_static, params=tuple(sorted(set(params))))
+    out = _run(model, y0, torque_dyn, data, cfg)
+    return _result(out, params, scale, optimizer, rcond)
+
+
+def _torque_parts(torque, torque_where: Callable | None) -> tuple[PyTree, PyTree]:
+    """The torque's free leaves and the rest (`eqx.partition`): its inexact arrays, or those
+    `torque_where` picks."""
+    if torque_where is None:
+        return eqx.partition(torque, eqx.is_inexact_array)
+    spec = jax.tree_util.tree_map(lambda _: False, torque)
+    picked = torque_where(spec)
+    replace = (True,) * len(picked) if isinstance(picked, tuple) else True
+    spec = eqx.tree_at(torque_where, spec, replace=replace)
+    return eqx.partition(torque, spec)
+
+
+def _result(out: "_Optimum", params, scale: AbstractScale | None,
+            optimizer: AbstractOptimizer, rcond: float) -> FitResult:
+    """The compiled fit's output read into a `FitResult`, with its notes on identifiability
+    and convergence (NumPy: no further programs to compile)."""
+    labels = _labels(out.params)
+    evals = np.asarray(out.eigenvalues)
+    ill = int(np.sum(evals < rcond * evals.max()))
+    notes = []
+    scale_ok = True
+    if "inertia" in params and scale is None:
+        # Is the scaling of J a near-null direction of JᵀJ?
+        if float(out.scale_curvature) < rcond * evals.max():
+            scale_ok = False
+            notes.append(
+                "The data fix the inertia only up to scale (J → cJ leaves the motion "
+                "unchanged, as with no torque): pass scale=TraceScale(value) or "
+                "scale=MomentScale(axis, value), or include a known torque in the model."
+            )
+    if scale is not None and "inertia" in params:
+        notes.append(f"The scale of J is fixed by the user: {scale.quantity} = {scale.value:g}.")
+    if ill > (0 if scale_ok and scale is None else 1):
+        notes.append(
+            f"{ill} direction(s) of parameter space are ill-determined (eigenvalue of JᵀJ "
+            f"below {rcond:g} × the largest): their standard errors are large."
+        )
+    stderr = dict(out.stderr)
+    if "inertia" in stderr and not scale_ok:
+        stderr["inertia"] = np.full((3, 3), np.inf)
+    converged = bool(np.isfinite(float(out.loss)) and float(out.decrement) < optimizer.tol)
+    if not converged:
+        notes.append(
+            f"Not converged after {optimizer.steps} steps: Gauss–Newton decrement "
+            f"{float(out.decrement):.3g} ≥ tol = {optimizer.tol:g}."
+        )
+    return FitResult(
+        model=out.model, y0=out.y0, loss=out.loss, loss_history=out.loss_history,
+        inertia_history=out.inertia_history, grad_norm=out.grad_norm,
+        decrement=out.decrement, converged=converged, covariance=out.covariance, labels=labels,
+        stderr=stderr, scale_identified=scale_ok, ill_determined=ill, notes=tuple(notes),
+    )
+
+
+def _staged_fit(model, data: Observations, horizons, **kwargs) -> FitResult:
+    h = np.asarray(horizons, dtype=float)
+    if h.ndim != 1 or h.size < 1 or np.any(h <= 0) or np.any(np.diff(h) <= 0) or h[-1] != 1:
+        raise ValueError(f"`horizons` must increase within (0, 1] and end at 1, got {horizons}.")
+    ts = np.asarray(data.ts)
+    mask = np.asarray(data.mask)
+    t0 = np.array([t[m][0] for t, m in zip(ts, mask)])
+    t1 = np.array([t[m][-1] for t, m in zip(ts, mask)])
+    res, y0 = None, kwargs.pop("y0")
+    for frac in h:
+        keep = jnp.asarray(ts <= (t0 + frac * (t1 - t0))[:, None] * (1 + 1e-12))
+        stage = eqx.tree_at(lambda d: (d.mask_omega, d.mask_quat), data,
+                            (data.mask_omega & keep, data.mask_quat & keep))
+        res = fit(model, stage, y0=y0, **kwargs)
+        model, y0 = res.model, res.y0
+    notes = (*res.notes, f"Staged horizons {tuple(float(x) for x in h)}: each stage started "
+             "from the previous fit; the result is the last (full-record) stage's.")
+    return dataclasses.replace(res, notes=notes)
+
+
+# ---------------------------------------------------------------------------------------
+# The compiled fit.
+
+
+class _Config(eqx.Module):
+    """How `_run` solves and optimises: everything but the parameters and the data. Array
+    fields are inputs of the compiled fit (a new value reuses it); the others are part of
+    its structure (a new value compiles again)."""
+
+    solver: diffrax.AbstractSolver  # of every simulation
+    stepsize_controller: diffrax.AbstractStepSizeController  # PID tolerances as arrays
+    max_steps: int = eqx.field(static=True)  # solver steps per trajectory
+    scale: AbstractScale | None  # the user's fix of the scale of J, if any
+    optimizer: AbstractOptimizer  # its `tol` as an array of the data's dtype
+    torque_static: PyTree  # the torque's parts that are not free (`eqx.partition`)
+    params: tuple[str, ...] = eqx.field(static=True)  # which of `PARAMS` are free
+
+
+# The parameters and which entry of `fit`'s `params` frees each.
+_FREED_BY = {"theta": "inertia", "torque": "torque", "omega0": "initial_conditions",
+             "dq0": "initial_conditions"}
+
+
+def _initial_guess(data: Observations) -> State:
+    first = lambda m: jnp.argmax(m, axis=1)  # noqa: E731  first valid sample
+    K = data.num_trajectories
+    if data.omega is not None:
+        omega = data.omega[jnp.arange(K), first(data.mask_omega)]
+    else:
+        omega = jnp.zeros((K, 3), data.ts.dtype)
+    if data.quat is not None:
+        quat = data.quat[jnp.arange(K), first(data.mask_quat)]
+    else:
+        quat = jnp.zeros((K, 4), data.ts.dtype).at[:, 0].set(1.0)
+    return State(omega, quat)
+
+
+def _labels(p) -> tuple[str, ...]:
+    """Names of the flat parameters, in `ravel_pytree` order."""
+    labels = []
+    for path, leaf in jax.tree_util.tree_leaves_with_path(p):
+        name = jax.tree_util.keystr(path)
+        labels += [name + str(list(i)) for i in np.ndindex(np.shape(leaf))]
+    return tuple(labels)
+
+
+class _Start(NamedTuple):
+    """The starting point: the parameters, free and fixed, and the initial attitudes the
+    free corrections δ rotate."""
+
+    free: dict  # the free parameters (shaped), at the guess
+    fixed: dict  # the others, held there
+    q0_guess: Array  # (K, 4), unit
+
+
+def _starting_point(model, y0, torque_dyn, data, cfg: _Config) -> _Start:
+    """The parameters at `model` and `y0` (`None`: the first observed samples)."""
+    if y0 is None:
+        y0 = _initial_guess(data)
+    q0_guess = rotation.quat_normalize(y0.quat)
+    start = {"theta": to_log_cholesky(model.inertia), "torque": torque_dyn,
+             "omega0": y0.omega, "dq0": jnp.zeros_like(y0.omega)}
+    free = {k: v for k, v in start.items() if _FREED_BY[k] in cfg.params}
+    fixed = {k: v for k, v in start.items() if _FREED_BY[k] not in cfg.params}
+    return _Start(free, fixed, q0_guess)
+
+
+class _Assembled(NamedTuple):
+    """A model and initial states built from the parameters."""
+
+    model: RigidBody
+    y0: State  # leading K axis
+
+
+def _assemble(p, start: _Start, model, cfg: _Config) -> _Assembled:
+    allp = {**start.fixed, **p}
+    J = inertia_of(allp["theta"], cfg.scale)
+    torque = eqx.combine(allp["torque"], cfg.torque_static)
+    m = eqx.tree_at(lambda x: (x.inertia, x.torque), model, (J, torque))
+    quat = rotation.quat_multiply(start.q0_guess, rotation.quat_from_rotvec(allp["dq0"]))
+    return _Assembled(m, State(allp["omega0"], quat))
+
+
+def _objective(model, data: Observations, cfg: _Config, start: _Start, unravel) -> Objective:
+    """The residuals of the model and initial states the flat parameters build, their
+    Jacobian by forward mode and their loss, for the optimiser."""
+
+    def res(flat, adjoint):
+        built = _assemble(unravel(flat), start, model, cfg)
+        return residuals(built.model, built.y0, data, solver=cfg.solver,
+                         stepsize_controller=cfg.stepsize_controller,
+                         max_steps=cfg.max_steps, adjoint=adjoint)
+
+    def linearise(y) -> Linearisation:
+        def both(z):
+            r = res(z, diffrax.ForwardMode())
+            return r, r
+
+        Jm, r = jax.jacfwd(both, has_aux=True)(y)
+        return Linearisation(Jm, r)
+
+    def loss_fn(flat):
+        r = res(flat, diffrax.RecursiveCheckpointAdjoint())
+        return 0.5 * jnp.sum(r * r)
+
+    def inertia(flat):
+        allp = {**start.fixed, **unravel(flat)}
+        return inertia_of(allp["theta"], cfg.scale)
+
+    # the residuals' count: 3 a sample for ω and 3 for the attitude, where observed
+    m = data.ts.size * 3 * ((data.omega is not None) + (data.quat is not None))
+    return Objective(linearise=linearise, loss=loss_fn, inertia=inertia, num_residuals=m)
+
+
+class _Optimum(NamedTuple):
+    """What the compiled fit returns."""
+
+    params: dict  # the free parameters at the optimum, shaped like `free`
+    model: RigidBody  # the fitted model
+    y0: State  # the fitted initial states (leading K axis)
+    stderr: dict  # as `FitResult.stderr` (the inertia's before the scale check)
+    scale_curvature: Array  # vᵀ(JᵀJ)v/vᵀv along the scaling of J, v (0 if J is not free)
+    loss: Array  # ½ Σ r² there
+    loss_history: Array  # (steps + 1,)
+    inertia_history: Array  # (steps + 1, 3, 3)
+    grad_norm: Array  # |Jᵀr|
+    decrement: Array  # ½ gᵀ (JᵀJ)⁻¹ g
+    covariance: Array  # (JᵀJ)⁻¹ (a pseudo-inverse along a scale fix's gauge direction)
+    eigenvalues: Array  # of JᵀJ, ascending
+
+
+def _fit_program(model, y0, torque_dyn, data, cfg: _Config) -> _Optimum:
+    """The whole fit: the starting point from `model` and `y0` (`None`: the first observed
+    samples), the optimisation, and what `fit` reports at the optimum."""
+    start = _starting_point(model, y0, torque_dyn, data, cfg)
+    flat0, unravel = ravel_pytree(start.free)
+    found = cfg.optimizer.minimise(_objective(model, data, cfg, start, unravel), flat0)
+    return _at_optimum(found, start, unravel, model, cfg)
+
+
+def _covariance(H, scale: AbstractScale | None):
+    """The eigenvalues of JᵀJ `H` and the covariance `(JᵀJ)⁻¹`."""
+    evals, evecs = jnp.linalg.eigh(H)
+    floor = 1e-300 + 1e-15 * jnp.max(evals)
+    if scale is None:  # an undetermined direction gets a huge (not a hidden) variance
+        inv_evals = 1.0 / jnp.maximum(evals, floor)
+    else:  # the scale fix leaves one exact gauge direction (J unchanged): pseudo-inverse
+        inv_evals = jnp.where(evals > 1e-13 * jnp.max(evals), 1.0 / jnp.maximum(evals, floor),
+                              0.0)
+    return evals, evecs @ jnp.diag(inv_evals) @ evecs.T
+
+
+def _at_optimum(found: Minimum, start: _Start, unravel, model, cfg: _Config) -> _Optimum:
+    """The fitted model and initial states, the covariance and the standard errors where
+    the optimiser stopped."""
+    x, Jm, r = found.x, found.at.jacobian, found.at.residuals
+    f = 0.5 * jnp.sum(r * r)
+    H = Jm.T @ Jm
+    g = Jm.T @ r
+    evals, inv = _covariance(H, cfg.scale)
+    p_opt = unravel(x)
+    fitted = _assemble(p_opt, start, model, cfg)
+    se = unravel(jnp.sqrt(jnp.diag(inv)))
+    stderr, curvature = {}, jnp.zeros((), x.dtype)
+    if "theta" in p_opt:  # the inertia's, by the delta method; the curvature along J → cJ
+        it = np.array([lab.startswith("['theta']") for lab in _labels(p_opt)])
+        D = jax.jacfwd(lambda th: inertia_of(th, cfg.scale).reshape(9))(p_opt["theta"])
+        cov_t = inv[np.ix_(it, it)]
+        stderr["inertia"] = jnp.sqrt(jnp.clip(jnp.diag(D @ cov_t @ D.T), 0.0)).reshape(3, 3)
+        v = jnp.zeros_like(x).at[np.flatnonzero(it)].set(scale_direction(p_opt["theta"]))
+        curvature = v @ H @ v / (v @ v)
+    if "torque" in p_opt:
+        stderr["torque"] = se["torque"]
+    if "omega0" in p_opt:
+        stderr["omega0"] = se["omega0"]
+        stderr["quat0"] = se["dq0"]
+    return _Optimum(
+        params=p_opt, model=fitted.model, y0=fitted.y0, stderr=stderr,
+        scale_curvature=curvature, loss=f, loss_history=found.loss_history,
+        inertia_history=found.inertia_history, grad_norm=jnp.linalg.norm(g),
+        decrement=0.5 * g @ inv @ g, covariance=inv, eigenvalues=evals,
+    )
+
+
+def _fit_at_full_precision(*args) -> _Optimum:
+    """`_fit_program` with its matrix products (the Gauss–Newton normal equations, the
+    covariance) traced at full precision: at JAX's default a GPU multiplies float32 in
+    TF32."""
+    with jax.default_matmul_precision("highest"):
+        return _fit_program(*args)
+
+
+# The whole fit, one compiled program, compiled for a short first call
+# (`QUICK_COMPILE_OPTIONS`). `fit` has validated its inputs, so the program is traced with
+# the solves' checks as NaN: a trial point whose solve fails gives NaN residuals, which
+# Levenberg–Marquardt rejects, and the program, holding no host callback, is stored by the
+# caches (a later process with the cache configured loads it instead of tracing the fit).
+_run = Program(_fit_at_full_precision, options=QUICK_COMPILE_OPTIONS)
