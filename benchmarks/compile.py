@@ -43,7 +43,7 @@ a new process on the same directory.
 it was cacheable); "cb skip" counts the programs JAX compiled during that call but refused
 to store because they hold host callbacks (taken from JAX's log; their names are in the
 JSON). "traces" counts the solves that (3) loaded from rbdyn_jax's cache of traced programs
-(`rbdyn_jax/_traces.py`, in the same directory) instead of tracing them; a gradient is
+(`rbdyn_jax/_program/traces.py`, in the same directory) instead of tracing them; a gradient is
 the caller's own `jit`, which rbdyn_jax cannot store, but inside it the lane solver's
 loops (the forward solve, and the sensitivities' solves of ω's group and of the whole state)
 are loaded from there. The speed-up is first call
@@ -294,7 +294,7 @@ def child(case, cache):
     t0 = time.perf_counter()
     jax.block_until_ready(call())
     steady = time.perf_counter() - t0
-    traces = sys.modules.get("rbdyn_jax._traces")  # rbdyn_jax's cache of traced solves
+    traces = sys.modules.get("rbdyn_jax._program.traces")  # rbdyn_jax's cache of traced solves
     print(json.dumps({"import_jax_s": import_jax_s, "import_rbdyn_jax_s": import_rb_s,
                       "build_s": build, "first_s": first, "steady_s": steady,
                       "entries_written": entries,

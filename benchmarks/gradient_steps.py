@@ -92,7 +92,7 @@ class _OmegaGroup(eqx.Module):
 
 
 def _jit(fn):
-    """`jax.jit` with the options rbdyn_jax compiles its own programs with (`_xla.py`)."""
+    """`jax.jit` with the options rbdyn_jax compiles its own programs with (`rbdyn_jax/_program/xla.py`)."""
     return jax.jit(fn, compiler_options=rb.COMPILER_OPTIONS)
 
 

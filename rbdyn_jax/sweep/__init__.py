@@ -66,7 +66,7 @@ from ._read import (
     to_netcdf as to_netcdf,
 )
 from ._run import Progress as Progress, run as run, solve_chunk as solve_chunk
-from ._store import CONVENTIONS as CONVENTIONS, status_meanings as status_meanings
+from ._store import status_meanings as status_meanings
 from ._verify import (
     Damage as Damage,
     IncompleteStoreWarning as IncompleteStoreWarning,
@@ -77,7 +77,7 @@ from ._verify import (
     verify as verify,
 )
 
-__all__ = ["CONVENTIONS", "Damage", "IncompleteStoreWarning", "Progress", "StoreDamagedError",
+__all__ = ["Damage", "IncompleteStoreWarning", "Progress", "StoreDamagedError",
            "Verification", "check", "chunking", "open_dataset", "plots_dir", "reading", "run",
            "solve_chunk", "status_meanings", "summarize", "to_netcdf", "trajectory_bytes",
            "verify"]
