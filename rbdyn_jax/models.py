@@ -87,7 +87,7 @@ def _z_in_body(quat):
                                                                           dtype=quat.dtype))
 
 
-def _normalise_quat(y: State):
+def _normalize_quat(y: State):
     n = jnp.linalg.norm(y.quat, axis=-1)
     return State(y.omega, y.quat / n[..., None]), jnp.max(jnp.abs(n - 1.0))
 
@@ -107,7 +107,7 @@ class AbstractRigidBody(eqx.Module):
         """The `Kinematics` record of state `y` at time `t` (what torques see)."""
 
     @abc.abstractmethod
-    def normalise(self, y) -> tuple[PyTree, Float[Array, ""]]:
+    def normalize(self, y) -> tuple[PyTree, Float[Array, ""]]:
         """Project `y` back on its constraint (unit quaternion, |γ| = 1) and return the
         largest violation that was removed (0 where there is none)."""
 
@@ -135,8 +135,8 @@ class RigidBody(AbstractRigidBody):
         return State(omega=euler_rhs(self.inertia, y.omega, M),
                      quat=rotation.quat_derivative(y.quat, y.omega))
 
-    def normalise(self, y: State):
-        return _normalise_quat(y)
+    def normalize(self, y: State):
+        return _normalize_quat(y)
 
 
 class RelativeRigidBody(AbstractRigidBody):
@@ -173,8 +173,8 @@ class RelativeRigidBody(AbstractRigidBody):
         return State(omega=relative_rhs(self.inertia, y.omega, kin.omega_e, kin.eps_e, M),
                      quat=rotation.quat_derivative(y.quat, y.omega))
 
-    def normalise(self, y: State):
-        return _normalise_quat(y)
+    def normalize(self, y: State):
+        return _normalize_quat(y)
 
 
 class EulerAngleRigidBody(AbstractRigidBody):
@@ -202,7 +202,7 @@ class EulerAngleRigidBody(AbstractRigidBody):
         return EulerState(omega=euler_rhs(self.inertia, y.omega, M),
                           angles=rotation.omega_to_euler_rates(y.angles, y.omega, "ZXZ"))
 
-    def normalise(self, y: EulerState):
+    def normalize(self, y: EulerState):
         return y, jnp.zeros((), dtype=y.omega.dtype)
 
 
@@ -230,7 +230,7 @@ class PoissonRigidBody(AbstractRigidBody):
         return PoissonState(omega=euler_rhs(self.inertia, y.omega, M),
                             gamma=rotation.poisson(y.gamma, y.omega))
 
-    def normalise(self, y: PoissonState):
+    def normalize(self, y: PoissonState):
         n = jnp.linalg.norm(y.gamma, axis=-1)
         return PoissonState(y.omega, y.gamma / n[..., None]), jnp.max(jnp.abs(n - 1.0))
 

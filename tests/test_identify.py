@@ -244,11 +244,11 @@ def test_non_unit_quaternion():
     q[0, 1] *= 1.1
     with pytest.raises(ValueError, match="`quat` is not a unit quaternion.*trajectory 0, sample 1"):
         idf.Observations(T_OK, quat=q)
-    data = idf.Observations(T_OK, quat=q, normalise_quat=True)
+    data = idf.Observations(T_OK, quat=q, normalize_quat=True)
     np.testing.assert_allclose(np.linalg.norm(data.quat, axis=-1), 1.0, rtol=1e-15)
     q[0, 1] = 0.0
     with pytest.raises(ValueError, match="not a unit quaternion"):
-        idf.Observations(T_OK, quat=q, normalise_quat=True)
+        idf.Observations(T_OK, quat=q, normalize_quat=True)
 
 
 def test_padding_of_different_lengths():

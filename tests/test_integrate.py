@@ -20,6 +20,7 @@ Compilation dominates the run time, so the compiled solves are shared: one model
 and one `max_steps` for every batch test, one gradient function per adjoint (module level).
 """
 
+import inspect
 import logging
 import re
 
@@ -330,6 +331,8 @@ def test_batch_throw_raises():
 
 
 def test_simulate_throw_switch():
+    """`simulate` and `simulate_batch` both return the outcome by default (`throw=False`),
+    and raise with `throw=True`."""
     y0 = state(np.array([np.nan, 0.0, 1.0]), Q0)
     message = rb.RESULTS[rb.RESULTS.nonfinite_state]
     assert "not finite" in message
@@ -337,12 +340,17 @@ def test_simulate_throw_switch():
         rb.simulate(gen_model(), y0, TS, rtol=1e-8, atol=1e-8, throw=True)
     # A concrete result is read on the host; a traced one (the caller's jit) is checked by
     # `error_if` in the caller's program: both raise.
-    jitted = eqx.filter_jit(lambda y: rb.simulate(gen_model(), y, TS, rtol=1e-8, atol=1e-8))
+    jitted = eqx.filter_jit(lambda y: rb.simulate(gen_model(), y, TS, rtol=1e-8, atol=1e-8,
+                                                  throw=True))
     with pytest.raises(eqx.EquinoxRuntimeError, match=re.escape(message)):
         jax.block_until_ready(jitted(y0))
-    traj = rb.simulate(gen_model(), y0, TS, rtol=1e-8, atol=1e-8, throw=False)
+    traj = rb.simulate(gen_model(), y0, TS, rtol=1e-8, atol=1e-8)
     assert traj.result == rb.RESULTS.nonfinite_state
     assert np.all(np.isnan(traj.ys.omega))
+    assert inspect.signature(rb.simulate).parameters["throw"].default is False
+    for name in ("throw", "adjoint"):
+        assert (inspect.signature(rb.simulate).parameters[name].default
+                is inspect.signature(rb.simulate_batch).parameters[name].default), name
 
 
 def test_diffrax_codes_keep_their_values():

@@ -423,7 +423,7 @@ class PrincipalBody(rb.AbstractRigidBody):
 
     inertia: jax.Array
     torque: rb.AbstractTorque = rb.NoTorque()
-    normalise = rb.RigidBody.normalise  # a unit quaternion, as the rigid body's
+    normalize = rb.RigidBody.normalize  # a unit quaternion, as the rigid body's
 
     def kinematics(self, t, y):
         raise NotImplementedError  # no torque reads it

@@ -55,9 +55,9 @@ COMPILER_OPTIONS = known_options({"xla_cpu_use_fusion_emitters": False})
 
 # For a program compiled at the first call of every process and run for a short while, whose
 # compile time is most of that call: `identify.fit`'s. XLA's backend optimisation level 1
-# (of 0–3, default 2) compiles the benchmark's fit 0.35 s (20 %) faster and runs it as fast
-# (3 trajectories) or within 15 % either way (10 to 32). The lane solver runs 40 % slower
-# there, so solves keep `COMPILER_OPTIONS`.
+# (of 0–3, default 2) compiles the benchmark's fit faster and runs it about as fast; the
+# lane solver runs markedly slower there, so solves keep `COMPILER_OPTIONS` (the
+# performance page).
 QUICK_COMPILE_OPTIONS = {**COMPILER_OPTIONS, "xla_backend_optimization_level": 1}
 
 

@@ -69,7 +69,7 @@ class Observations(eqx.Module):
     - `quat`: `(K, n, 4)` observed attitude body → parent, scalar first, or `None`. Sign is
       irrelevant. Quaternions whose norm is within 1e-6 of 1 are renormalised; any other
       norm (zero included) at an unmasked sample is a `ValueError`, unless
-      `normalise_quat=True`, which renormalises every non-zero quaternion.
+      `normalize_quat=True`, which renormalises every non-zero quaternion.
     - `sigma_omega`: noise standard deviation of each ω component, broadcast to `(K, n, 3)`
       (default 1).
     - `sigma_quat`: noise standard deviation (radians) of each component of the attitude
@@ -111,7 +111,7 @@ class Observations(eqx.Module):
         seq: str = "ZXZ",
         degrees: bool = False,
         nan_policy: str = "raise",
-        normalise_quat: bool = False,
+        normalize_quat: bool = False,
     ):
         if euler is not None:
             if quat is not None:
@@ -161,12 +161,12 @@ class Observations(eqx.Module):
         q, m_q = field(quat, "quat", 4)
         if q is not None:
             norm = np.linalg.norm(q, axis=-1)
-            bad = m_q & ((norm == 0) | ((not normalise_quat) & (np.abs(norm - 1) > _UNIT_TOL)))
+            bad = m_q & ((norm == 0) | ((not normalize_quat) & (np.abs(norm - 1) > _UNIT_TOL)))
             if np.any(bad):
                 k, i = np.argwhere(bad)[0]
                 raise ValueError(
                     f"`quat` is not a unit quaternion at trajectory {k}, sample {i} "
-                    f"(norm {norm[k, i]:.6g}); pass `normalise_quat=True` to renormalise."
+                    f"(norm {norm[k, i]:.6g}); pass `normalize_quat=True` to renormalise."
                 )
             ident = np.array([1.0, 0.0, 0.0, 0.0])
             q = np.where(m_q[..., None], q / np.where(m_q, norm, 1.0)[..., None], ident)

@@ -197,16 +197,15 @@ def _lanes_refuse(solver, controller, adjoint) -> str | None:
 # arithmetic and fewer lanes win; with XLA's defaults the loop's dispatch per iteration is
 # shared by more lanes (the performance page).
 MAX_LANES_WHOLE, MAX_LANES_DEFAULT, MIN_LANES, PER_LANE = 64, 256, 8, 2
-# On an accelerator an iteration costs its kernel launches (about 55 kernels, ~100 µs on an
-# H100) plus memory traffic that grows with the lanes (~3 ns a lane in float64 there), and
-# an idle lane costs its traffic as a busy one does. With a lane per trajectory the loop
-# runs as long as the slowest trajectory while most lanes idle (3.5× the mean steps in the
-# benchmark's batch); refilled lanes, `PER_LANE_ARRAY` trajectories each, finish together.
+# On an accelerator an iteration costs its kernel launches (dozens of kernels) plus memory
+# traffic that grows with the lanes, and an idle lane costs its traffic as a busy one does.
+# With a lane per trajectory the loop runs as long as the slowest trajectory while most
+# lanes idle (several times the mean steps in the benchmark's batch); refilled lanes,
+# `PER_LANE_ARRAY` trajectories each, finish together.
 # Below `MIN_LANES_ARRAY` lanes an iteration costs its launches whatever the count, so a
 # batch that small gets a lane per trajectory; beyond `MAX_LANES_ARRAY` the launches are a
 # small part of an iteration and more lanes only idle longer at the end (measured on the
-# performance page: 10⁶ trajectories through 83,334 or 166,667 lanes solve 1.3× faster than
-# through 333,334). The lanes' working set (`LANE_COPIES` copies of a trajectory's state and
+# performance page). The lanes' working set (`LANE_COPIES` copies of a trajectory's state and
 # model arrays: the stages, the dense output, the step's temporaries) stays within
 # `MEMORY_SHARE` of the device's memory (`FALLBACK_MEMORY` where the device does not say).
 PER_LANE_ARRAY, MIN_LANES_ARRAY, MAX_LANES_ARRAY = 3, 1 << 14, 1 << 17

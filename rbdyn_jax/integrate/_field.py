@@ -144,7 +144,7 @@ def start(model, y0, t0):
     and is reported as non-finite). A state whose derivative is already non-finite (NaN
     parameters, a singular inertia) is caught here too. Also returns f(t0, ·) of the state
     integrated, for a caller that needs it."""
-    y0, _ = model.normalise(y0)
+    y0, _ = model.normalize(y0)
     ok0 = all_finite(y0)
     y_run = where_tree(ok0, y0, 1.0)
     f0 = field(model, t0, y_run)
@@ -155,7 +155,7 @@ def start(model, y0, t0):
 def finish(model, ts, ys, ok0, result, counts) -> Trajectory:
     """A `Trajectory` from raw solver output (one trajectory): renormalise, NaN out a
     non-finite start, and report a non-finite state as `nonfinite_state`."""
-    ys, drift = model.normalise(ys)
+    ys, drift = model.normalize(ys)
     ys = where_tree(ok0, ys, jnp.nan)
     if not isinstance(result, RESULTS):  # diffrax's own codes
         result = as_result(result_code(result))

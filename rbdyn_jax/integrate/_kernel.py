@@ -439,11 +439,11 @@ def _undifferentiated(call):
 
 
 # In interpret mode (a CPU: for checking, not for speed) the kernel is thousands of
-# operations on rows, which XLA compiles at its backend optimisation level 1 in two thirds
-# of its default's time (a first call of 3.5 s against 5.2 s: the torque-free body, Tsit5).
-# Level 0 would take half, but rounds some float32 operations otherwise than `Vmap`'s
-# program, and the steps would then differ. `kernel_solved[interpret]`; a Pallas program
-# is not stored by the cache of traced programs (`jax.export` does not serialize it).
+# operations on rows, which XLA compiles markedly faster at its backend optimisation level
+# 1 than at its default. Level 0 would be faster still, but rounds some float32 operations
+# otherwise than `Vmap`'s program, and the steps would then differ.
+# `kernel_solved[interpret]`; a Pallas program is not stored by the cache of traced programs
+# (`jax.export` does not serialize it).
 INTERPRET_OPTIONS = {**COMPILER_OPTIONS, "xla_backend_optimization_level": 1}
 kernel_solved = {interpret: Program(kernel_solve, validated=checked_before_tracing,
                                     options=INTERPRET_OPTIONS if interpret else COMPILER_OPTIONS,

@@ -149,13 +149,13 @@ def lane_jvp(loop, static, batched, primals, tangents):
         q = pick(y0, y_which)
 
         def start(p, q):
-            return with_leaves(m, m_which, p).normalise(with_leaves(y0, y_which, q))[0]
+            return with_leaves(m, m_which, p).normalize(with_leaves(y0, y_which, q))[0]
 
         basis = unit_columns(p + q, offsets, P, symmetric)
         _, S0 = jax.vmap(lambda b: jax.jvp(start, (p, q), (b[:len(p)], b[len(p):])),
                          axis_size=P)(basis)
         if t_live:
-            f0 = m.vector_field(ts[0], m.normalise(y0)[0], None)
+            f0 = m.vector_field(ts[0], m.normalize(y0)[0], None)
             S0 = jax.tree_util.tree_map(lambda s, f: s.at[-1].set(-f), S0, f0)
         return [jnp.ravel(jnp.moveaxis(s, 0, -1)) for s in jax.tree_util.tree_leaves(S0)]
 

@@ -134,9 +134,9 @@ def simulate(
     rtol: float | None = None,
     atol: float | None = None,
     max_steps: int = 16_384,
-    adjoint: diffrax.AbstractAdjoint = diffrax.RecursiveCheckpointAdjoint(),
+    adjoint: diffrax.AbstractAdjoint | None = None,
     dt0: float | None = None,
-    throw: bool = True,
+    throw: bool = False,
 ) -> Trajectory:
     """Integrate `model` from `y0` at `ts[0]`, saving the state at every time of `ts`.
 
@@ -149,9 +149,10 @@ def simulate(
     - `y0`: its initial state (`State(omega, quat)` for the quaternion models); its
       quaternion (γ in the Poisson form) is normalised first.
     - `ts`: strictly increasing output times; the solve runs from `ts[0]` to `ts[-1]`.
-    - `solver`, `adjoint`: diffrax objects, passed through unchanged. The
-      structure-preserving `LiePoissonSplitting` takes fixed steps: give `dt0`, and no
-      tolerances; its model and torque are checked before the solve is traced.
+    - `solver`, `adjoint`: diffrax objects, passed through unchanged (`adjoint=None`, the
+      default, takes `diffrax.RecursiveCheckpointAdjoint()`). The structure-preserving
+      `LiePoissonSplitting` takes fixed steps: give `dt0`, and no tolerances; its model and
+      torque are checked before the solve is traced.
     - `stepsize_controller`: a diffrax step-size controller, passed through (its
       tolerances as arrays); default `diffrax.PIDController(rtol=1e-8, atol=1e-8)`
       (1e-6 in float32: `default_tolerance`), or `diffrax.ConstantStepSize()` for
@@ -163,13 +164,16 @@ def simulate(
     - `max_steps`: the most steps the solver may take.
     - `dt0`: initial step; `None` takes 0.01 (in the unit of `ts`), what `diffeqsolve`
       takes. For `LiePoissonSplitting`, the fixed step (required).
-    - `throw`: raise a runtime error when the result is not `RESULTS.successful`;
-      otherwise the code is returned in `Trajectory.result`.
+    - `throw`: default `False`: the outcome is returned in `Trajectory.result`
+      (`RESULTS.successful`, `max_steps_reached`, `nonfinite_state`, …), as
+      `simulate_batch` returns it per trajectory. `True` raises a runtime error when the
+      result is not `RESULTS.successful`.
 
     **Returns:** a `Trajectory`.
     """
     ts, controller, max_steps = _prepare(model, y0, ts, stepsize_controller, rtol, atol,
                                          max_steps, solver, dt0)
+    adjoint = diffrax.RecursiveCheckpointAdjoint() if adjoint is None else adjoint
     traj = _solved(model, y0, ts, solver, controller, adjoint, max_steps, dt0)
     return thrown(traj) if throw else traj
 
