@@ -5,7 +5,7 @@ VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: run test test-jax-next docs setup clean
+.PHONY: run test lint test-jax-next docs setup clean
 
 setup: $(STAMP)
 
@@ -23,6 +23,11 @@ run: $(STAMP)
 # Two workers: the suite is bound by XLA compilation, which is single-threaded.
 test: $(STAMP)
 	$(PY) -m pytest -q -n 2 --dist loadgroup
+
+# The code as ruff checks and formats it (pyproject's [tool.ruff]); CI runs it before the tests.
+lint: $(STAMP)
+	$(VENV)/bin/ruff check .
+	$(VENV)/bin/ruff format --check .
 
 # The suite's core again under the next JAX (0.11, on Python >= 3.12): a second venv,
 # .venv-jax-next (.ci/jax-next).

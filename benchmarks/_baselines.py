@@ -47,14 +47,17 @@ A61, A62, A63, A64, A65 = 9017 / 3168, -355 / 33, 46732 / 5247, 49 / 176, -5103 
 B1, B3, B4, B5, B6 = 35 / 384, 500 / 1113, 125 / 192, -2187 / 6784, 11 / 84
 E1, E3, E4, E5, E6, E7 = -71 / 57600, 71 / 16695, -71 / 1920, 17253 / 339200, -22 / 525, 1 / 40
 # Dense output: y(t + θh) = y + h Σ_s K_s Σ_k P[s, k] θ^(k+1)  (scipy RK45.P, Shampine 1986).
-P = np.array([
-    [1, -8048581381 / 2820520608, 8663915743 / 2820520608, -12715105075 / 11282082432],
-    [0, 0, 0, 0],
-    [0, 131558114200 / 32700410799, -68118460800 / 10900136933, 87487479700 / 32700410799],
-    [0, -1754552775 / 470086768, 14199869525 / 1410260304, -10690763975 / 1880347072],
-    [0, 127303824393 / 49829197408, -318862633887 / 49829197408, 701980252875 / 199316789632],
-    [0, -282668133 / 205662961, 2019193451 / 616988883, -1453857185 / 822651844],
-    [0, 40617522 / 29380423, -110615467 / 29380423, 69997945 / 29380423]])
+P = np.array(
+    [
+        [1, -8048581381 / 2820520608, 8663915743 / 2820520608, -12715105075 / 11282082432],
+        [0, 0, 0, 0],
+        [0, 131558114200 / 32700410799, -68118460800 / 10900136933, 87487479700 / 32700410799],
+        [0, -1754552775 / 470086768, 14199869525 / 1410260304, -10690763975 / 1880347072],
+        [0, 127303824393 / 49829197408, -318862633887 / 49829197408, 701980252875 / 199316789632],
+        [0, -282668133 / 205662961, 2019193451 / 616988883, -1453857185 / 822651844],
+        [0, 40617522 / 29380423, -110615467 / 29380423, 69997945 / 29380423],
+    ]
+)
 
 _KERNEL = None
 
@@ -71,8 +74,14 @@ def solver_functions(dtype, jit) -> dict:
     zero, one, neg_one, half, neg_half, two = F(0), F(1), F(-1), F(0.5), F(-0.5), F(2)
     seven, ten, hundred, inf = F(7), F(10), F(100), F(np.inf)
     fifth, neg_fifth, safety, min_factor = F(0.2), F(-0.2), F(0.9), F(0.2)
-    h_tiny, d_tiny, d2_tiny, h0_scale, h1_scale, h1_min = (F(1e-6), F(1e-5), F(1e-15), F(0.01),
-                                                           F(1e-3), F(1e-6))
+    h_tiny, d_tiny, d2_tiny, h0_scale, h1_scale, h1_min = (
+        F(1e-6),
+        F(1e-5),
+        F(1e-15),
+        F(0.01),
+        F(1e-3),
+        F(1e-6),
+    )
     a21 = F(A21)
     a31, a32 = F(A31), F(A32)
     a41, a42, a43 = F(A41), F(A42), F(A43)
@@ -87,8 +96,31 @@ def solver_functions(dtype, jit) -> dict:
     def rhs(code, y, prm):
         """Time derivative of the state 7-tuple y for model `code` (see MODELS)."""
         wx, wy, wz, qw, qx, qy, qz = y
-        (J00, J01, J02, J10, J11, J12, J20, J21, J22, I00, I01, I02, I10, I11, I12, I20, I21, I22,
-         c0, c1, c2, weight, eps) = prm
+        (
+            J00,
+            J01,
+            J02,
+            J10,
+            J11,
+            J12,
+            J20,
+            J21,
+            J22,
+            I00,
+            I01,
+            I02,
+            I10,
+            I11,
+            I12,
+            I20,
+            I21,
+            I22,
+            c0,
+            c1,
+            c2,
+            weight,
+            eps,
+        ) = prm
         hx = J00 * wx + J01 * wy + J02 * wz
         hy = J10 * wx + J11 * wy + J12 * wz
         hz = J20 * wx + J21 * wy + J22 * wz
@@ -109,13 +141,15 @@ def solver_functions(dtype, jit) -> dict:
             mx += s * (gy * az - gz * ay)
             my += s * (gz * ax - gx * az)
             mz += s * (gx * ay - gy * ax)
-        return (I00 * mx + I01 * my + I02 * mz,
-                I10 * mx + I11 * my + I12 * mz,
-                I20 * mx + I21 * my + I22 * mz,
-                neg_half * (qx * wx + qy * wy + qz * wz),
-                half * (qw * wx + qy * wz - qz * wy),
-                half * (qw * wy + qz * wx - qx * wz),
-                half * (qw * wz + qx * wy - qy * wx))
+        return (
+            I00 * mx + I01 * my + I02 * mz,
+            I10 * mx + I11 * my + I12 * mz,
+            I20 * mx + I21 * my + I22 * mz,
+            neg_half * (qx * wx + qy * wy + qz * wz),
+            half * (qw * wx + qy * wz - qz * wy),
+            half * (qw * wy + qz * wx - qx * wz),
+            half * (qw * wz + qx * wy - qy * wx),
+        )
 
     @jit
     def dot(ks, cs, i):
@@ -128,9 +162,15 @@ def solver_functions(dtype, jit) -> dict:
     @jit
     def comb(y, h, ks, cs):
         """y + h Σ_s cs[s] ks[s], componentwise, as a 7-tuple."""
-        return (y[0] + h * dot(ks, cs, 0), y[1] + h * dot(ks, cs, 1), y[2] + h * dot(ks, cs, 2),
-                y[3] + h * dot(ks, cs, 3), y[4] + h * dot(ks, cs, 4), y[5] + h * dot(ks, cs, 5),
-                y[6] + h * dot(ks, cs, 6))
+        return (
+            y[0] + h * dot(ks, cs, 0),
+            y[1] + h * dot(ks, cs, 1),
+            y[2] + h * dot(ks, cs, 2),
+            y[3] + h * dot(ks, cs, 3),
+            y[4] + h * dot(ks, cs, 4),
+            y[5] + h * dot(ks, cs, 5),
+            y[6] + h * dot(ks, cs, 6),
+        )
 
     @jit
     def poly(row, th):
@@ -189,7 +229,7 @@ def solver_functions(dtype, jit) -> dict:
             err = rms(e, y, ynew, rtol, atol)
             steps += 1
             if err <= one:
-                factor = ten if err == zero else min(ten, safety * err ** neg_fifth)
+                factor = ten if err == zero else min(ten, safety * err**neg_fifth)
                 if rejected:
                     factor = min(one, factor)
                 ks = (k1, k2, k3, k4, k5, k6, k7)
@@ -198,8 +238,20 @@ def solver_functions(dtype, jit) -> dict:
                         yo = ynew
                     else:
                         th = (ts[j] - t) / h
-                        yo = comb(y, h, ks, (poly(p0, th), zero, poly(p2, th), poly(p3, th),
-                                             poly(p4, th), poly(p5, th), poly(p6, th)))
+                        yo = comb(
+                            y,
+                            h,
+                            ks,
+                            (
+                                poly(p0, th),
+                                zero,
+                                poly(p2, th),
+                                poly(p3, th),
+                                poly(p4, th),
+                                poly(p5, th),
+                                poly(p6, th),
+                            ),
+                        )
                     for i in range(7):
                         out[j, i] = yo[i]
                     j += 1
@@ -207,12 +259,11 @@ def solver_functions(dtype, jit) -> dict:
                 h *= factor
                 rejected = False
             else:
-                h *= max(min_factor, safety * err ** neg_fifth)
+                h *= max(min_factor, safety * err**neg_fifth)
                 rejected = True
         return steps, status
 
-    return {"rhs": rhs, "dot": dot, "comb": comb, "poly": poly, "rms": rms,
-            "solve_one": solve_one}
+    return {"rhs": rhs, "dot": dot, "comb": comb, "poly": poly, "rms": rms, "solve_one": solve_one}
 
 
 def _build_kernel():
@@ -220,8 +271,7 @@ def _build_kernel():
     returns the batch driver."""
     import numba
 
-    solve_one = solver_functions(np.float64, numba.njit(cache=False, fastmath=False))[
-        "solve_one"]
+    solve_one = solver_functions(np.float64, numba.njit(cache=False, fastmath=False))["solve_one"]
 
     @numba.njit(parallel=True, cache=False, fastmath=False)
     def solve_batch(code, prm, y0, ts, rtol, atol, max_steps, out, steps, status):
@@ -256,8 +306,16 @@ def _split(ys: np.ndarray, steps: np.ndarray, status: np.ndarray) -> dict:
     return {"omega": ys[..., :3].copy(), "quat": quat, "steps": steps, "status": status}
 
 
-def numba_solve(model: str, params: dict, omega0: np.ndarray, quat0: np.ndarray, ts: np.ndarray,
-                rtol: float, atol: float, max_steps: int = 100_000) -> dict:
+def numba_solve(
+    model: str,
+    params: dict,
+    omega0: np.ndarray,
+    quat0: np.ndarray,
+    ts: np.ndarray,
+    rtol: float,
+    atol: float,
+    max_steps: int = 100_000,
+) -> dict:
     """Solve N trajectories with the numba DOPRI5 kernel, in parallel over trajectories.
 
     `omega0` (N, 3), `quat0` (N, 4) scalar-first, `ts` (n,) strictly increasing (the solve runs
@@ -282,35 +340,64 @@ def numba_solve(model: str, params: dict, omega0: np.ndarray, quat0: np.ndarray,
 
 def warmup() -> None:
     """Compile the numba kernel and run it once for each of the three models on a tiny problem."""
-    params = {"inertia": np.diag([1.0, 2.0, 3.0]), "weight": 1.0, "com": np.array([0.0, 0.0, 0.1]),
-              "eps": 0.1}
+    params = {
+        "inertia": np.diag([1.0, 2.0, 3.0]),
+        "weight": 1.0,
+        "com": np.array([0.0, 0.0, 0.1]),
+        "eps": 0.1,
+    }
     for model in MODELS:
-        numba_solve(model, params, np.array([[0.1, 0.2, 1.0]]), np.array([[1.0, 0.0, 0.0, 0.0]]),
-                    np.linspace(0.0, 1.0, 3), 1e-6, 1e-6)
+        numba_solve(
+            model,
+            params,
+            np.array([[0.1, 0.2, 1.0]]),
+            np.array([[1.0, 0.0, 0.0, 0.0]]),
+            np.linspace(0.0, 1.0, 3),
+            1e-6,
+            1e-6,
+        )
 
 
 def _numpy_rhs(code, J, Jinv, weight, com, eps, xp=np):
     """f(t, y) of the 7-state (ω, q) in NumPy, or in any NumPy-like module `xp` (`jax.numpy`
     for `compile.py`'s bare-diffrax yardstick)."""
+
     def f(t, y):
         w, (qw, qx, qy, qz) = y[:3], y[3:]
         m = xp.cross(J @ w, w)
         if code != 0:
-            g = xp.stack([2 * (qx * qz - qw * qy), 2 * (qy * qz + qw * qx),
-                          qw * qw - qx * qx - qy * qy + qz * qz])
+            g = xp.stack(
+                [
+                    2 * (qx * qz - qw * qy),
+                    2 * (qy * qz + qw * qx),
+                    qw * qw - qx * qx - qy * qy + qz * qz,
+                ]
+            )
             m = m + (weight * xp.cross(g, com) if code == 1 else eps * xp.cross(g, J @ g))
         wx, wy, wz = w
-        return xp.concatenate([Jinv @ m, xp.stack([
-            -0.5 * (qx * wx + qy * wy + qz * wz), 0.5 * (qw * wx + qy * wz - qz * wy),
-            0.5 * (qw * wy + qz * wx - qx * wz), 0.5 * (qw * wz + qx * wy - qy * wx)])])
+        return xp.concatenate(
+            [
+                Jinv @ m,
+                xp.stack(
+                    [
+                        -0.5 * (qx * wx + qy * wy + qz * wz),
+                        0.5 * (qw * wx + qy * wz - qz * wy),
+                        0.5 * (qw * wy + qz * wx - qx * wz),
+                        0.5 * (qw * wz + qx * wy - qy * wx),
+                    ]
+                ),
+            ]
+        )
+
     return f
 
 
 _STAGES = {"RK45": 6, "DOP853": 12, "RK23": 3}
 
 
-def scipy_solve(model: str, params: dict, omega0, quat0, ts, rtol, atol,
-                method: str = "DOP853") -> dict:
+def scipy_solve(
+    model: str, params: dict, omega0, quat0, ts, rtol, atol, method: str = "DOP853"
+) -> dict:
     """Solve N trajectories one `solve_ivp` call at a time (NumPy right-hand side).
 
     Same arguments and return layout as `numba_solve`; "status" is 0 ok, 1 solver failure.

@@ -69,27 +69,44 @@ class CudaSolver:
     `threads` per block, the grid being ceil(N / threads) blocks.
     """
 
-    def __init__(self, model: str, params: dict, ts, rtol: float, atol: float,
-                 dtype=np.float64, max_steps: int = 100_000, threads: int = 64):
+    def __init__(
+        self,
+        model: str,
+        params: dict,
+        ts,
+        rtol: float,
+        atol: float,
+        dtype=np.float64,
+        max_steps: int = 100_000,
+        threads: int = 64,
+    ):
         if np.dtype(dtype) not in (np.float64, np.float32):
             raise ValueError(f"dtype must be float64 or float32, not {np.dtype(dtype)}")
         # _prepare for its validation and casts (no initial states here)
-        code, J, weight, com, eps, _, ts = _prepare(model, params, np.zeros((0, 3)),
-                                                    np.zeros((0, 4)), ts)
+        code, J, weight, com, eps, _, ts = _prepare(
+            model, params, np.zeros((0, 3)), np.zeros((0, 4)), ts
+        )
         F = np.dtype(dtype).type
         self.dtype, self.n_out, self.threads = np.dtype(dtype), ts.size, int(threads)
         self.kernel = _kernel(F)
         # numba_solve's parameter tuple: J, J⁻¹ (row-major), com, weight, eps
-        self.args = (code, tuple(F(v) for v in (*J.ravel(), *np.linalg.inv(J).ravel(), *com,
-                                                 weight, eps)),
-                     cuda.to_device(ts.astype(F)), F(rtol), F(atol), int(max_steps))
+        self.args = (
+            code,
+            tuple(F(v) for v in (*J.ravel(), *np.linalg.inv(J).ravel(), *com, weight, eps)),
+            cuda.to_device(ts.astype(F)),
+            F(rtol),
+            F(atol),
+            int(max_steps),
+        )
 
     def outputs(self, n: int):
         """Device buffers for `n` trajectories: out (n, len(ts), 7) NaN (outputs not reached
         stay NaN), steps (n,) and status (n,) int64."""
-        return (cuda.to_device(np.full((n, self.n_out, 7), np.nan, dtype=self.dtype)),
-                cuda.to_device(np.zeros(n, dtype=np.int64)),
-                cuda.to_device(np.zeros(n, dtype=np.int64)))
+        return (
+            cuda.to_device(np.full((n, self.n_out, 7), np.nan, dtype=self.dtype)),
+            cuda.to_device(np.zeros(n, dtype=np.int64)),
+            cuda.to_device(np.zeros(n, dtype=np.int64)),
+        )
 
     def __call__(self, y0, out, steps, status) -> None:
         """Launch the kernel on device arrays y0 (N, 7) of `dtype` and `outputs(N)`."""
@@ -97,13 +114,23 @@ class CudaSolver:
         n = y0.shape[0]
         if n:
             blocks = (n + self.threads - 1) // self.threads
-            self.kernel[blocks, self.threads](code, prm, y0, ts, rtol, atol, max_steps, out,
-                                              steps, status)
+            self.kernel[blocks, self.threads](
+                code, prm, y0, ts, rtol, atol, max_steps, out, steps, status
+            )
 
 
-def cuda_solve(model: str, params: dict, omega0: np.ndarray, quat0: np.ndarray, ts: np.ndarray,
-               rtol: float, atol: float, max_steps: int = 100_000, dtype=np.float64,
-               threads: int = 64) -> dict:
+def cuda_solve(
+    model: str,
+    params: dict,
+    omega0: np.ndarray,
+    quat0: np.ndarray,
+    ts: np.ndarray,
+    rtol: float,
+    atol: float,
+    max_steps: int = 100_000,
+    dtype=np.float64,
+    threads: int = 64,
+) -> dict:
     """Solve N trajectories with the CUDA kernel, one GPU thread each (host arrays in and
     out, transfers included).
 
@@ -117,4 +144,3 @@ def cuda_solve(model: str, params: dict, omega0: np.ndarray, quat0: np.ndarray, 
     solver(cuda.to_device(y0.astype(solver.dtype)), out, steps, status)
     cuda.synchronize()
     return _split(out.copy_to_host(), steps.copy_to_host(), status.copy_to_host())
-

@@ -15,9 +15,14 @@ def write_json(out: str, name: str, meta: dict, rows: list) -> pathlib.Path:
 
     path = pathlib.Path(out)
     path.mkdir(parents=True, exist_ok=True)
-    meta = {"machine": platform.platform(), "cores": os.cpu_count(),
-            "devices": jax.device_count(), "xla_flags": os.environ.get("XLA_FLAGS", ""),
-            **{pkg: version(pkg) for pkg in ("jax", "diffrax", "equinox")}, **meta}
+    meta = {
+        "machine": platform.platform(),
+        "cores": os.cpu_count(),
+        "devices": jax.device_count(),
+        "xla_flags": os.environ.get("XLA_FLAGS", ""),
+        **{pkg: version(pkg) for pkg in ("jax", "diffrax", "equinox")},
+        **meta,
+    }
     file = path / f"{name}.json"
     file.write_text(json.dumps({"meta": meta, "rows": rows}, indent=2))
     return file

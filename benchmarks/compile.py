@@ -94,8 +94,12 @@ YARDSTICK = "bare_diffrax"
 # environment): the caller's switch that makes such a program cacheable.
 CTOR_CASES = ("grad_lanes_ctor", "grad_lanes_ctor_nan")
 NAN_CASES = ("grad_lanes_ctor_nan",)
-CACHE_ENV = ("JAX_COMPILATION_CACHE_DIR", "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS",
-             "JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES", "JAX_ENABLE_COMPILATION_CACHE")
+CACHE_ENV = (
+    "JAX_COMPILATION_CACHE_DIR",
+    "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS",
+    "JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES",
+    "JAX_ENABLE_COMPILATION_CACHE",
+)
 
 
 # ----------------------------------------------------------------------------------------
@@ -115,8 +119,12 @@ class _Recorder(logging.Handler):
     def __init__(self):
         super().__init__(logging.DEBUG)
         self.on = False
-        self.stats = {"compiles": 0, "compile_or_load_s": 0.0, "cache_hits": 0,
-                      "callback_programs": []}
+        self.stats = {
+            "compiles": 0,
+            "compile_or_load_s": 0.0,
+            "cache_hits": 0,
+            "callback_programs": [],
+        }
 
     def emit(self, record):
         if self.on and "because it uses host callbacks" in str(record.msg):
@@ -163,8 +171,14 @@ def _reference_omega(w0, ts):
     def rhs(t, w):
         return np.linalg.solve(J, np.cross(J @ w, w))
 
-    return np.stack([solve_ivp(rhs, (ts[0], ts[-1]), w, t_eval=ts, rtol=1e-11, atol=1e-11,
-                               method="DOP853").y.T for w in w0])
+    return np.stack(
+        [
+            solve_ivp(
+                rhs, (ts[0], ts[-1]), w, t_eval=ts, rtol=1e-11, atol=1e-11, method="DOP853"
+            ).y.T
+            for w in w0
+        ]
+    )
 
 
 def _batching(lanes) -> dict:
@@ -212,18 +226,27 @@ def _bare_call(w0, ts_np):
     import _baselines
 
     J = jnp.array(J_TRUE)
-    f = _baselines._numpy_rhs(_baselines.MODELS["torque_free"], J, jnp.linalg.inv(J),
-                              None, None, None, xp=jnp)
+    f = _baselines._numpy_rhs(
+        _baselines.MODELS["torque_free"], J, jnp.linalg.inv(J), None, None, None, xp=jnp
+    )
     ts = jnp.asarray(ts_np)
 
     def solve(y0):
         return diffrax.diffeqsolve(
-            diffrax.ODETerm(lambda t, y, args: f(t, y)), diffrax.Tsit5(), ts[0], ts[-1], None, y0,
-            saveat=diffrax.SaveAt(ts=ts), max_steps=16_384,
-            stepsize_controller=diffrax.PIDController(rtol=TOL, atol=TOL)).ys
+            diffrax.ODETerm(lambda t, y, args: f(t, y)),
+            diffrax.Tsit5(),
+            ts[0],
+            ts[-1],
+            None,
+            y0,
+            saveat=diffrax.SaveAt(ts=ts),
+            max_steps=16_384,
+            stepsize_controller=diffrax.PIDController(rtol=TOL, atol=TOL),
+        ).ys
 
-    y0s = jnp.concatenate([jnp.asarray(w0), jnp.tile(jnp.array([1.0, 0.0, 0.0, 0.0]),
-                                                     (w0.shape[0], 1))], axis=1)
+    y0s = jnp.concatenate(
+        [jnp.asarray(w0), jnp.tile(jnp.array([1.0, 0.0, 0.0, 0.0]), (w0.shape[0], 1))], axis=1
+    )
     fn = jax.jit(jax.vmap(solve))
     return lambda: fn(y0s)
 
@@ -251,8 +274,7 @@ def build_call(case):
     if case in ("default", "batch", "lanes"):
         model = rb.RigidBody(jnp.array(J_TRUE))
         return lambda: rb.simulate_batch(model, y0s, ts, rtol=TOL, atol=TOL, **_batching(lanes))
-    loss = _loss_fn(y0s, ts, jnp.asarray(_reference_omega(w0, ts_np)), lanes,
-                    case in CTOR_CASES)
+    loss = _loss_fn(y0s, ts, jnp.asarray(_reference_omega(w0, ts_np)), lanes, case in CTOR_CASES)
     theta = rb.inertia.to_log_cholesky(jnp.array(J_TRUE)) + 0.05
     mode = jax.jacfwd if case == "jacfwd_lanes" else jax.grad
     fn = jax.jit(mode(loss), compiler_options=rb.COMPILER_OPTIONS)
@@ -264,8 +286,13 @@ def _all_finite(out):
     import numpy as np
 
     leaves = jax.tree_util.tree_leaves(out)
-    return bool(all(np.all(np.isfinite(np.asarray(x))) for x in leaves
-                    if np.issubdtype(np.asarray(x).dtype, np.floating)))
+    return bool(
+        all(
+            np.all(np.isfinite(np.asarray(x)))
+            for x in leaves
+            if np.issubdtype(np.asarray(x).dtype, np.floating)
+        )
+    )
 
 
 def child(case, cache):
@@ -295,12 +322,23 @@ def child(case, cache):
     jax.block_until_ready(call())
     steady = time.perf_counter() - t0
     traces = sys.modules.get("rbdyn_jax._program.traces")  # rbdyn_jax's cache of traced solves
-    print(json.dumps({"import_jax_s": import_jax_s, "import_rbdyn_jax_s": import_rb_s,
-                      "build_s": build, "first_s": first, "steady_s": steady,
-                      "entries_written": entries,
-                      "traces": dict(traces.stats) if traces else None,
-                      "entries_total": _cache_entries(cache), "finite": _all_finite(out),
-                      "backend": jax.default_backend(), **rec.stats}))
+    print(
+        json.dumps(
+            {
+                "import_jax_s": import_jax_s,
+                "import_rbdyn_jax_s": import_rb_s,
+                "build_s": build,
+                "first_s": first,
+                "steady_s": steady,
+                "entries_written": entries,
+                "traces": dict(traces.stats) if traces else None,
+                "entries_total": _cache_entries(cache),
+                "finite": _all_finite(out),
+                "backend": jax.default_backend(),
+                **rec.stats,
+            }
+        )
+    )
 
 
 # ----------------------------------------------------------------------------------------
@@ -309,16 +347,22 @@ def child(case, cache):
 
 
 def run_child(case, cache, xla_defaults=False):
-    env = {k: v for k, v in os.environ.items()
-           if k not in CACHE_ENV + ("EQX_ON_ERROR", "XLA_FLAGS")}
+    env = {
+        k: v for k, v in os.environ.items() if k not in CACHE_ENV + ("EQX_ON_ERROR", "XLA_FLAGS")
+    }
     env["RBDYN_JAX_CONFIGURE_XLA"] = "0" if xla_defaults or case == YARDSTICK else "1"
     if case in NAN_CASES:
         env["EQX_ON_ERROR"] = "nan"
-    proc = subprocess.run([sys.executable, os.path.abspath(__file__), "--child", case,
-                           "--cache", cache or "none"], env=env, capture_output=True, text=True)
+    proc = subprocess.run(
+        [sys.executable, os.path.abspath(__file__), "--child", case, "--cache", cache or "none"],
+        env=env,
+        capture_output=True,
+        text=True,
+    )
     if proc.returncode != 0:
-        raise RuntimeError(f"child {case} (cache {cache}) failed ({proc.returncode}):\n"
-                           f"{proc.stderr[-4000:]}")
+        raise RuntimeError(
+            f"child {case} (cache {cache}) failed ({proc.returncode}):\n{proc.stderr[-4000:]}"
+        )
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
@@ -333,34 +377,46 @@ def measure(case, xla_defaults=False):
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     imports = sorted(r["import_jax_s"] + r["import_rbdyn_jax_s"] for r in runs.values())
-    return {"case": case, "batch": CASES[case][0], "lanes": CASES[case][1],
-            "import_s": imports[1], "build_s": runs["no_cache"]["build_s"],
-            **{f"{c}_s": r["first_s"] for c, r in runs.items()},
-            "steady_s": runs["warm"]["steady_s"],
-            "speedup_warm": runs["no_cache"]["first_s"] / runs["warm"]["first_s"],
-            "entries": runs["cold"]["entries_written"],
-            "trace_hits": (runs["warm"]["traces"] or {}).get("hits", 0),
-            "callback_programs": runs["cold"]["callback_programs"], "runs": runs}
+    return {
+        "case": case,
+        "batch": CASES[case][0],
+        "lanes": CASES[case][1],
+        "import_s": imports[1],
+        "build_s": runs["no_cache"]["build_s"],
+        **{f"{c}_s": r["first_s"] for c, r in runs.items()},
+        "steady_s": runs["warm"]["steady_s"],
+        "speedup_warm": runs["no_cache"]["first_s"] / runs["warm"]["first_s"],
+        "entries": runs["cold"]["entries_written"],
+        "trace_hits": (runs["warm"]["traces"] or {}).get("hits", 0),
+        "callback_programs": runs["cold"]["callback_programs"],
+        "runs": runs,
+    }
 
 
 def print_table(rows):
-    head = (f"{'case':<20} {'import s':>8} {'build s':>7} | {'first call: no cache':>20} "
-            f"{'/ bare':>6} "
-            f"{'cold':>7} {'warm':>7} | {'speed-up':>8} | {'steady':>7} | {'entries':>7} "
-            f"{'cb skip':>7} {'traces':>6}")
+    head = (
+        f"{'case':<20} {'import s':>8} {'build s':>7} | {'first call: no cache':>20} "
+        f"{'/ bare':>6} "
+        f"{'cold':>7} {'warm':>7} | {'speed-up':>8} | {'steady':>7} | {'entries':>7} "
+        f"{'cb skip':>7} {'traces':>6}"
+    )
     print(head)
     print("-" * len(head))
     for r in rows:
         rel = f"{r['vs_bare']:>5.2f}x" if r.get("vs_bare") else f"{'—':>6}"
-        print(f"{r['case']:<20} {r['import_s']:>8.2f} {r['build_s']:>7.2f} | "
-              f"{r['no_cache_s']:>20.2f} {rel} "
-              f"{r['cold_s']:>7.2f} {r['warm_s']:>7.2f} | {r['speedup_warm']:>7.1f}x | "
-              f"{r['steady_s']:>7.3f} | {r['entries']:>7} {len(r['callback_programs']):>7} "
-              f"{r['trace_hits']:>6}")
+        print(
+            f"{r['case']:<20} {r['import_s']:>8.2f} {r['build_s']:>7.2f} | "
+            f"{r['no_cache_s']:>20.2f} {rel} "
+            f"{r['cold_s']:>7.2f} {r['warm_s']:>7.2f} | {r['speedup_warm']:>7.1f}x | "
+            f"{r['steady_s']:>7.3f} | {r['entries']:>7} {len(r['callback_programs']):>7} "
+            f"{r['trace_hits']:>6}"
+        )
     for r in rows:
         if r["callback_programs"]:
-            print(f"{r['case']}: not cached (host callbacks): "
-                  f"{', '.join(sorted(set(r['callback_programs'])))}")
+            print(
+                f"{r['case']}: not cached (host callbacks): "
+                f"{', '.join(sorted(set(r['callback_programs'])))}"
+            )
 
 
 def main(cases=tuple(CASES), out="results/benchmarks", xla_defaults=False):
@@ -372,11 +428,22 @@ def main(cases=tuple(CASES), out="results/benchmarks", xla_defaults=False):
     print_table(rows)
     path = pathlib.Path(out)
     path.mkdir(parents=True, exist_ok=True)
-    meta = {"machine": platform.platform(), "cpus": os.cpu_count(), "jax": version("jax"),
-            "equinox": version("equinox"), "diffrax": version("diffrax"),
-            "backend": rows[0]["runs"]["no_cache"]["backend"] if rows else None,
-            "inertia": J_TRUE, "t_end": T_END, "n_out": N_OUT, "rtol": TOL, "atol": TOL,
-            "seed": SEED, "xla_defaults": xla_defaults, "total_s": time.perf_counter() - t0}
+    meta = {
+        "machine": platform.platform(),
+        "cpus": os.cpu_count(),
+        "jax": version("jax"),
+        "equinox": version("equinox"),
+        "diffrax": version("diffrax"),
+        "backend": rows[0]["runs"]["no_cache"]["backend"] if rows else None,
+        "inertia": J_TRUE,
+        "t_end": T_END,
+        "n_out": N_OUT,
+        "rtol": TOL,
+        "atol": TOL,
+        "seed": SEED,
+        "xla_defaults": xla_defaults,
+        "total_s": time.perf_counter() - t0,
+    }
     (path / "compile.json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=2))
     print(f"wrote {path / 'compile.json'} ({meta['total_s']:.0f} s)")
     return rows
@@ -386,8 +453,11 @@ if __name__ == "__main__":
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--cases", nargs="+", choices=list(CASES), default=list(CASES))
     p.add_argument("--out", default="results/benchmarks")
-    p.add_argument("--xla-defaults", action="store_true",
-                   help="rbdyn_jax's cases with XLA's defaults (RBDYN_JAX_CONFIGURE_XLA=0)")
+    p.add_argument(
+        "--xla-defaults",
+        action="store_true",
+        help="rbdyn_jax's cases with XLA's defaults (RBDYN_JAX_CONFIGURE_XLA=0)",
+    )
     p.add_argument("--child", choices=list(CASES), help=argparse.SUPPRESS)
     p.add_argument("--cache", default="none", help=argparse.SUPPRESS)
     args = p.parse_args()

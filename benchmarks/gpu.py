@@ -122,9 +122,11 @@ def timed(fn, repeats):
 
 
 def rbdyn_model(name, dtype=np.float64):
-    torque = {"torque_free": None,
-              "heavy_top": rb.UniformGravity(jnp.asarray(WEIGHT, dtype), jnp.asarray(COM, dtype)),
-              "gravity_gradient": rb.GravityGradient(jnp.asarray(EPS, dtype))}[name]
+    torque = {
+        "torque_free": None,
+        "heavy_top": rb.UniformGravity(jnp.asarray(WEIGHT, dtype), jnp.asarray(COM, dtype)),
+        "gravity_gradient": rb.GravityGradient(jnp.asarray(EPS, dtype)),
+    }[name]
     return rb.RigidBody(jnp.asarray(J, dtype), torque)
 
 
@@ -141,9 +143,15 @@ def rbdyn_gradient(w0, ts, batching=None):
     theta = rb.inertia.to_log_cholesky(jnp.asarray(J))
 
     def loss(th):
-        tr = rb.simulate_batch(rb.with_log_cholesky(body, th), y0s, ts, rtol=TOL["float64"],
-                               atol=TOL["float64"], batching=batching)
-        return jnp.sum(tr.ys.omega ** 2)
+        tr = rb.simulate_batch(
+            rb.with_log_cholesky(body, th),
+            y0s,
+            ts,
+            rtol=TOL["float64"],
+            atol=TOL["float64"],
+            batching=batching,
+        )
+        return jnp.sum(tr.ys.omega**2)
 
     grad = jax.jit(jax.grad(loss), compiler_options=rb.COMPILER_OPTIONS)
     return lambda: grad(theta)
@@ -153,20 +161,28 @@ def plain_vmap(w0, ts):
     """`jax.jit(jax.vmap(diffeqsolve))` without rbdyn_jax: `_baselines`' right-hand side in
     `jax.numpy`, Tsit5, the same controller."""
     Jj = jnp.asarray(J)
-    f = _baselines._numpy_rhs(_baselines.MODELS["torque_free"], Jj, jnp.linalg.inv(Jj), None,
-                              None, None, xp=jnp)
+    f = _baselines._numpy_rhs(
+        _baselines.MODELS["torque_free"], Jj, jnp.linalg.inv(Jj), None, None, None, xp=jnp
+    )
     ts = jnp.asarray(ts)
 
     def solve(y0):
         sol = diffrax.diffeqsolve(
-            diffrax.ODETerm(lambda t, y, args: f(t, y)), diffrax.Tsit5(), ts[0], ts[-1], None,
-            y0, saveat=diffrax.SaveAt(ts=ts), max_steps=16_384,
-            stepsize_controller=diffrax.PIDController(rtol=TOL["float64"],
-                                                      atol=TOL["float64"]))
+            diffrax.ODETerm(lambda t, y, args: f(t, y)),
+            diffrax.Tsit5(),
+            ts[0],
+            ts[-1],
+            None,
+            y0,
+            saveat=diffrax.SaveAt(ts=ts),
+            max_steps=16_384,
+            stepsize_controller=diffrax.PIDController(rtol=TOL["float64"], atol=TOL["float64"]),
+        )
         return sol.ys, sol.stats["num_steps"]
 
-    y0s = jnp.concatenate([jnp.asarray(w0), jnp.tile(jnp.array([1.0, 0.0, 0.0, 0.0]),
-                                                     (len(w0), 1))], axis=1)
+    y0s = jnp.concatenate(
+        [jnp.asarray(w0), jnp.tile(jnp.array([1.0, 0.0, 0.0, 0.0]), (len(w0), 1))], axis=1
+    )
     fn = jax.jit(jax.vmap(solve))
     return lambda: fn(y0s)
 
@@ -187,10 +203,18 @@ def sweep_run(n, out):
     status = zarr.open_group(str(store), mode="r")["status"][:]
     size = sum(f.stat().st_size for f in store.rglob("*") if f.is_file())
     shutil.rmtree(store)
-    return {"method": "sweep", "batch": n, "dtype": "float64", "traj_per_s": n / seconds,
-            "seconds": seconds, "first_call_s": seconds,
-            "all_successful": bool(np.all(status == 0)), "successful": int(np.sum(status == 0)),
-            "store_bytes": size, "backend": jax.default_backend()}
+    return {
+        "method": "sweep",
+        "batch": n,
+        "dtype": "float64",
+        "traj_per_s": n / seconds,
+        "seconds": seconds,
+        "first_call_s": seconds,
+        "all_successful": bool(np.all(status == 0)),
+        "successful": int(np.sum(status == 0)),
+        "store_bytes": size,
+        "backend": jax.default_backend(),
+    }
 
 
 def cuda_kernel(w0, ts, dtype, model_name="torque_free"):
@@ -214,10 +238,18 @@ def cuda_kernel(w0, ts, dtype, model_name="torque_free"):
 
 
 def rate_row(method, n, dtype, first, t, omega, steps, ok, ref):
-    return {"method": method, "batch": n, "dtype": np.dtype(dtype).name,
-            "traj_per_s": n / t, "seconds": t, "first_call_s": first,
-            "mean_steps": float(np.mean(steps)), "max_steps": int(np.max(steps)),
-            "all_successful": bool(ok), **({} if ref is None else errors(omega, ref))}
+    return {
+        "method": method,
+        "batch": n,
+        "dtype": np.dtype(dtype).name,
+        "traj_per_s": n / t,
+        "seconds": t,
+        "first_call_s": first,
+        "mean_steps": float(np.mean(steps)),
+        "max_steps": int(np.max(steps)),
+        "all_successful": bool(ok),
+        **({} if ref is None else errors(omega, ref)),
+    }
 
 
 def model_row(method, n, w0, ts, repeats, ref_max, refs):
@@ -229,49 +261,104 @@ def model_row(method, n, w0, ts, repeats, ref_max, refs):
         _, first, t = timed(run, repeats)
         omega, steps, status = read()
         refs[(model_name, n)] = np.asarray(omega[:ref_max], np.float64)
-        return rate_row(method, n, np.float64, first, t, omega, steps, np.all(status == 0),
-                        None)
+        return rate_row(method, n, np.float64, first, t, omega, steps, np.all(status == 0), None)
     batching = rb.Kernel() if kind == "kernel" else rb.Lanes()
     tr, first, t = timed(rbdyn_forward(w0, ts, np.float64, batching, model_name), repeats)
-    return rate_row(method, n, np.float64, first, t, tr.ys.omega, tr.stats["num_steps"],
-                    np.all(np.asarray(tr.result._value) == 0), refs.get((model_name, n)))
+    return rate_row(
+        method,
+        n,
+        np.float64,
+        first,
+        t,
+        tr.ys.omega,
+        tr.stats["num_steps"],
+        np.all(np.asarray(tr.result._value) == 0),
+        refs.get((model_name, n)),
+    )
 
 
 def measure(method, n, w0, ts, ref, repeats):
     """One row: the method's rate, first call, steps and errors at batch size `n`."""
-    if method in ("default", "default f32", "kernel", "kernel f32", "lanes", "lanes f32",
-                  "vmap", "lanes cpu layout", "lane per trajectory") or method.startswith("Lanes("):
+    if method in (
+        "default",
+        "default f32",
+        "kernel",
+        "kernel f32",
+        "lanes",
+        "lanes f32",
+        "vmap",
+        "lanes cpu layout",
+        "lane per trajectory",
+    ) or method.startswith("Lanes("):
         dtype = np.float32 if method.endswith("f32") else np.float64
-        batching = {"vmap": rb.Vmap(), "lanes cpu layout": rb.Lanes(256, layout="cpu"),
-                    "lane per trajectory": rb.Lanes(n), "kernel": rb.Kernel(),
-                    "kernel f32": rb.Kernel(), "lanes": rb.Lanes(),
-                    "lanes f32": rb.Lanes()}.get(method)
+        batching = {
+            "vmap": rb.Vmap(),
+            "lanes cpu layout": rb.Lanes(256, layout="cpu"),
+            "lane per trajectory": rb.Lanes(n),
+            "kernel": rb.Kernel(),
+            "kernel f32": rb.Kernel(),
+            "lanes": rb.Lanes(),
+            "lanes f32": rb.Lanes(),
+        }.get(method)
         if method.startswith("Lanes("):
             batching = rb.Lanes(int(method[6:-1]))
         tr, first, t = timed(rbdyn_forward(w0, ts, dtype, batching), repeats)
-        row = rate_row(method, n, dtype, first, t, tr.ys.omega, tr.stats["num_steps"],
-                       np.all(np.asarray(tr.result._value) == 0), ref)
+        row = rate_row(
+            method,
+            n,
+            dtype,
+            first,
+            t,
+            tr.ys.omega,
+            tr.stats["num_steps"],
+            np.all(np.asarray(tr.result._value) == 0),
+            ref,
+        )
         if method.startswith("default"):  # the strategy the default took (and its lanes)
             tol = TOL[np.dtype(dtype).name]
-            chosen = default_batching(diffrax.Tsit5(), diffrax.PIDController(rtol=tol, atol=tol),
-                                      None, rb.RigidBody(jnp.asarray(J, dtype)),
-                                      states(w0[:1], dtype))
+            chosen = default_batching(
+                diffrax.Tsit5(),
+                diffrax.PIDController(rtol=tol, atol=tol),
+                None,
+                rb.RigidBody(jnp.asarray(J, dtype)),
+                states(w0[:1], dtype),
+            )
             row["batching"] = type(chosen).__name__
             if isinstance(chosen, rb.Lanes):
                 per_lane = 7 * np.dtype(dtype).itemsize  # the state (ω, q) of a trajectory
-                row["lanes"] = default_lanes(n, len(jax.devices()), jax.devices()[0].platform,
-                                             per_lane, device_memory(jax.devices()[0]))
+                row["lanes"] = default_lanes(
+                    n,
+                    len(jax.devices()),
+                    jax.devices()[0].platform,
+                    per_lane,
+                    device_memory(jax.devices()[0]),
+                )
         return row
     if method == "plain vmap":
         (ys, steps), first, t = timed(plain_vmap(w0, ts), repeats)
-        return rate_row(method, n, np.float64, first, t, ys[..., :3], steps,
-                        np.all(np.isfinite(np.asarray(ys))), ref)
+        return rate_row(
+            method,
+            n,
+            np.float64,
+            first,
+            t,
+            ys[..., :3],
+            steps,
+            np.all(np.isfinite(np.asarray(ys))),
+            ref,
+        )
     if method in ("kernel gradient", "lanes gradient"):
         batching = rb.Kernel() if method == "kernel gradient" else rb.Lanes()
         g, first, t = timed(rbdyn_gradient(w0, ts, batching), repeats)
-        return {"method": method, "batch": n, "dtype": "float64", "traj_per_s": n / t,
-                "seconds": t, "first_call_s": first,
-                "all_successful": bool(np.all(np.isfinite(np.asarray(g))))}
+        return {
+            "method": method,
+            "batch": n,
+            "dtype": "float64",
+            "traj_per_s": n / t,
+            "seconds": t,
+            "first_call_s": first,
+            "all_successful": bool(np.all(np.isfinite(np.asarray(g)))),
+        }
     if method in ("cuda f64", "cuda f32"):
         dtype = np.float32 if method == "cuda f32" else np.float64
         run, read = cuda_kernel(w0, ts, dtype)
@@ -281,14 +368,29 @@ def measure(method, n, w0, ts, ref, repeats):
     raise ValueError(method)
 
 
-def plan(sizes, grad_max, vmap_max, cpu_layout_max, whole_min, lanes=(), sweep_n=0,
-         models=(), model_min=0):
+def plan(
+    sizes,
+    grad_max,
+    vmap_max,
+    cpu_layout_max,
+    whole_min,
+    lanes=(),
+    sweep_n=0,
+    models=(),
+    model_min=0,
+):
     """(method, n) in the order measured: the yardstick first at each size, then the rest;
     the sweep after the largest size's kernel rows (before its slower reference rows)."""
     rows = []
     for n in sizes:
-        rows += [("cuda f64", n), ("kernel", n), ("default", n), ("cuda f32", n),
-                 ("kernel f32", n), ("default f32", n)]
+        rows += [
+            ("cuda f64", n),
+            ("kernel", n),
+            ("default", n),
+            ("cuda f32", n),
+            ("kernel f32", n),
+            ("default f32", n),
+        ]
         if n <= grad_max:
             rows.append(("kernel gradient", n))
         if sweep_n and n == max(sizes):
@@ -304,8 +406,7 @@ def plan(sizes, grad_max, vmap_max, cpu_layout_max, whole_min, lanes=(), sweep_n
         if n <= cpu_layout_max:
             rows.append(("lanes cpu layout", n))
         if n >= model_min:
-            rows += [(f"{kind} {m}", n) for m in models for kind in ("cuda f64", "kernel",
-                                                                      "lanes")]
+            rows += [(f"{kind} {m}", n) for m in models for kind in ("cuda f64", "kernel", "lanes")]
     return rows
 
 
@@ -320,16 +421,37 @@ def device_names():
     return names
 
 
-def main(sizes, grad_max, vmap_max, cpu_layout_max, whole_min, lanes, ref_max, budget, out,
-         sweep_n=0, models=(), model_min=0):
+def main(
+    sizes,
+    grad_max,
+    vmap_max,
+    cpu_layout_max,
+    whole_min,
+    lanes,
+    ref_max,
+    budget,
+    out,
+    sweep_n=0,
+    models=(),
+    model_min=0,
+):
     t_start = time.perf_counter()
     ts = np.linspace(0.0, T_END, N_OUT)
-    meta = {"t_end": T_END, "n_out": N_OUT, "tol": TOL, "sizes": sizes, "sweep_n": sweep_n,
-            "models": list(models), "model_min": model_min, **device_names()}
+    meta = {
+        "t_end": T_END,
+        "n_out": N_OUT,
+        "tol": TOL,
+        "sizes": sizes,
+        "sweep_n": sweep_n,
+        "models": list(models),
+        "model_min": model_min,
+        **device_names(),
+    }
     print(f"device: {meta['jax_device']}; CUDA yardstick on: {meta['cuda_device']}")
     rows, refs, model_refs = [], {}, {}
-    for method, n in plan(sizes, grad_max, vmap_max, cpu_layout_max, whole_min, lanes,
-                          sweep_n, models, model_min):
+    for method, n in plan(
+        sizes, grad_max, vmap_max, cpu_layout_max, whole_min, lanes, sweep_n, models, model_min
+    ):
         if time.perf_counter() - t_start > budget:
             rows.append({"method": method, "batch": n, "skipped": "budget"})
             print(f"{method:>19} {n:>8}  skipped (over --budget {budget:.0f} s)")
@@ -338,8 +460,9 @@ def main(sizes, grad_max, vmap_max, cpu_layout_max, whole_min, lanes, ref_max, b
             if method == "sweep":
                 row = sweep_run(n, out)
             elif method.rsplit(" ", 1)[-1] in MODELS:
-                row = model_row(method, n, initial_rates(n), ts, 3 if n <= 100_000 else 1,
-                                ref_max, model_refs)
+                row = model_row(
+                    method, n, initial_rates(n), ts, 3 if n <= 100_000 else 1, ref_max, model_refs
+                )
             else:
                 w0 = initial_rates(n)
                 if n not in refs:
@@ -349,17 +472,26 @@ def main(sizes, grad_max, vmap_max, cpu_layout_max, whole_min, lanes, ref_max, b
             row = {"method": method, "batch": n, "failed": f"{type(e).__name__}: {e}"[:500]}
         model = method.rsplit(" ", 1)[-1]
         suffix = f" {model}" if model in MODELS else ""
-        for yard_method, key in ((f"cuda f64{suffix}", "ratio_to_cuda_f64"),
-                                 ("cuda f32", "ratio_to_cuda_f32")):
+        for yard_method, key in (
+            (f"cuda f64{suffix}", "ratio_to_cuda_f64"),
+            ("cuda f32", "ratio_to_cuda_f32"),
+        ):
             if key == "ratio_to_cuda_f32" and row.get("dtype") != "float32":
                 continue
-            yard = next((r for r in rows if r["method"] == yard_method and r["batch"] == n
-                         and "traj_per_s" in r), None)
+            yard = next(
+                (
+                    r
+                    for r in rows
+                    if r["method"] == yard_method and r["batch"] == n and "traj_per_s" in r
+                ),
+                None,
+            )
             if yard is not None and "traj_per_s" in row:
                 row[key] = row["traj_per_s"] / yard["traj_per_s"]
         forward = {"kernel gradient": "kernel", "lanes gradient": "lanes"}.get(method)
-        fwd = next((r for r in rows if r["method"] == forward and r["batch"] == n
-                    and "seconds" in r), None)
+        fwd = next(
+            (r for r in rows if r["method"] == forward and r["batch"] == n and "seconds" in r), None
+        )
         if fwd is not None and "seconds" in row:
             row["times_forward"] = row["seconds"] / fwd["seconds"]
         rows.append(row)
@@ -369,9 +501,11 @@ def main(sizes, grad_max, vmap_max, cpu_layout_max, whole_min, lanes, ref_max, b
     return rows
 
 
-HEAD = (f"{'method':>19} {'batch':>8} {'dtype':>7} | {'traj/s':>10} {'/cuda f64':>9} | "
-        f"{'first s':>7} {'call s':>8} | {'steps':>6} {'max':>6} | {'max err':>8} "
-        f"{'med err':>8} | note")
+HEAD = (
+    f"{'method':>19} {'batch':>8} {'dtype':>7} | {'traj/s':>10} {'/cuda f64':>9} | "
+    f"{'first s':>7} {'call s':>8} | {'steps':>6} {'max':>6} | {'max err':>8} "
+    f"{'med err':>8} | note"
+)
 
 
 def print_row(r, _printed=[]):  # noqa: B006 (print the header once)
@@ -383,10 +517,14 @@ def print_row(r, _printed=[]):  # noqa: B006 (print the header once)
         print(f"{r['method']:>19} {r['batch']:>8}  {r.get('failed', r.get('skipped'))}")
         return
     ratio = f"{r['ratio_to_cuda_f64']:>9.2e}" if "ratio_to_cuda_f64" in r else f"{'':>9}"
-    steps = (f"{r['mean_steps']:>6.0f} {r['max_steps']:>6}" if "mean_steps" in r
-             else f"{'':>6} {'':>6}")
-    err = (f"{r['max_error']:>8.1e} {r['median_error']:>8.1e}" if "max_error" in r
-           else f"{'':>8} {'':>8}")
+    steps = (
+        f"{r['mean_steps']:>6.0f} {r['max_steps']:>6}" if "mean_steps" in r else f"{'':>6} {'':>6}"
+    )
+    err = (
+        f"{r['max_error']:>8.1e} {r['median_error']:>8.1e}"
+        if "max_error" in r
+        else f"{'':>8} {'':>8}"
+    )
     note = f"{r['times_forward']:.2f}× forward" if "times_forward" in r else ""
     if "ratio_to_cuda_f32" in r:
         note += f"{r['ratio_to_cuda_f32']:.2f}× cuda f32"
@@ -396,9 +534,12 @@ def print_row(r, _printed=[]):  # noqa: B006 (print the header once)
         note += f"store {r['store_bytes'] / 1e6:.0f} MB written, end to end"
     if not r.get("all_successful", True):
         note += " (not all successful)"
-    print(f"{r['method']:>19} {r['batch']:>8} {r['dtype']:>7} | {r['traj_per_s']:>10.4g} "
-          f"{ratio} | {r['first_call_s']:>7.2f} {r['seconds']:>8.4f} | {steps} | {err} | "
-          f"{note}", flush=True)
+    print(
+        f"{r['method']:>19} {r['batch']:>8} {r['dtype']:>7} | {r['traj_per_s']:>10.4g} "
+        f"{ratio} | {r['first_call_s']:>7.2f} {r['seconds']:>8.4f} | {steps} | {err} | "
+        f"{note}",
+        flush=True,
+    )
 
 
 if __name__ == "__main__":
@@ -416,5 +557,17 @@ if __name__ == "__main__":
     p.add_argument("--budget", type=float, default=600.0)
     p.add_argument("--out", default="results/benchmarks")
     a = p.parse_args()
-    main(a.sizes, a.grad_max, a.vmap_max, a.cpu_layout_max, a.whole_min, a.lanes, a.ref_max,
-         a.budget, a.out, a.sweep_n, a.models, a.model_min)
+    main(
+        a.sizes,
+        a.grad_max,
+        a.vmap_max,
+        a.cpu_layout_max,
+        a.whole_min,
+        a.lanes,
+        a.ref_max,
+        a.budget,
+        a.out,
+        a.sweep_n,
+        a.models,
+        a.model_min,
+    )

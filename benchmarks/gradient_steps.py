@@ -92,7 +92,8 @@ class _OmegaGroup(eqx.Module):
 
 
 def _jit(fn):
-    """`jax.jit` with the options rbdyn_jax compiles its own programs with (`rbdyn_jax/_program/xla.py`)."""
+    """`jax.jit` with the options rbdyn_jax compiles its own programs with
+    (`rbdyn_jax/_program/xla.py`)."""
     return jax.jit(fn, compiler_options=rb.COMPILER_OPTIONS)
 
 
@@ -128,11 +129,12 @@ def _loops(lanes, steps, kind_list):
 
     S0 = (jnp.zeros((3 * P, lanes)),)  # ω's (3, P) columns per lane, flattened
     fns = {"forward": _jit(lambda y0: stepper(Plain(model), y0))}
-    for name, aug in (("sensitivities", Sensitivity(model, *args)),
-                      ("sensitivities, field zeroed", _ZeroField(model, *args)),
-                      # no parameter leaf differentiated: ∂f/∂y·S alone, the same P columns
-                      ("sensitivities, no parameter part",
-                       Sensitivity(model, (), (), P, (), (0,)))):
+    for name, aug in (
+        ("sensitivities", Sensitivity(model, *args)),
+        ("sensitivities, field zeroed", _ZeroField(model, *args)),
+        # no parameter leaf differentiated: ∂f/∂y·S alone, the same P columns
+        ("sensitivities, no parameter part", Sensitivity(model, (), (), P, (), (0,))),
+    ):
         fns[name] = _jit(lambda y0, aug=aug: stepper(aug, (y0, S0)))
 
     # The reverse pass: per-lane inertia (a batched model, (3, 3, lanes)), ω recorded at
@@ -188,15 +190,15 @@ def _loops(lanes, steps, kind_list):
         S = calls["sensitivities"]()[1][0].reshape(3, P, lanes)
         g_sens = jnp.einsum("ipl,il->pl", S, lam)
         dJ = calls[f"reverse, diffrax VJP (scan_kind={kind_list[0]})"]()[1]  # (3, 3, lanes)
-        g_rev = jnp.stack([dJ[i, i] if i == j else dJ[i, j] + dJ[j, i]
-                           for i, j in SYMMETRIC])
+        g_rev = jnp.stack([dJ[i, i] if i == j else dJ[i, j] + dJ[j, i] for i, j in SYMMETRIC])
         return float(jnp.max(jnp.abs(g_sens - g_rev)) / jnp.max(jnp.abs(g_sens)))
 
     return calls, check
 
 
-def main(lanes=16, steps=300, rounds=20, kinds=("bounded", "checkpointed"),
-         out="results/benchmarks"):
+def main(
+    lanes=16, steps=300, rounds=20, kinds=("bounded", "checkpointed"), out="results/benchmarks"
+):
     calls, check = _loops(lanes, steps, kinds)
     first = {}
     for name, call in calls.items():
@@ -210,21 +212,36 @@ def main(lanes=16, steps=300, rounds=20, kinds=("bounded", "checkpointed"),
             jax.block_until_ready(call())
             times[name].append(time.perf_counter() - t)
     unit = min(times["forward"]) / steps
-    rows = [{"method": name, "first_call_s": first[name],
-             "us_per_step": min(ts) / steps * 1e6, "x_forward_step": min(ts) / steps / unit,
-             "median_us_per_step": float(np.median(ts)) / steps * 1e6}
-            for name, ts in times.items()]
+    rows = [
+        {
+            "method": name,
+            "first_call_s": first[name],
+            "us_per_step": min(ts) / steps * 1e6,
+            "x_forward_step": min(ts) / steps / unit,
+            "median_us_per_step": float(np.median(ts)) / steps * 1e6,
+        }
+        for name, ts in times.items()
+    ]
     error = check()
     width = max(len(r["method"]) for r in rows)
     print(f"{lanes} lanes, {steps} Tsit5 steps, minimum of {rounds} interleaved rounds")
     print(f"{'method':<{width}} | first call s | µs / step | × forward step | median µs")
     print("-" * (width + 58))
     for r in rows:
-        print(f"{r['method']:<{width}} | {r['first_call_s']:12.2f} | {r['us_per_step']:9.2f} "
-              f"| {r['x_forward_step']:14.2f} | {r['median_us_per_step']:9.2f}")
+        print(
+            f"{r['method']:<{width}} | {r['first_call_s']:12.2f} | {r['us_per_step']:9.2f} "
+            f"| {r['x_forward_step']:14.2f} | {r['median_us_per_step']:9.2f}"
+        )
     print(f"reverse vs sensitivities, d(λ·ω_K)/dθ: relative difference {error:.1e}")
-    meta = {"lanes": lanes, "steps": steps, "rounds": rounds, "step": H, "span": SPAN,
-            "solver": "Tsit5", "reverse_vs_sensitivities": error}
+    meta = {
+        "lanes": lanes,
+        "steps": steps,
+        "rounds": rounds,
+        "step": H,
+        "span": SPAN,
+        "solver": "Tsit5",
+        "reverse_vs_sensitivities": error,
+    }
     print("wrote", _report.write_json(out, "gradient_steps", meta, rows))
     return rows, error
 

@@ -75,8 +75,15 @@ MAX_STEPS, LANES, H, REPEATS = 4096, 16, 1e-6, 7
 
 def reference_rates(inertia, y0s, ts):
     """ω(t) (N, n, 3) of the body `inertia` at rtol = atol = REF_TOL."""
-    traj = rb.simulate_batch(rb.RigidBody(jnp.asarray(inertia)), y0s, ts, rtol=REF_TOL,
-                             atol=REF_TOL, max_steps=MAX_STEPS, throw=True)
+    traj = rb.simulate_batch(
+        rb.RigidBody(jnp.asarray(inertia)),
+        y0s,
+        ts,
+        rtol=REF_TOL,
+        atol=REF_TOL,
+        max_steps=MAX_STEPS,
+        throw=True,
+    )
     return traj.ys.omega
 
 
@@ -108,7 +115,7 @@ def central_differences(loss, h=H):
     def grad(theta):
         e = h * jnp.eye(theta.shape[0], dtype=theta.dtype)
         f = jax.lax.map(loss, jnp.concatenate([theta + e, theta - e]))
-        return (f[: theta.shape[0]] - f[theta.shape[0]:]) / (2 * h)
+        return (f[: theta.shape[0]] - f[theta.shape[0] :]) / (2 * h)
 
     return grad
 
@@ -120,9 +127,16 @@ def numba_loss(y0s, data, ts, tol):
 
     def loss(theta):
         inertia = np.asarray(rb.inertia.from_log_cholesky(jnp.asarray(theta)))
-        om = _baselines.numba_solve("torque_free", {"inertia": inertia, "weight": 0.0,
-                                                    "com": np.zeros(3), "eps": 0.0},
-                                    w0, q0, ts, tol, tol, MAX_STEPS)["omega"]
+        om = _baselines.numba_solve(
+            "torque_free",
+            {"inertia": inertia, "weight": 0.0, "com": np.zeros(3), "eps": 0.0},
+            w0,
+            q0,
+            ts,
+            tol,
+            tol,
+            MAX_STEPS,
+        )["omega"]
         return float(np.sum((om - data) ** 2))
 
     return loss
@@ -164,12 +178,18 @@ def methods(y0s, ts, data):
         f"forward loss, lanes={LANES}": ("loss", lanes),
         "grad, default": ("grad", jax.grad(default)),
         "grad, RecursiveCheckpointAdjoint()": ("grad", jax.grad(plain)),
-        f"grad, RecursiveCheckpointAdjoint(checkpoints={MAX_STEPS})":
-            ("grad", jax.grad(make_loss(y0s, ts, data, adjoint=adj(checkpoints=MAX_STEPS)))),
-        "grad, BacksolveAdjoint()":
-            ("grad", jax.grad(make_loss(y0s, ts, data, adjoint=diffrax.BacksolveAdjoint()))),
-        "jacfwd, ForwardMode()":
-            ("grad", jax.jacfwd(make_loss(y0s, ts, data, adjoint=diffrax.ForwardMode()))),
+        f"grad, RecursiveCheckpointAdjoint(checkpoints={MAX_STEPS})": (
+            "grad",
+            jax.grad(make_loss(y0s, ts, data, adjoint=adj(checkpoints=MAX_STEPS))),
+        ),
+        "grad, BacksolveAdjoint()": (
+            "grad",
+            jax.grad(make_loss(y0s, ts, data, adjoint=diffrax.BacksolveAdjoint())),
+        ),
+        "jacfwd, ForwardMode()": (
+            "grad",
+            jax.jacfwd(make_loss(y0s, ts, data, adjoint=diffrax.ForwardMode())),
+        ),
         f"jacfwd, lanes={LANES}": ("grad", jax.jacfwd(lanes)),
         f"grad, lanes={LANES}": ("grad", jax.grad(lanes)),
         f"central differences, h={H:g}, lanes": ("grad", central_differences(lanes)),
@@ -201,8 +221,10 @@ def timings(fns, theta, repeats):
             t0 = time.perf_counter()
             jax.block_until_ready(f(theta))
             times[name].append(time.perf_counter() - t0)
-    return {name: {"time_s": float(np.min(t)), "median_s": float(np.median(t))}
-            for name, t in times.items()}
+    return {
+        name: {"time_s": float(np.min(t)), "median_s": float(np.median(t))}
+        for name, t in times.items()
+    }
 
 
 def rel_error(value, ref):
@@ -211,26 +233,32 @@ def rel_error(value, ref):
 
 def print_table(rows):
     w = max(len(r["method"]) for r in rows)
-    head = (f"{'method':<{w}} | {'first call s':>12} | {'time ms':>9} | {'× default fwd':>13} | "
-            f"{'× vmap fwd':>10} | {'median ms':>9} | {'rel. error':>10}")
+    head = (
+        f"{'method':<{w}} | {'first call s':>12} | {'time ms':>9} | {'× default fwd':>13} | "
+        f"{'× vmap fwd':>10} | {'median ms':>9} | {'rel. error':>10}"
+    )
     print(head)
     print("-" * len(head))
     for r in rows:
         if "error" in r:
             print(f"{r['method']:<{w}} | failed: {r['error']}")
             continue
-        print(f"{r['method']:<{w}} | {r['first_call_s']:>12.2f} | {1e3 * r['time_s']:>9.2f} | "
-              f"{r['x_default_forward']:>13.2f} | {r['x_vmap_forward']:>10.2f} | "
-              f"{1e3 * r['median_s']:>9.2f} | "
-              f"{r['rel_error']:>10.1e}")
+        print(
+            f"{r['method']:<{w}} | {r['first_call_s']:>12.2f} | {1e3 * r['time_s']:>9.2f} | "
+            f"{r['x_default_forward']:>13.2f} | {r['x_vmap_forward']:>10.2f} | "
+            f"{1e3 * r['median_s']:>9.2f} | "
+            f"{r['rel_error']:>10.1e}"
+        )
 
 
 def main(n=64, out="results/benchmarks", repeats=REPEATS, only=None):
     """`only`: run just the methods whose name starts with one of these strings (the two
     forward rows, the baselines of the ratios, always run)."""
     y0s, ts, data, theta0, ref_loss = problem(n)
-    ref_grad = jax.jit(jax.grad(make_loss(y0s, ts, data, tol=REF_TOL, batching=rb.Vmap())),
-                       compiler_options=rb.COMPILER_OPTIONS)(theta0)
+    ref_grad = jax.jit(
+        jax.grad(make_loss(y0s, ts, data, tol=REF_TOL, batching=rb.Vmap())),
+        compiler_options=rb.COMPILER_OPTIONS,
+    )(theta0)
     ref = {"loss": np.asarray(ref_loss), "grad": np.asarray(ref_grad)}
     rows, jitted = [], {}
     for name, (kind, fn) in methods(y0s, ts, data).items():
@@ -246,12 +274,20 @@ def main(n=64, out="results/benchmarks", repeats=REPEATS, only=None):
     lane_grad = next((r for r in rows if r["method"] == "grad, default"), None)
     if lane_grad is not None and "rel_error" in lane_grad:
         _baselines.warmup()
-        name, g, err = numba_equal_accuracy(y0s, ts, data, np.asarray(theta0), ref["grad"],
-                                            lane_grad["rel_error"])
+        name, g, err = numba_equal_accuracy(
+            y0s, ts, data, np.asarray(theta0), ref["grad"], lane_grad["rel_error"]
+        )
         t0 = time.perf_counter()
         value = g(np.asarray(theta0))
-        rows.append({"method": name, "kind": "grad", "first_call_s": time.perf_counter() - t0,
-                     "value": value.tolist(), "rel_error": err})
+        rows.append(
+            {
+                "method": name,
+                "kind": "grad",
+                "first_call_s": time.perf_counter() - t0,
+                "value": value.tolist(),
+                "rel_error": err,
+            }
+        )
         jitted[name] = g
     measured = timings(jitted, theta0, repeats)
     for r in rows:
@@ -262,14 +298,27 @@ def main(n=64, out="results/benchmarks", repeats=REPEATS, only=None):
         if "time_s" in r:
             r["x_default_forward"] = r["time_s"] / default if default else float("nan")
             r["x_vmap_forward"] = r["time_s"] / plain if plain else float("nan")
-    print(f"reference (rtol = atol = {REF_TOL:g}): L = {float(ref['loss']):.6e}, "
-          f"max |∇L| = {np.max(np.abs(ref['grad'])):.6e}")
+    print(
+        f"reference (rtol = atol = {REF_TOL:g}): L = {float(ref['loss']):.6e}, "
+        f"max |∇L| = {np.max(np.abs(ref['grad'])):.6e}"
+    )
     print_table(rows)
-    meta = {"n": n, "t_end": T_END, "n_out": N_OUT,
-            "rtol": TOL, "ref_rtol": REF_TOL, "max_steps": MAX_STEPS, "lanes": LANES,
-            "fd_step": H, "repeats": repeats, "inertia": J.tolist(),
-            "inertia_data": J_DATA.tolist(), "theta0": np.asarray(theta0).tolist(),
-            "ref_loss": float(ref["loss"]), "ref_grad": ref["grad"].tolist()}
+    meta = {
+        "n": n,
+        "t_end": T_END,
+        "n_out": N_OUT,
+        "rtol": TOL,
+        "ref_rtol": REF_TOL,
+        "max_steps": MAX_STEPS,
+        "lanes": LANES,
+        "fd_step": H,
+        "repeats": repeats,
+        "inertia": J.tolist(),
+        "inertia_data": J_DATA.tolist(),
+        "theta0": np.asarray(theta0).tolist(),
+        "ref_loss": float(ref["loss"]),
+        "ref_grad": ref["grad"].tolist(),
+    }
     print(f"wrote {_report.write_json(out, 'gradients', meta, rows)}")
     return rows
 

@@ -121,8 +121,14 @@ def output_periods(periods: float, per_decade: int, seed: int = 0):
 def solve(spec, model, y0, ts, period, max_steps):
     if spec[0] == "tsit5":
         return rb.simulate(model, y0, ts, rtol=spec[1], atol=spec[1], max_steps=max_steps)
-    return rb.simulate(model, y0, ts, solver=rb.LiePoissonSplitting(spec[1]),
-                       dt0=jnp.asarray(period / spec[2]), max_steps=max_steps)
+    return rb.simulate(
+        model,
+        y0,
+        ts,
+        solver=rb.LiePoissonSplitting(spec[1]),
+        dt0=jnp.asarray(period / spec[2]),
+        max_steps=max_steps,
+    )
 
 
 def envelope(p, err):
@@ -136,8 +142,7 @@ def envelope(p, err):
     return [centres, maxima]
 
 
-def measure(name, spec, model, y0, moments, axes, period, periods, per_decade,
-            body="torque-free"):
+def measure(name, spec, model, y0, moments, axes, period, periods, per_decade, body="torque-free"):
     """A method's long solve of `body` (its `model` from `y0`): the row of its errors,
     steps and wall time. For a body under a torque only the energy is conserved: its row
     has no |L| and no global error."""
@@ -155,17 +160,28 @@ def measure(name, spec, model, y0, moments, axes, period, periods, per_decade,
     assert int(rb.integrate.result_code(traj.result)) == 0, (name, traj.result)
     energy = np.asarray(rb.invariants.energy(model, traj))
     energy = np.abs(energy / energy[0] - 1.0)
-    row = {"method": name, "body": body, "kind": spec[0], "horizon_periods": periods,
-           "period": period, "outputs": len(p), "steps": int(traj.stats["num_steps"]),
-           "steps_per_period": int(traj.stats["num_steps"]) / periods, "wall_s": wall,
-           "energy_max": float(energy.max()), "quat_norm_drift": float(traj.stats["norm_drift"])}
+    row = {
+        "method": name,
+        "body": body,
+        "kind": spec[0],
+        "horizon_periods": periods,
+        "period": period,
+        "outputs": len(p),
+        "steps": int(traj.stats["num_steps"]),
+        "steps_per_period": int(traj.stats["num_steps"]) / periods,
+        "wall_s": wall,
+        "energy_max": float(energy.max()),
+        "quat_norm_drift": float(traj.stats["norm_drift"]),
+    }
     if free:  # |L| is conserved by the torque-free body only
-        L = np.linalg.norm(np.asarray(rb.invariants.angular_momentum_inertial(model, traj)),
-                           axis=-1)
+        L = np.linalg.norm(
+            np.asarray(rb.invariants.angular_momentum_inertial(model, traj)), axis=-1
+        )
         L = np.abs(L / L[0] - 1.0)
         row["L_max"] = float(L.max())
-    row.update({"rtol": spec[1]} if spec[0] == "tsit5" else
-               {"order": spec[1], "dt_periods": 1.0 / spec[2]})
+    row.update(
+        {"rtol": spec[1]} if spec[0] == "tsit5" else {"order": spec[1], "dt_periods": 1.0 / spec[2]}
+    )
     early = random & (p >= 10) & (p <= 100)
     late = random & (p >= periods / 10)
     row["energy_10_100"] = float(energy[early].max()) if early.any() else None
@@ -177,10 +193,17 @@ def measure(name, spec, model, y0, moments, axes, period, periods, per_decade,
     row["L_last_decade"] = float(L[late].max())
     if GLOBAL_AT <= periods:
         i = int(np.searchsorted(p, GLOBAL_AT))
-        exact = np.asarray(axes) @ np.asarray(rb.analytic.torque_free_elliptic(
-            moments, jnp.asarray(W0_PRINCIPAL), jnp.asarray([0.0, GLOBAL_AT * period])))[-1]
-        row["global_error_1e4"] = float(np.linalg.norm(np.asarray(traj.ys.omega[i]) - exact)
-                                        / np.linalg.norm(W0_PRINCIPAL))
+        exact = (
+            np.asarray(axes)
+            @ np.asarray(
+                rb.analytic.torque_free_elliptic(
+                    moments, jnp.asarray(W0_PRINCIPAL), jnp.asarray([0.0, GLOBAL_AT * period])
+                )
+            )[-1]
+        )
+        row["global_error_1e4"] = float(
+            np.linalg.norm(np.asarray(traj.ys.omega[i]) - exact) / np.linalg.norm(W0_PRINCIPAL)
+        )
     row["curve"] = {**curve, "L": envelope(p[random], L[random])}
     return row
 
@@ -211,10 +234,13 @@ def targets(rows, potentials=()) -> dict:
     if TARGET_METHOD not in by or BASELINE not in by:
         return {}
     t, b = by[TARGET_METHOD], by[BASELINE]
-    out = {"method": TARGET_METHOD, "baseline": BASELINE,
-           "L_le_1e-12": t["L_max"] <= 1e-12,
-           "energy_le_1e-8": t["energy_max"] <= 1e-8,
-           "cost_ratio": t["us_per_period"] / b["us_per_period"]}
+    out = {
+        "method": TARGET_METHOD,
+        "baseline": BASELINE,
+        "L_le_1e-12": t["L_max"] <= 1e-12,
+        "energy_le_1e-8": t["energy_max"] <= 1e-8,
+        "cost_ratio": t["us_per_period"] / b["us_per_period"],
+    }
     out["cost_le_3x"] = out["cost_ratio"] <= 3.0
     if t["energy_10_100"] is not None:
         out["energy_bounded"] = t["energy_last_decade"] <= 2.0 * t["energy_10_100"]
@@ -227,15 +253,18 @@ def targets(rows, potentials=()) -> dict:
         out["fine_cost_ratio"] = f["us_per_period"] / b["us_per_period"]
     kicked = [r for r in potentials if r["kind"] == "splitting" and r["energy_10_100"]]
     if kicked:
-        out["potentials_bounded"] = all(r["energy_last_decade"] <= 2.0 * r["energy_10_100"]
-                                        for r in kicked)
+        out["potentials_bounded"] = all(
+            r["energy_last_decade"] <= 2.0 * r["energy_10_100"] for r in kicked
+        )
     return out
 
 
 def print_table(rows, checks, potentials=()):
-    head = (f"{'method':<20} {'steps/T':>8} {'µs/T':>8} {'× Tsit5 1e-10':>13} {'max |ΔE/E|':>10} "
-            f"{'E 10–10²':>9} {'E last dec.':>11} {'max |Δ|L||':>10} {'|q| − 1':>8} "
-            f"{'global 1e4':>10}")
+    head = (
+        f"{'method':<20} {'steps/T':>8} {'µs/T':>8} {'× Tsit5 1e-10':>13} {'max |ΔE/E|':>10} "
+        f"{'E 10–10²':>9} {'E last dec.':>11} {'max |Δ|L||':>10} {'|q| − 1':>8} "
+        f"{'global 1e4':>10}"
+    )
     print(head)
     print("-" * len(head))
     base = {r["method"]: r for r in rows}.get(BASELINE)
@@ -243,25 +272,36 @@ def print_table(rows, checks, potentials=()):
         ratio = r["us_per_period"] / base["us_per_period"] if base else float("nan")
         g = r.get("global_error_1e4", float("nan"))
         e1 = r["energy_10_100"] if r["energy_10_100"] is not None else float("nan")
-        print(f"{r['method']:<20} {r['steps_per_period']:>8.0f} {r['us_per_period']:>8.1f} "
-              f"{ratio:>13.2f} {r['energy_max']:>10.1e} {e1:>9.1e} "
-              f"{r['energy_last_decade']:>11.1e} {r['L_max']:>10.1e} "
-              f"{r['quat_norm_drift']:>8.0e} {g:>10.1e}")
+        print(
+            f"{r['method']:<20} {r['steps_per_period']:>8.0f} {r['us_per_period']:>8.1f} "
+            f"{ratio:>13.2f} {r['energy_max']:>10.1e} {e1:>9.1e} "
+            f"{r['energy_last_decade']:>11.1e} {r['L_max']:>10.1e} "
+            f"{r['quat_norm_drift']:>8.0e} {g:>10.1e}"
+        )
     if potentials:
         print()
-        head = (f"{'body':<17} {'method':<20} {'steps/T':>8} {'µs/T':>8} {'max |ΔE/E|':>10} "
-                f"{'E 10–10²':>9} {'E last dec.':>11} {'|q| − 1':>8}")
+        head = (
+            f"{'body':<17} {'method':<20} {'steps/T':>8} {'µs/T':>8} {'max |ΔE/E|':>10} "
+            f"{'E 10–10²':>9} {'E last dec.':>11} {'|q| − 1':>8}"
+        )
         print(head)
         print("-" * len(head))
         for r in potentials:
-            print(f"{r['body']:<17} {r['method']:<20} {r['steps_per_period']:>8.0f} "
-                  f"{r['us_per_period']:>8.1f} {r['energy_max']:>10.1e} "
-                  f"{r['energy_10_100']:>9.1e} {r['energy_last_decade']:>11.1e} "
-                  f"{r['quat_norm_drift']:>8.0e}")
+            print(
+                f"{r['body']:<17} {r['method']:<20} {r['steps_per_period']:>8.0f} "
+                f"{r['us_per_period']:>8.1f} {r['energy_max']:>10.1e} "
+                f"{r['energy_10_100']:>9.1e} {r['energy_last_decade']:>11.1e} "
+                f"{r['quat_norm_drift']:>8.0e}"
+            )
     if checks:
-        print(f"targets on {checks['method']}: " + ", ".join(
-            f"{k} {v if isinstance(v, bool) else f'{v:.2f}'}" for k, v in checks.items()
-            if k not in ("method", "baseline", "fine_method")))
+        print(
+            f"targets on {checks['method']}: "
+            + ", ".join(
+                f"{k} {v if isinstance(v, bool) else f'{v:.2f}'}"
+                for k, v in checks.items()
+                if k not in ("method", "baseline", "fine_method")
+            )
+        )
 
 
 def plot(rows, path):
@@ -285,8 +325,13 @@ def plot(rows, path):
     for r in potentials:  # a colour per body, dashed Tsit5, solid splitting
         style = "--" if r["kind"] == "tsit5" else "-"
         x, y = r["curve"]["energy"]
-        axes[2].loglog(x, np.maximum(y, 1e-17), style, color=colours[r["body"]],
-                       label=f"{r['body']}: {r['method']}")
+        axes[2].loglog(
+            x,
+            np.maximum(y, 1e-17),
+            style,
+            color=colours[r["body"]],
+            label=f"{r['body']}: {r['method']}",
+        )
     axes[0].set_title(f"Torque-free body (k² = 0.89, T = {free[0]['period']:.2f}): energy")
     axes[1].set_title("Torque-free body: |L|")
     axes[0].set_ylabel("largest |E/E0 − 1| in each bin")
@@ -309,38 +354,68 @@ def potential_rows(moments, axes, period, periods, per_decade, methods):
     rows = []
     for body, torque in POTENTIALS.items():
         model = rb.RigidBody(jnp.asarray(J), torque())
-        y0 = rb.State(axes @ jnp.asarray(W0_PRINCIPAL),
-                      rb.rotation.euler_to_quat(jnp.asarray(POTENTIAL_ATTITUDE), "ZXZ"))
+        y0 = rb.State(
+            axes @ jnp.asarray(W0_PRINCIPAL),
+            rb.rotation.euler_to_quat(jnp.asarray(POTENTIAL_ATTITUDE), "ZXZ"),
+        )
         for name in methods:
             t0 = time.perf_counter()
-            row = measure(name, POTENTIAL_METHODS[name], model, y0, moments, axes, period,
-                          periods, per_decade, body)
+            row = measure(
+                name,
+                POTENTIAL_METHODS[name],
+                model,
+                y0,
+                moments,
+                axes,
+                period,
+                periods,
+                per_decade,
+                body,
+            )
             row["us_per_period"] = 1e6 * row["wall_s"] / periods
             rows.append(row)
             print(f"  {body}, {name}: {time.perf_counter() - t0:.0f} s", flush=True)
     return rows
 
 
-def main(periods=1e6, per_decade=300, out="results/benchmarks", methods=tuple(METHODS),
-         repeats=3, potential_periods=1e5, potential_methods=tuple(POTENTIAL_METHODS)):
+def main(
+    periods=1e6,
+    per_decade=300,
+    out="results/benchmarks",
+    methods=tuple(METHODS),
+    repeats=3,
+    potential_periods=1e5,
+    potential_methods=tuple(POTENTIAL_METHODS),
+):
     model, y0, moments, axes, period = problem()
     rows = []
     for name in methods:
         t0 = time.perf_counter()
-        rows.append(measure(name, METHODS[name], model, y0, moments, axes, period, periods,
-                            per_decade))
+        rows.append(
+            measure(name, METHODS[name], model, y0, moments, axes, period, periods, per_decade)
+        )
         print(f"  {name}: {time.perf_counter() - t0:.0f} s", flush=True)
     cost(rows, model, y0, period, periods, per_decade, repeats)
-    potentials = (potential_rows(moments, axes, period, potential_periods, per_decade,
-                                 potential_methods) if potential_periods else [])
+    potentials = (
+        potential_rows(moments, axes, period, potential_periods, per_decade, potential_methods)
+        if potential_periods
+        else []
+    )
     checks = targets(rows, potentials)
     print_table(rows, checks, potentials)
-    meta = {"periods": periods, "potential_periods": potential_periods,
-            "per_decade": per_decade, "inertia": J.tolist(),
-            "omega0_principal": W0_PRINCIPAL.tolist(), "period": period,
-            "potential_attitude_zxz": list(POTENTIAL_ATTITUDE),
-            "global_at_periods": GLOBAL_AT, "cost_periods": min(COST_PERIODS, periods),
-            "repeats": repeats, "targets": checks}
+    meta = {
+        "periods": periods,
+        "potential_periods": potential_periods,
+        "per_decade": per_decade,
+        "inertia": J.tolist(),
+        "omega0_principal": W0_PRINCIPAL.tolist(),
+        "period": period,
+        "potential_attitude_zxz": list(POTENTIAL_ATTITUDE),
+        "global_at_periods": GLOBAL_AT,
+        "cost_periods": min(COST_PERIODS, periods),
+        "repeats": repeats,
+        "targets": checks,
+    }
     rows = rows + potentials
     file = _report.write_json(out, "long_horizon", meta, rows)
     plot(rows, file.with_suffix(".png"))
@@ -351,13 +426,28 @@ def main(periods=1e6, per_decade=300, out="results/benchmarks", methods=tuple(ME
 if __name__ == "__main__":
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--periods", type=float, default=1e6, help="horizon in periods (1e6)")
-    p.add_argument("--potential-periods", type=float, default=1e5,
-                   help="horizon of the potential torques' bodies in periods T (1e5; 0: none)")
+    p.add_argument(
+        "--potential-periods",
+        type=float,
+        default=1e5,
+        help="horizon of the potential torques' bodies in periods T (1e5; 0: none)",
+    )
     p.add_argument("--per-decade", type=int, default=300, help="output times per decade")
-    p.add_argument("--methods", nargs="+", default=list(METHODS), choices=list(METHODS),
-                   help="methods to run (default all)")
+    p.add_argument(
+        "--methods",
+        nargs="+",
+        default=list(METHODS),
+        choices=list(METHODS),
+        help="methods to run (default all)",
+    )
     p.add_argument("--repeats", type=int, default=3, help="timed rounds (3)")
     p.add_argument("--out", default="results/benchmarks", help="output folder")
     args = p.parse_args()
-    main(args.periods, args.per_decade, args.out, tuple(args.methods), args.repeats,
-         args.potential_periods)
+    main(
+        args.periods,
+        args.per_decade,
+        args.out,
+        tuple(args.methods),
+        args.repeats,
+        args.potential_periods,
+    )

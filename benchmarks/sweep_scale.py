@@ -81,9 +81,16 @@ def worker(cfg):
     base_rss = _rss_mib()
     ticks = []
     t0 = time.perf_counter()
-    sweep.run(cfg["scenario"], cfg["n"], cfg["store"], chunk=cfg["chunk"], seed=cfg["seed"],
-              devices=cfg["devices"], lanes=cfg["lanes"],
-              progress=lambda p: ticks.append((p.elapsed, p.solved_now, p.failed)))
+    sweep.run(
+        cfg["scenario"],
+        cfg["n"],
+        cfg["store"],
+        chunk=cfg["chunk"],
+        seed=cfg["seed"],
+        devices=cfg["devices"],
+        lanes=cfg["lanes"],
+        progress=lambda p: ticks.append((p.elapsed, p.solved_now, p.failed)),
+    )
     total = time.perf_counter() - t0
     peak_rss = _rss_mib()
     first = ticks[0][0]
@@ -91,14 +98,23 @@ def worker(cfg):
     rest_n = sum(t[1] for t in ticks[1:])
     summary = sweep.summarize(cfg["store"])
     return {
-        "n": cfg["n"], "chunk": cfg["chunk"], "devices": cfg["devices"],
-        "jax_devices": n_dev, "lanes": cfg["lanes"], "n_chunks": len(ticks),
-        "first_chunk_s": first, "rest_s": rest,
+        "n": cfg["n"],
+        "chunk": cfg["chunk"],
+        "devices": cfg["devices"],
+        "jax_devices": n_dev,
+        "lanes": cfg["lanes"],
+        "n_chunks": len(ticks),
+        "first_chunk_s": first,
+        "rest_s": rest,
         "steady_traj_per_s": rest_n / rest if len(ticks) > 1 and rest > 0 else None,
         "overall_traj_per_s": cfg["n"] / total,
-        "run_s": total, "process_s": time.perf_counter() - t_proc,
-        "base_rss_mib": base_rss, "peak_rss_mib": peak_rss,
-        "failed": ticks[-1][2], "status": summary["status"], "concurrent_jobs": cfg["jobs"],
+        "run_s": total,
+        "process_s": time.perf_counter() - t_proc,
+        "base_rss_mib": base_rss,
+        "peak_rss_mib": peak_rss,
+        "failed": ticks[-1][2],
+        "status": summary["status"],
+        "concurrent_jobs": cfg["jobs"],
     }
 
 
@@ -139,39 +155,80 @@ def cluster_worker(cfg):
     base_rss = _rss_mib()
     ticks = []
     t0 = time.perf_counter()
-    with (LocalCluster(n_workers=k, threads_per_worker=1, processes=True,
-                       dashboard_address=None, env={"JAX_ENABLE_X64": "1"}) as cluster,
-          Client(cluster) as client):
+    with (
+        LocalCluster(
+            n_workers=k,
+            threads_per_worker=1,
+            processes=True,
+            dashboard_address=None,
+            env={"JAX_ENABLE_X64": "1"},
+        ) as cluster,
+        Client(cluster) as client,
+    ):
         client.wait_for_workers(k)
         start = time.perf_counter() - t0
         t1 = time.perf_counter()
-        warm = client.gather([
-            client.submit(_warm_up, sc.source, sc.name, f"{cfg['store']}.warm{i}", cfg["chunk"],
-                          cfg["seed"], cfg["lanes"], cfg["devices"], workers=[addr],
-                          allow_other_workers=False, pure=False)
-            for i, addr in enumerate(client.scheduler_info(n_workers=-1)["workers"])])
+        warm = client.gather(
+            [
+                client.submit(
+                    _warm_up,
+                    sc.source,
+                    sc.name,
+                    f"{cfg['store']}.warm{i}",
+                    cfg["chunk"],
+                    cfg["seed"],
+                    cfg["lanes"],
+                    cfg["devices"],
+                    workers=[addr],
+                    allow_other_workers=False,
+                    pure=False,
+                )
+                for i, addr in enumerate(client.scheduler_info(n_workers=-1)["workers"])
+            ]
+        )
         first = time.perf_counter() - t1
         if len(warm) != k:
             raise RuntimeError(f"{len(warm)} of {k} workers warmed up")
         t2 = time.perf_counter()
-        sweep.run(sc, cfg["n"], cfg["store"], chunk=cfg["chunk"], seed=cfg["seed"],
-                  devices=cfg["devices"], lanes=cfg["lanes"], client=client,
-                  progress=lambda p: ticks.append((p.elapsed, p.solved_now, p.failed)))
+        sweep.run(
+            sc,
+            cfg["n"],
+            cfg["store"],
+            chunk=cfg["chunk"],
+            seed=cfg["seed"],
+            devices=cfg["devices"],
+            lanes=cfg["lanes"],
+            client=client,
+            progress=lambda p: ticks.append((p.elapsed, p.solved_now, p.failed)),
+        )
         total = time.perf_counter() - t2
         worker_rss = list(client.run(_rss_mib).values())
     peak_rss = _rss_mib()
     rest = ticks[-1][0]
     summary = sweep.summarize(cfg["store"])
     return {
-        "engine": "dask", "n": cfg["n"], "chunk": cfg["chunk"], "workers": k,
-        "devices": cfg["devices"], "jax_devices": min(d for _, d in warm),
-        "lanes": cfg["lanes"], "n_chunks": len(ticks), "cluster_start_s": start,
-        "first_chunk_s": first, "worker_compile_s": [s for s, _ in warm], "rest_s": rest,
+        "engine": "dask",
+        "n": cfg["n"],
+        "chunk": cfg["chunk"],
+        "workers": k,
+        "devices": cfg["devices"],
+        "jax_devices": min(d for _, d in warm),
+        "lanes": cfg["lanes"],
+        "n_chunks": len(ticks),
+        "cluster_start_s": start,
+        "first_chunk_s": first,
+        "worker_compile_s": [s for s, _ in warm],
+        "rest_s": rest,
         "steady_traj_per_s": cfg["n"] / rest if rest > 0 else None,
-        "run_s": total, "process_s": time.perf_counter() - t_proc,
-        "base_rss_mib": base_rss, "peak_rss_mib": peak_rss,
-        "worker_peak_rss_mib": max(worker_rss), "worker_rss_mib": worker_rss,
-        "failed": ticks[-1][2], "status": summary["status"], "concurrent_jobs": cfg["jobs"],
+        "run_s": total,
+        "process_s": time.perf_counter() - t_proc,
+        "base_rss_mib": base_rss,
+        "peak_rss_mib": peak_rss,
+        "worker_peak_rss_mib": max(worker_rss),
+        "worker_rss_mib": worker_rss,
+        "failed": ticks[-1][2],
+        "status": summary["status"],
+        "concurrent_jobs": cfg["jobs"],
     }
 
 
@@ -183,22 +240,34 @@ def cluster_worker(cfg):
 def _spawn(cfg, host_devices, label):
     """`cfg` in a fresh subprocess with `host_devices` XLA host devices; its result row."""
     env = dict(os.environ, JAX_PLATFORMS="cpu")
-    flags = [f for f in env.get("XLA_FLAGS", "").split()
-             if not f.startswith("--xla_force_host_platform_device_count")]
-    env["XLA_FLAGS"] = " ".join([*flags,
-                                 f"--xla_force_host_platform_device_count={host_devices}"])
+    flags = [
+        f
+        for f in env.get("XLA_FLAGS", "").split()
+        if not f.startswith("--xla_force_host_platform_device_count")
+    ]
+    env["XLA_FLAGS"] = " ".join([*flags, f"--xla_force_host_platform_device_count={host_devices}"])
     print(f"  run {label} …", flush=True)
-    proc = subprocess.run([sys.executable, os.path.abspath(__file__), "--worker",
-                           json.dumps(cfg)], env=env, capture_output=True, text=True)
+    proc = subprocess.run(
+        [sys.executable, os.path.abspath(__file__), "--worker", json.dumps(cfg)],
+        env=env,
+        capture_output=True,
+        text=True,
+    )
     if proc.returncode != 0:
         raise RuntimeError(f"worker {cfg} failed ({proc.returncode}):\n{proc.stderr}")
     return json.loads(pathlib.Path(cfg["result"]).read_text())
 
 
 def _cfg(args, tmp, name, **kw):
-    return {"scenario": args.scenario, "lanes": args.lanes, "seed": args.seed,
-            "store": str(tmp / f"{name}.zarr"), "result": str(tmp / f"{name}.json"),
-            "jobs": args.jobs, **kw}
+    return {
+        "scenario": args.scenario,
+        "lanes": args.lanes,
+        "seed": args.seed,
+        "store": str(tmp / f"{name}.zarr"),
+        "result": str(tmp / f"{name}.json"),
+        "jobs": args.jobs,
+        **kw,
+    }
 
 
 def run_worker(args, tmp, n, chunk, devices):
@@ -211,10 +280,18 @@ def run_worker(args, tmp, n, chunk, devices):
 def run_cluster(args, tmp, n, chunk, workers, devices):
     """Part 4's LocalCluster of `workers` × `devices` in a fresh subprocess; its store is
     left in `tmp`."""
-    cfg = _cfg(args, tmp, f"n{n}_c{chunk}_dask{workers}x{devices}", n=n, chunk=chunk,
-               devices=devices, workers=workers)
-    row = _spawn(cfg, devices, f"n={n} chunk={chunk} LocalCluster {workers} workers × "
-                               f"{devices} devices")
+    cfg = _cfg(
+        args,
+        tmp,
+        f"n{n}_c{chunk}_dask{workers}x{devices}",
+        n=n,
+        chunk=chunk,
+        devices=devices,
+        workers=workers,
+    )
+    row = _spawn(
+        cfg, devices, f"n={n} chunk={chunk} LocalCluster {workers} workers × {devices} devices"
+    )
     return row, cfg["store"]
 
 
@@ -247,9 +324,12 @@ def _table(title, rows, cols):
         print(" ".join(f"{_f(r[k], f):>{w}}" if f else f"{r[k]!s:>{w}}" for _, k, w, f in cols))
 
 
-TIMES = [("first chunk s", "first_chunk_s", 13, ".2f"), ("rest s", "rest_s", 8, ".2f"),
-         ("steady traj/s", "steady_traj_per_s", 13, ".0f"),
-         ("peak RSS MiB", "peak_rss_mib", 12, ".0f")]
+TIMES = [
+    ("first chunk s", "first_chunk_s", 13, ".2f"),
+    ("rest s", "rest_s", 8, ".2f"),
+    ("steady traj/s", "steady_traj_per_s", 13, ".0f"),
+    ("peak RSS MiB", "peak_rss_mib", 12, ".0f"),
+]
 
 
 def main(argv=None):
@@ -258,21 +338,36 @@ def main(argv=None):
     p.add_argument("--scenario", default="torque_free_flip")
     p.add_argument("--n", type=int, default=8192, help="N for parts 1 and 2")
     p.add_argument("--chunks", type=int, nargs="+", default=[256, 1024, 4096])
-    p.add_argument("--sizes", type=int, nargs=2, default=[8192, 32768],
-                   help="the two N of the memory check (part 3)")
-    p.add_argument("--devices", type=int, default=cpus,
-                   help="host devices for parts 1 and 3 and the many-device run of part 2")
+    p.add_argument(
+        "--sizes",
+        type=int,
+        nargs=2,
+        default=[8192, 32768],
+        help="the two N of the memory check (part 3)",
+    )
+    p.add_argument(
+        "--devices",
+        type=int,
+        default=cpus,
+        help="host devices for parts 1 and 3 and the many-device run of part 2",
+    )
     p.add_argument("--compare-chunk", type=int, default=1024, help="chunk of part 2")
     p.add_argument("--rss-chunk", type=int, default=1024, help="chunk of part 3")
     p.add_argument("--lanes", type=int, default=64)
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--workers", type=int, default=cpus,
-                   help="Dask LocalCluster workers of part 4 (each max(1, devices // workers) "
-                        "host devices)")
-    p.add_argument("--parts", type=int, nargs="+", choices=[1, 2, 3, 4],
-                   default=[1, 2, 3, 4])
-    p.add_argument("--jobs", type=int, default=1,
-                   help="subprocesses at a time (> 1 only for smoke tests: timings contend)")
+    p.add_argument(
+        "--workers",
+        type=int,
+        default=cpus,
+        help="Dask LocalCluster workers of part 4 (each max(1, devices // workers) host devices)",
+    )
+    p.add_argument("--parts", type=int, nargs="+", choices=[1, 2, 3, 4], default=[1, 2, 3, 4])
+    p.add_argument(
+        "--jobs",
+        type=int,
+        default=1,
+        help="subprocesses at a time (> 1 only for smoke tests: timings contend)",
+    )
     p.add_argument("--out", default="results/benchmarks/sweep_scale.json")
     p.add_argument("--worker", help=argparse.SUPPRESS)
     args = p.parse_args(argv)
@@ -283,11 +378,22 @@ def main(argv=None):
         return row
 
     many = max(args.devices, 2)  # part 2 compares 1 with ≥ 2 devices
-    result = {"meta": {"machine": platform.platform(), "python": platform.python_version(),
-                       "cpu_count": cpus, "jax": version("jax"), "jaxlib": version("jaxlib"),
-                       "platform": "cpu", "dtype": "float64", "scenario": args.scenario,
-                       "lanes": args.lanes, "seed": args.seed, "devices": args.devices,
-                       "date": time.strftime("%Y-%m-%d")}}
+    result = {
+        "meta": {
+            "machine": platform.platform(),
+            "python": platform.python_version(),
+            "cpu_count": cpus,
+            "jax": version("jax"),
+            "jaxlib": version("jaxlib"),
+            "platform": "cpu",
+            "dtype": "float64",
+            "scenario": args.scenario,
+            "lanes": args.lanes,
+            "seed": args.seed,
+            "devices": args.devices,
+            "date": time.strftime("%Y-%m-%d"),
+        }
+    }
     # Every distinct (n, chunk, devices) runs once; only part 2's two stores are kept.
     plan = {}
     if 1 in args.parts:
@@ -321,69 +427,111 @@ def main(argv=None):
                 runs[key] = (row, store)
         if 2 in args.parts:
             same = compare_stores(runs[pair[0]][1], runs[pair[1]][1])
-            result["devices"] = {"n": args.n, "chunk": args.compare_chunk,
-                                 "rows": [runs[k][0] for k in pair],
-                                 "compared": same, "identical": all(same.values())}
+            result["devices"] = {
+                "n": args.n,
+                "chunk": args.compare_chunk,
+                "rows": [runs[k][0] for k in pair],
+                "compared": same,
+                "identical": all(same.values()),
+            }
         if 4 in args.parts:
             same = compare_stores(runs[local][1], runs[cluster][1])
             a, b = runs[local][0], runs[cluster][0]
             rate_a, rate_b = a["steady_traj_per_s"], b["steady_traj_per_s"]
             empty = dict.fromkeys(("workers", "cluster_start_s", "worker_peak_rss_mib"))
-            result["dask"] = {"n": args.n, "chunk": args.compare_chunk,
-                              "workers": args.workers, "devices_per_worker": per_worker,
-                              "rows": [{"engine": "in-process", **empty, **a}, b],
-                              "compared": same, "identical": all(same.values()),
-                              "ratio": rate_b / rate_a if rate_a and rate_b else None}
+            result["dask"] = {
+                "n": args.n,
+                "chunk": args.compare_chunk,
+                "workers": args.workers,
+                "devices_per_worker": per_worker,
+                "rows": [{"engine": "in-process", **empty, **a}, b],
+                "compared": same,
+                "identical": all(same.values()),
+                "ratio": rate_b / rate_a if rate_a and rate_b else None,
+            }
     if 1 in args.parts:
-        result["chunks"] = {"n": args.n, "devices": args.devices,
-                            "rows": [runs[(args.n, c, args.devices)][0] for c in args.chunks]}
+        result["chunks"] = {
+            "n": args.n,
+            "devices": args.devices,
+            "rows": [runs[(args.n, c, args.devices)][0] for c in args.chunks],
+        }
     if 3 in args.parts:
         rows = [runs[(n, args.rss_chunk, args.devices)][0] for n in args.sizes]
-        result["memory"] = {"chunk": args.rss_chunk, "devices": args.devices, "rows": rows,
-                            "peak_rss_ratio": rows[1]["peak_rss_mib"] / rows[0]["peak_rss_mib"],
-                            "n_ratio": rows[1]["n"] / rows[0]["n"]}
+        result["memory"] = {
+            "chunk": args.rss_chunk,
+            "devices": args.devices,
+            "rows": rows,
+            "peak_rss_ratio": rows[1]["peak_rss_mib"] / rows[0]["peak_rss_mib"],
+            "n_ratio": rows[1]["n"] / rows[0]["n"],
+        }
 
     if "chunks" in result:
         c = result["chunks"]
-        _table(f"1. chunk size — {args.scenario}, N = {c['n']}, {c['devices']} devices",
-               c["rows"], [("chunk", "chunk", 6, "d"), ("chunks", "n_chunks", 6, "d"), *TIMES])
+        _table(
+            f"1. chunk size — {args.scenario}, N = {c['n']}, {c['devices']} devices",
+            c["rows"],
+            [("chunk", "chunk", 6, "d"), ("chunks", "n_chunks", 6, "d"), *TIMES],
+        )
     if "devices" in result:
         d = result["devices"]
-        _table(f"2. devices — N = {d['n']}, chunk {d['chunk']}", d["rows"],
-               [("devices", "devices", 7, "d"), *TIMES])
+        _table(
+            f"2. devices — N = {d['n']}, chunk {d['chunk']}",
+            d["rows"],
+            [("devices", "devices", 7, "d"), *TIMES],
+        )
         r1, rd = d["rows"]
         if r1["steady_traj_per_s"] and rd["steady_traj_per_s"]:
             d["speedup"] = rd["steady_traj_per_s"] / r1["steady_traj_per_s"]
             print(f"steady speedup {rd['devices']} vs 1 device: {d['speedup']:.2f}x")
         diff = [k for k, v in d["compared"].items() if not v]
-        print(f"identical: {d['identical']}"
-              + (f" (differ: {', '.join(diff)})" if diff else
-                 f" ({', '.join(d['compared'])})"))
+        print(
+            f"identical: {d['identical']}"
+            + (f" (differ: {', '.join(diff)})" if diff else f" ({', '.join(d['compared'])})")
+        )
     if "memory" in result:
         m = result["memory"]
-        _table(f"3. memory vs N — chunk {m['chunk']}, {m['devices']} devices", m["rows"],
-               [("N", "n", 7, "d"), ("run s", "run_s", 7, ".1f"),
+        _table(
+            f"3. memory vs N — chunk {m['chunk']}, {m['devices']} devices",
+            m["rows"],
+            [
+                ("N", "n", 7, "d"),
+                ("run s", "run_s", 7, ".1f"),
                 ("steady traj/s", "steady_traj_per_s", 13, ".0f"),
                 ("base RSS MiB", "base_rss_mib", 12, ".0f"),
-                ("peak RSS MiB", "peak_rss_mib", 12, ".0f")])
-        print(f"peak RSS ratio N={m['rows'][1]['n']} / N={m['rows'][0]['n']}: "
-              f"{m['peak_rss_ratio']:.3f} (N ratio {m['n_ratio']:g})")
+                ("peak RSS MiB", "peak_rss_mib", 12, ".0f"),
+            ],
+        )
+        print(
+            f"peak RSS ratio N={m['rows'][1]['n']} / N={m['rows'][0]['n']}: "
+            f"{m['peak_rss_ratio']:.3f} (N ratio {m['n_ratio']:g})"
+        )
 
     if "dask" in result:
         d = result["dask"]
-        _table(f"4. in-process vs Dask LocalCluster — N = {d['n']}, chunk {d['chunk']}, "
-               f"{d['workers']} workers × {d['devices_per_worker']} devices", d["rows"],
-               [("engine", "engine", 10, ""), ("workers", "workers", 7, "d"),
-                ("devices", "devices", 7, "d"), ("start s", "cluster_start_s", 7, ".2f"),
-                *TIMES, ("worker RSS MiB", "worker_peak_rss_mib", 14, ".0f")])
-        print("(LocalCluster: first chunk = the warm-up, every worker compiling and solving "
-              "one chunk at once; rest = the whole sweep after it)")
+        _table(
+            f"4. in-process vs Dask LocalCluster — N = {d['n']}, chunk {d['chunk']}, "
+            f"{d['workers']} workers × {d['devices_per_worker']} devices",
+            d["rows"],
+            [
+                ("engine", "engine", 10, ""),
+                ("workers", "workers", 7, "d"),
+                ("devices", "devices", 7, "d"),
+                ("start s", "cluster_start_s", 7, ".2f"),
+                *TIMES,
+                ("worker RSS MiB", "worker_peak_rss_mib", 14, ".0f"),
+            ],
+        )
+        print(
+            "(LocalCluster: first chunk = the warm-up, every worker compiling and solving "
+            "one chunk at once; rest = the whole sweep after it)"
+        )
         if d["ratio"] is not None:
             print(f"steady traj/s LocalCluster ÷ in-process: {d['ratio']:.2f}")
         diff = [k for k, v in d["compared"].items() if not v]
-        print(f"identical: {d['identical']}"
-              + (f" (differ: {', '.join(diff)})" if diff else
-                 f" ({', '.join(d['compared'])})"))
+        print(
+            f"identical: {d['identical']}"
+            + (f" (differ: {', '.join(diff)})" if diff else f" ({', '.join(d['compared'])})")
+        )
 
     path = pathlib.Path(args.out)
     path.parent.mkdir(parents=True, exist_ok=True)

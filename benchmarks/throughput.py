@@ -61,9 +61,11 @@ MODELS = ("torque_free", "heavy_top", "gravity_gradient")
 
 
 def rbdyn_model(name):
-    torque = {"torque_free": None,
-              "heavy_top": rb.UniformGravity(WEIGHT, jnp.asarray(COM)),
-              "gravity_gradient": rb.GravityGradient(EPS)}[name]
+    torque = {
+        "torque_free": None,
+        "heavy_top": rb.UniformGravity(WEIGHT, jnp.asarray(COM)),
+        "gravity_gradient": rb.GravityGradient(EPS),
+    }[name]
     return rb.RigidBody(jnp.asarray(J), torque)
 
 
@@ -102,8 +104,7 @@ def run_rbdyn(name, w0, ts, batching, repeats):
     y0s = rb.State(jnp.asarray(w0), jnp.tile(jnp.array([1.0, 0.0, 0.0, 0.0]), (len(w0), 1)))
 
     def call():
-        tr = rb.simulate_batch(model, y0s, jnp.asarray(ts), rtol=TOL, atol=TOL,
-                               batching=batching)
+        tr = rb.simulate_batch(model, y0s, jnp.asarray(ts), rtol=TOL, atol=TOL, batching=batching)
         return jax.block_until_ready(tr)
 
     tr, first, t = timed(call, repeats)
@@ -112,8 +113,9 @@ def run_rbdyn(name, w0, ts, batching, repeats):
 
 def run_baseline(solve, name, w0, ts, repeats, tol=TOL, **kw):
     q0 = np.tile([1.0, 0.0, 0.0, 0.0], (len(w0), 1))
-    out, first, t = timed(lambda: solve(name, baseline_params(name), w0, q0, ts, tol, tol, **kw),
-                          repeats)
+    out, first, t = timed(
+        lambda: solve(name, baseline_params(name), w0, q0, ts, tol, tol, **kw), repeats
+    )
     return out["omega"], first, t, float(np.mean(out["steps"]))
 
 
@@ -125,12 +127,15 @@ def numba_equal_accuracy(name, w0, ts, repeats, ref, target):
     q0 = np.tile([1.0, 0.0, 0.0, 0.0], (len(ref), 1))
     for k in range(6):
         tol = TOL / 2**k
-        om = _baselines.numba_solve(name, baseline_params(name), w0[:len(ref)], q0, ts, tol,
-                                    tol)["omega"]
+        om = _baselines.numba_solve(name, baseline_params(name), w0[: len(ref)], q0, ts, tol, tol)[
+            "omega"
+        ]
         if median_error(om, ref) <= target:
             break
-    return dict(record(run_baseline(_baselines.numba_solve, name, w0, ts, repeats, tol=tol),
-                       len(w0), ref), tol=tol)
+    return dict(
+        record(run_baseline(_baselines.numba_solve, name, w0, ts, repeats, tol=tol), len(w0), ref),
+        tol=tol,
+    )
 
 
 def median_error(omega, ref):
@@ -152,9 +157,13 @@ def record(result, count, ref):
     have a reference."""
     omega, first, t, steps = result
     m = min(len(omega), len(ref))
-    return {"traj_per_s": count / t, "first_call_s": first, "mean_steps": steps,
-            "max_error": float(np.max(np.abs(omega[:m] - ref[:m]))),
-            "median_error": median_error(omega, ref)}
+    return {
+        "traj_per_s": count / t,
+        "first_call_s": first,
+        "mean_steps": steps,
+        "max_error": float(np.max(np.abs(omega[:m] - ref[:m]))),
+        "median_error": median_error(omega, ref),
+    }
 
 
 def main(sizes, models, lanes, scipy_max, plain_max, ref_max, out):
@@ -164,34 +173,41 @@ def main(sizes, models, lanes, scipy_max, plain_max, ref_max, out):
     for name in models:
         for n in sizes:
             w0 = initial_rates(n)
-            ref = reference(name, w0[:min(n, ref_max)], ts)
+            ref = reference(name, w0[: min(n, ref_max)], ts)
             repeats = 3 if n <= 1000 else 1
-            row = {"model": name, "batch": n,
-                   "default": record(run_rbdyn(name, w0, ts, None, repeats), n, ref),
-                   "lanes": record(run_rbdyn(name, w0, ts, rb.Lanes(lanes), repeats), n, ref),
-                   "numba": record(run_baseline(_baselines.numba_solve, name, w0, ts, repeats),
-                                   n, ref)}
-            row["numba_equal"] = numba_equal_accuracy(name, w0, ts, repeats, ref,
-                                                      row["lanes"]["median_error"])
+            row = {
+                "model": name,
+                "batch": n,
+                "default": record(run_rbdyn(name, w0, ts, None, repeats), n, ref),
+                "lanes": record(run_rbdyn(name, w0, ts, rb.Lanes(lanes), repeats), n, ref),
+                "numba": record(
+                    run_baseline(_baselines.numba_solve, name, w0, ts, repeats), n, ref
+                ),
+            }
+            row["numba_equal"] = numba_equal_accuracy(
+                name, w0, ts, repeats, ref, row["lanes"]["median_error"]
+            )
             if n <= plain_max:
                 row["plain"] = record(run_rbdyn(name, w0, ts, rb.Vmap(), repeats), n, ref)
             k = min(n, scipy_max)
-            row["scipy"] = record(run_baseline(_baselines.scipy_solve, name, w0[:k], ts, 1,
-                                               method="RK45"), k, ref)
+            row["scipy"] = record(
+                run_baseline(_baselines.scipy_solve, name, w0[:k], ts, 1, method="RK45"), k, ref
+            )
             rows.append(row)
             print_row(row)
-    meta = {"rtol": TOL, "t_end": T_END, "n_out": N_OUT, "lanes": lanes,
-            "scipy_max": scipy_max}
+    meta = {"rtol": TOL, "t_end": T_END, "n_out": N_OUT, "lanes": lanes, "scipy_max": scipy_max}
     print(f"wrote {_report.write_json(out, 'throughput', meta, rows)}")
     return rows
 
 
-HEAD = (f"{'model':>16} {'batch':>6} | {'default':>8} {'err':>7} | "
-        f"{'lanes traj/s':>12} {'steps':>5} {'err':>7} "
-        f"{'med':>7} | {'plain':>7} {'err':>7} | {'numba':>7} {'steps':>5} {'err':>7} "
-        f"{'med':>7} | {'numba=':>7} {'tol':>7} {'med':>7} | {'scipy':>6} {'err':>7} | "
-        f"{'default/numba':>13} {'lanes/numba':>11} {'lanes/numba=':>12} {'lanes/scipy':>11} "
-        f"{'lanes/plain':>11}")
+HEAD = (
+    f"{'model':>16} {'batch':>6} | {'default':>8} {'err':>7} | "
+    f"{'lanes traj/s':>12} {'steps':>5} {'err':>7} "
+    f"{'med':>7} | {'plain':>7} {'err':>7} | {'numba':>7} {'steps':>5} {'err':>7} "
+    f"{'med':>7} | {'numba=':>7} {'tol':>7} {'med':>7} | {'scipy':>6} {'err':>7} | "
+    f"{'default/numba':>13} {'lanes/numba':>11} {'lanes/numba=':>12} {'lanes/scipy':>11} "
+    f"{'lanes/plain':>11}"
+)
 
 
 def print_row(r, _printed=[]):  # noqa: B006 (print the header once)
@@ -203,17 +219,20 @@ def print_row(r, _printed=[]):  # noqa: B006 (print the header once)
     pl = r.get("plain")
     plain = f"{pl['traj_per_s']:>7.0f} {pl['max_error']:>7.1e}" if pl else f"{'—':>7} {'':>7}"
     ratio_plain = f"{la['traj_per_s'] / pl['traj_per_s']:>10.1f}x" if pl else f"{'—':>11}"
-    print(f"{r['model']:>16} {r['batch']:>6} | {de['traj_per_s']:>8.0f} "
-          f"{de['max_error']:>7.1e} | {la['traj_per_s']:>12.0f} "
-          f"{la['mean_steps']:>5.0f} {la['max_error']:>7.1e} {la['median_error']:>7.1e} | "
-          f"{plain} | {nu['traj_per_s']:>7.0f} {nu['mean_steps']:>5.0f} "
-          f"{nu['max_error']:>7.1e} {nu['median_error']:>7.1e} | {eq['traj_per_s']:>7.0f} "
-          f"{eq['tol']:>7.1e} {eq['median_error']:>7.1e} | "
-          f"{sp['traj_per_s']:>6.1f} {sp['max_error']:>7.1e} | "
-          f"{de['traj_per_s'] / nu['traj_per_s']:>12.2f}x "
-          f"{la['traj_per_s'] / nu['traj_per_s']:>10.2f}x "
-          f"{la['traj_per_s'] / eq['traj_per_s']:>11.2f}x "
-          f"{la['traj_per_s'] / sp['traj_per_s']:>10.0f}x {ratio_plain}", flush=True)
+    print(
+        f"{r['model']:>16} {r['batch']:>6} | {de['traj_per_s']:>8.0f} "
+        f"{de['max_error']:>7.1e} | {la['traj_per_s']:>12.0f} "
+        f"{la['mean_steps']:>5.0f} {la['max_error']:>7.1e} {la['median_error']:>7.1e} | "
+        f"{plain} | {nu['traj_per_s']:>7.0f} {nu['mean_steps']:>5.0f} "
+        f"{nu['max_error']:>7.1e} {nu['median_error']:>7.1e} | {eq['traj_per_s']:>7.0f} "
+        f"{eq['tol']:>7.1e} {eq['median_error']:>7.1e} | "
+        f"{sp['traj_per_s']:>6.1f} {sp['max_error']:>7.1e} | "
+        f"{de['traj_per_s'] / nu['traj_per_s']:>12.2f}x "
+        f"{la['traj_per_s'] / nu['traj_per_s']:>10.2f}x "
+        f"{la['traj_per_s'] / eq['traj_per_s']:>11.2f}x "
+        f"{la['traj_per_s'] / sp['traj_per_s']:>10.0f}x {ratio_plain}",
+        flush=True,
+    )
 
 
 if __name__ == "__main__":

@@ -92,8 +92,15 @@ def rbdyn_runner(solver, lanes, w0, ts):
     ts = jnp.asarray(ts)
 
     def run(tol):
-        traj = rb.simulate_batch(model, y0s, ts, solver=solver, rtol=tol, atol=tol,
-                                 batching=rb.Vmap() if lanes is None else rb.Lanes(lanes))
+        traj = rb.simulate_batch(
+            model,
+            y0s,
+            ts,
+            solver=solver,
+            rtol=tol,
+            atol=tol,
+            batching=rb.Vmap() if lanes is None else rb.Lanes(lanes),
+        )
         ok = jnp.all(traj.result == rb.RESULTS.successful)
         return traj.ys.omega, traj.stats["num_steps"], ok
 
@@ -119,23 +126,34 @@ def measure(name, run, tols, ref, repeats):
     for tol in tols:
         wall, (omega, steps, ok) = timed(lambda tol=tol: run(tol), repeats)
         n = ref.shape[0]
-        rows.append({"method": name, "tol": tol, "us_per_traj": 1e6 * wall / n,
-                     "wall_s": wall, "first_call_s": first,
-                     "mean_steps": float(np.mean(np.asarray(steps))),
-                     "max_error": float(np.max(np.abs(np.asarray(omega) - ref))),
-                     "all_successful": bool(ok)})
+        rows.append(
+            {
+                "method": name,
+                "tol": tol,
+                "us_per_traj": 1e6 * wall / n,
+                "wall_s": wall,
+                "first_call_s": first,
+                "mean_steps": float(np.mean(np.asarray(steps))),
+                "max_error": float(np.max(np.abs(np.asarray(omega) - ref))),
+                "all_successful": bool(ok),
+            }
+        )
     return rows
 
 
 def print_table(rows):
-    head = (f"{'method':<13} {'tol':>7} {'µs/traj':>9} {'steps':>7} {'max |Δω|':>9} "
-            f"{'first call s':>12}")
+    head = (
+        f"{'method':<13} {'tol':>7} {'µs/traj':>9} {'steps':>7} {'max |Δω|':>9} "
+        f"{'first call s':>12}"
+    )
     print(head)
     print("-" * len(head))
     for r in rows:
         flag = "" if r["all_successful"] else "  (some solves failed)"
-        print(f"{r['method']:<13} {r['tol']:>7.0e} {r['us_per_traj']:>9.1f} "
-              f"{r['mean_steps']:>7.0f} {r['max_error']:>9.1e} {r['first_call_s']:>12.2f}{flag}")
+        print(
+            f"{r['method']:<13} {r['tol']:>7.0e} {r['us_per_traj']:>9.1f} "
+            f"{r['mean_steps']:>7.0f} {r['max_error']:>9.1e} {r['first_call_s']:>12.2f}{flag}"
+        )
 
 
 def plot(rows, path):
@@ -147,12 +165,16 @@ def plot(rows, path):
     fig, ax = plt.subplots(figsize=(7, 5))
     for name in dict.fromkeys(r["method"] for r in rows):
         sel = [r for r in rows if r["method"] == name]
-        ax.loglog([r["us_per_traj"] for r in sel], [r["max_error"] for r in sel], marker="o",
-                  label=name, linestyle="--" if name.startswith("numba") else "-")
+        ax.loglog(
+            [r["us_per_traj"] for r in sel],
+            [r["max_error"] for r in sel],
+            marker="o",
+            label=name,
+            linestyle="--" if name.startswith("numba") else "-",
+        )
     ax.set_xlabel("wall time per trajectory (µs)")
     ax.set_ylabel("max |ω − ω_exact|")
-    ax.set_title(f"Work–precision, torque-free body, t ∈ [0, {T_END:g}], "
-                 f"N = {rows[0]['n']}")
+    ax.set_title(f"Work–precision, torque-free body, t ∈ [0, {T_END:g}], N = {rows[0]['n']}")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend()
     fig.tight_layout()
@@ -174,8 +196,14 @@ def main(n=512, tols=TOLS, out="results/benchmarks", repeats=REPEATS, methods=tu
     for r in rows:
         r["n"] = n
     print_table(rows)
-    meta = {"n": n, "t_end": T_END, "n_out": N_OUT, "lanes": LANES, "repeats": repeats,
-            "inertia": J.tolist()}
+    meta = {
+        "n": n,
+        "t_end": T_END,
+        "n_out": N_OUT,
+        "lanes": LANES,
+        "repeats": repeats,
+        "inertia": J.tolist(),
+    }
     file = _report.write_json(out, "work_precision", meta, rows)
     plot(rows, file.with_suffix(".png"))
     print(f"wrote {file} and {file.with_suffix('.png')}")
@@ -185,8 +213,13 @@ def main(n=512, tols=TOLS, out="results/benchmarks", repeats=REPEATS, methods=tu
 if __name__ == "__main__":
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--n", type=int, default=512, help="trajectories (default 512)")
-    p.add_argument("--tols", type=float, nargs="+", default=list(TOLS),
-                   help="rtol = atol values (default 1e-5 … 1e-11)")
+    p.add_argument(
+        "--tols",
+        type=float,
+        nargs="+",
+        default=list(TOLS),
+        help="rtol = atol values (default 1e-5 … 1e-11)",
+    )
     p.add_argument("--out", default="results/benchmarks", help="output folder")
     args = p.parse_args()
     main(args.n, tuple(args.tols), args.out)

@@ -114,8 +114,7 @@ def main(t_end: float = 30.0, n_out: int = 3001, out_dir: str = "results/example
     ax.plot(tp, np.interp(tp, t, u), "o", color="C3", markersize=4, label="turning points")
     for r in (u_lo, u_hi):
         ax.axhline(r, color="k", linestyle="--", linewidth=0.6)
-    ax.plot([], [], "k--", linewidth=0.6,
-            label="roots of the quartic (eq. 19)")
+    ax.plot([], [], "k--", linewidth=0.6, label="roots of the quartic (eq. 19)")
     ax.set_xlabel("t [s]")
     ax.set_ylabel("γ'' (direction cosine) [1]")
     span = u_hi - u_lo  # the band below u_lo holds the legend, clear of the curve

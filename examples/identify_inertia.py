@@ -50,8 +50,9 @@ def noisy_records(model, ts, sigma_omega, sigma_quat, seed):
     rng = np.random.default_rng(seed)
     omega_obs = omega + sigma_omega * rng.standard_normal(omega.shape)
     delta = sigma_quat * rng.standard_normal(omega.shape)  # rotation vector, body frame
-    quat_obs = rb.rotation.quat_multiply(jnp.asarray(quat), rb.rotation.quat_from_rotvec(
-        jnp.asarray(delta)))
+    quat_obs = rb.rotation.quat_multiply(
+        jnp.asarray(quat), rb.rotation.quat_from_rotvec(jnp.asarray(delta))
+    )
     return omega_obs, np.asarray(quat_obs)
 
 
@@ -66,10 +67,12 @@ def main(
 ) -> dict:
     gravity = rb.UniformGravity(WEIGHT, jnp.asarray(COM))
     ts = np.linspace(0.0, t_end, n_samples)
-    omega_obs, quat_obs = noisy_records(rb.RigidBody(jnp.asarray(J_TRUE), gravity), ts,
-                                        sigma_omega, sigma_quat, seed)
-    data = rb.identify.Observations(ts, omega=omega_obs, quat=quat_obs,
-                                    sigma_omega=sigma_omega, sigma_quat=sigma_quat)
+    omega_obs, quat_obs = noisy_records(
+        rb.RigidBody(jnp.asarray(J_TRUE), gravity), ts, sigma_omega, sigma_quat, seed
+    )
+    data = rb.identify.Observations(
+        ts, omega=omega_obs, quat=quat_obs, sigma_omega=sigma_omega, sigma_quat=sigma_quat
+    )
 
     J_guess = 1.1 * np.diag(np.diag(J_TRUE))  # principal moments only, 10 % off
     guess = rb.RigidBody(jnp.asarray(J_guess), gravity)
@@ -98,18 +101,23 @@ def main(
         "refit_time_s": refit_time,
         "converged": float(res.converged),
         "scale_identified": float(res.scale_identified),
-        "physical_iterates": float(np.all(np.asarray(rb.inertia.is_physical(
-            res.inertia_history)))),
+        "physical_iterates": float(np.all(np.asarray(rb.inertia.is_physical(res.inertia_history)))),
     }
     np.set_printoptions(precision=5, suppress=True)
-    print(f"3 records × {n_samples} samples, t ∈ [0, {t_end:g}] s, σ_ω = {sigma_omega:g} rad/s, "
-          f"σ_q = {sigma_quat:g} rad; guess: diag(J_true) × 1.1, no products")
+    print(
+        f"3 records × {n_samples} samples, t ∈ [0, {t_end:g}] s, σ_ω = {sigma_omega:g} rad/s, "
+        f"σ_q = {sigma_quat:g} rad; guess: diag(J_true) × 1.1, no products"
+    )
     print(f"true J:\n{J_TRUE}\nfitted J:\n{J_fit}\nstandard errors:\n{se}")
-    print("error / stderr (Jxx Jxy Jxz Jyy Jyz Jzz): "
-          + " ".join(f"{v:+.2f}" for v in z)
-          + f";  max {summary['max_error_in_stderr']:.2f}")
-    print(f"χ²/dof = {summary['chi2_per_dof']:.3f} ({dof} dof), converged: {res.converged}, "
-          f"fit {fit_time:.1f} s with compilation, {refit_time:.2f} s reused")
+    print(
+        "error / stderr (Jxx Jxy Jxz Jyy Jyz Jzz): "
+        + " ".join(f"{v:+.2f}" for v in z)
+        + f";  max {summary['max_error_in_stderr']:.2f}"
+    )
+    print(
+        f"χ²/dof = {summary['chi2_per_dof']:.3f} ({dof} dof), converged: {res.converged}, "
+        f"fit {fit_time:.1f} s with compilation, {refit_time:.2f} s reused"
+    )
 
     import matplotlib
 
@@ -124,10 +132,17 @@ def main(
     for k in range(3):
         ax = fig.add_subplot(grid[k, 0])
         for c in range(3):
-            ax.plot(ts, omega_obs[k, :, c], ".", color=f"C{c}", markersize=4,
-                    label=f"observed ω{'xyz'[c]}")
-            ax.plot(ts, w_fit[k, :, c], "-", color=f"C{c}", linewidth=0.9,
-                    label=f"fitted ω{'xyz'[c]}")
+            ax.plot(
+                ts,
+                omega_obs[k, :, c],
+                ".",
+                color=f"C{c}",
+                markersize=4,
+                label=f"observed ω{'xyz'[c]}",
+            )
+            ax.plot(
+                ts, w_fit[k, :, c], "-", color=f"C{c}", linewidth=0.9, label=f"fitted ω{'xyz'[c]}"
+            )
         ax.set_ylabel(f"record {k + 1}: ω [rad/s]")
         if k == 0:
             ax.set_title("observed (dots) vs fitted model (lines)")
@@ -136,25 +151,31 @@ def main(
             ax.set_xlabel("t [s]")
     ax = fig.add_subplot(grid[:, 1])
     x = np.arange(6)
-    ax.bar(x, err[UPPER], yerr=2 * se[UPPER], capsize=4, color="C0", alpha=0.7,
-           label="fitted − true (±2 stderr)")
+    ax.bar(
+        x,
+        err[UPPER],
+        yerr=2 * se[UPPER],
+        capsize=4,
+        color="C0",
+        alpha=0.7,
+        label="fitted − true (±2 stderr)",
+    )
     ax.axhline(0.0, color="k", linewidth=0.7)
     ax.set_xticks(x, ENTRY_NAMES)
     ax.set_ylabel("J_fit − J_true [kg m²]")
     ax.set_title(f"inertia error (max {summary['max_error_in_stderr']:.1f} stderr)")
     bars = ax.get_legend_handles_labels()
     # one legend for both panels, below them
-    fig.legend(handles[0] + bars[0], handles[1] + bars[1], loc="outside lower center", ncols=7,
-               fontsize=8)
+    fig.legend(
+        handles[0] + bars[0], handles[1] + bars[1], loc="outside lower center", ncols=7, fontsize=8
+    )
     out = pathlib.Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     fig.savefig(out / "identify_inertia.png", dpi=110)
     plt.close(fig)
     print(f"wrote {out / 'identify_inertia.png'}")
-    summary.update({f"J_fit_{n}": float(v) for n, v in zip(ENTRY_NAMES, J_fit[UPPER],
-                                                             strict=True)})
-    summary.update({f"stderr_{n}": float(v) for n, v in zip(ENTRY_NAMES, se[UPPER],
-                                                              strict=True)})
+    summary.update({f"J_fit_{n}": float(v) for n, v in zip(ENTRY_NAMES, J_fit[UPPER], strict=True)})
+    summary.update({f"stderr_{n}": float(v) for n, v in zip(ENTRY_NAMES, se[UPPER], strict=True)})
     return summary
 
 

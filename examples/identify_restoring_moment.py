@@ -65,15 +65,19 @@ def main(
     n_rec = len(theta0s)
     ts = np.linspace(0.0, 1.0 / eps, n_samples)
     euler0 = np.array([[PSI0, th, PHI0] for th in theta0s])
-    y0s = rb.State(jnp.tile(jnp.array([0.0, 0.0, r0]), (n_rec, 1)),
-                   rb.rotation.euler_to_quat(jnp.asarray(euler0), "ZXZ"))
+    y0s = rb.State(
+        jnp.tile(jnp.array([0.0, 0.0, r0]), (n_rec, 1)),
+        rb.rotation.euler_to_quat(jnp.asarray(euler0), "ZXZ"),
+    )
     truth = rb.simulate_batch(top(K_TRUE, eps), y0s, ts, rtol=1e-12, atol=1e-12, throw=True)
     quat = np.asarray(truth.ys.quat)
     rng = np.random.default_rng(seed)
     delta = sigma_quat * rng.standard_normal(quat.shape[:-1] + (3,))  # body-frame rotvec
-    quat_obs = np.asarray(rb.rotation.quat_multiply(jnp.asarray(quat),
-                                                    rb.rotation.quat_from_rotvec(jnp.asarray(
-                                                        delta))))
+    quat_obs = np.asarray(
+        rb.rotation.quat_multiply(
+            jnp.asarray(quat), rb.rotation.quat_from_rotvec(jnp.asarray(delta))
+        )
+    )
     data = rb.identify.Observations(ts, quat=quat_obs, sigma_quat=sigma_quat)
 
     # Initial state guess: the first attitude, ω0 from the first two attitudes (finite
@@ -84,9 +88,14 @@ def main(
     y0_guess = rb.State(omega0_guess, q_first)
 
     t0 = time.perf_counter()
-    res = rb.identify.fit(top(K_GUESS, eps), data, params=("torque", "initial_conditions"),
-                          torque_where=lambda t: t.k.coeffs, y0=y0_guess,
-                          optimizer=rb.identify.LevenbergMarquardt(steps=steps))
+    res = rb.identify.fit(
+        top(K_GUESS, eps),
+        data,
+        params=("torque", "initial_conditions"),
+        torque_where=lambda t: t.k.coeffs,
+        y0=y0_guess,
+        optimizer=rb.identify.LevenbergMarquardt(steps=steps),
+    )
     fit_time = time.perf_counter() - t0  # compilation included
 
     coeffs = np.asarray(res.model.torque.k.coeffs)
@@ -109,14 +118,22 @@ def main(
         "converged": float(res.converged),
     }
     theta_txt = ", ".join(f"{th:g}" for th in theta0s)
-    print(f"{n_rec} attitude record(s), θ0 = {theta_txt}, {n_samples} samples over "
-          f"t ∈ [0, {1 / eps:g}] (ε = {eps:g}), σ_q = {sigma_quat:g} rad, ω not observed")
-    print(f"K coefficients: true {list(K_TRUE)}, guess {list(K_GUESS)}, "
-          f"fitted [{coeffs[0]:.5f}, {coeffs[1]:.5f}] ± [{se[0]:.1e}, {se[1]:.1e}]")
-    print(f"error / stderr: {z[0]:+.2f}, {z[1]:+.2f}; correlation {summary['correlation']:+.2f}; "
-          f"χ²/dof = {summary['chi2_per_dof']:.3f} ({dof} dof)")
-    print(f"converged: {res.converged} (loss {float(res.loss_history[0]):.3g} → "
-          f"{float(res.loss):.4g}), fit {fit_time:.1f} s with compilation")
+    print(
+        f"{n_rec} attitude record(s), θ0 = {theta_txt}, {n_samples} samples over "
+        f"t ∈ [0, {1 / eps:g}] (ε = {eps:g}), σ_q = {sigma_quat:g} rad, ω not observed"
+    )
+    print(
+        f"K coefficients: true {list(K_TRUE)}, guess {list(K_GUESS)}, "
+        f"fitted [{coeffs[0]:.5f}, {coeffs[1]:.5f}] ± [{se[0]:.1e}, {se[1]:.1e}]"
+    )
+    print(
+        f"error / stderr: {z[0]:+.2f}, {z[1]:+.2f}; correlation {summary['correlation']:+.2f}; "
+        f"χ²/dof = {summary['chi2_per_dof']:.3f} ({dof} dof)"
+    )
+    print(
+        f"converged: {res.converged} (loss {float(res.loss_history[0]):.3g} → "
+        f"{float(res.loss):.4g}), fit {fit_time:.1f} s with compilation"
+    )
 
     import matplotlib
 
@@ -125,10 +142,12 @@ def main(
 
     # The fitted model at the sample times (same shapes as the truth: no new compilation).
     fitted = rb.simulate_batch(res.model, res.y0, ts, rtol=1e-12, atol=1e-12, throw=True)
-    psi_obs = np.unwrap(np.asarray(rb.rotation.quat_to_euler(jnp.asarray(quat_obs), "ZXZ"))[
-        ..., 0], axis=-1)
-    psi_fit = np.unwrap(np.asarray(rb.rotation.quat_to_euler(fitted.ys.quat, "ZXZ"))[..., 0],
-                        axis=-1)
+    psi_obs = np.unwrap(
+        np.asarray(rb.rotation.quat_to_euler(jnp.asarray(quat_obs), "ZXZ"))[..., 0], axis=-1
+    )
+    psi_fit = np.unwrap(
+        np.asarray(rb.rotation.quat_to_euler(fitted.ys.quat, "ZXZ"))[..., 0], axis=-1
+    )
     tau = np.linspace(0.0, 1.0, 101)
     V = np.stack([np.ones_like(tau), tau], axis=-1)  # K(τ) = V @ coeffs
     K_fit, K_true = V @ coeffs, V @ np.asarray(K_TRUE)
@@ -138,8 +157,14 @@ def main(
     fig, axes = plt.subplots(1, 3, figsize=(15, 4.5), layout="constrained")
     ax = axes[0]
     for k in range(n_rec):
-        ax.plot(ts, psi_obs[k], ".", color=f"C{k}", markersize=3,
-                label=f"observed (θ0 = {theta0s[k]:g})")
+        ax.plot(
+            ts,
+            psi_obs[k],
+            ".",
+            color=f"C{k}",
+            markersize=3,
+            label=f"observed (θ0 = {theta0s[k]:g})",
+        )
         ax.plot(ts, psi_fit[k], "-", color=f"C{k}", linewidth=1.0, label="fitted model")
     ax.set_xlabel("t [s]")
     ax.set_ylabel("ψ [rad]")
@@ -149,8 +174,9 @@ def main(
     ax.plot(tau, K_true, "k--", linewidth=1.0, label="true K(τ) = 1 + 0.5 τ")
     ax.plot(tau, V @ np.asarray(K_GUESS), ":", color="0.5", label="initial guess")
     ax.plot(tau, K_fit, color="C1", label="fitted")
-    ax.fill_between(tau, K_fit - 2 * K_sd, K_fit + 2 * K_sd, color="C1", alpha=0.3,
-                    label="fitted ± 2σ")
+    ax.fill_between(
+        tau, K_fit - 2 * K_sd, K_fit + 2 * K_sd, color="C1", alpha=0.3, label="fitted ± 2σ"
+    )
     ax.set_xlabel("τ = ε t [s]")
     ax.set_ylabel("K(τ) [N m]")
     ax.set_title("restoring-moment amplitude K(τ)")
@@ -179,5 +205,10 @@ if __name__ == "__main__":
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out-dir", default="results/examples")
     args = p.parse_args()
-    main(eps=args.eps, n_samples=args.n_samples, theta0s=tuple(args.theta0), seed=args.seed,
-         out_dir=args.out_dir)
+    main(
+        eps=args.eps,
+        n_samples=args.n_samples,
+        theta0s=tuple(args.theta0),
+        seed=args.seed,
+        out_dir=args.out_dir,
+    )

@@ -118,8 +118,9 @@ def main(eps: float = 0.02, n_out: int = 2001, out_dir: str = "results/examples"
     ax.set_xlabel("t [s]")
     ax.set_title(f"spin r = r0 + M3 t / C (max error {summary['r_error_first']:.0e} rad/s)")
     # one legend for the three solution panels, above them
-    fig.legend(*axes[0, 0].get_legend_handles_labels(), loc="outside upper center", ncols=3,
-               fontsize=8)
+    fig.legend(
+        *axes[0, 0].get_legend_handles_labels(), loc="outside upper center", ncols=3, fontsize=8
+    )
     ax = axes[1, 1]
     ax.semilogy(t, np.abs(psi - first[0]) + 1e-16, color="k", linewidth=0.7, label="|ψ − ψ first|")
     ax.semilogy(

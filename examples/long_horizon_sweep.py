@@ -38,18 +38,24 @@ J = [[2.0, 0.05, 0.0], [0.05, 3.0, 0.02], [0.0, 0.02, 4.0]]
 def scenario(t_end: float, n_out: int, solver: dict) -> Scenario:
     """The heavy-top scenario with the `[solver]` table `solver` (the TOML of the tutorial,
     as a dict)."""
-    return Scenario.from_dict({
-        "name": "heavy_top_long",
-        "description": "Heavy top over a long horizon",
-        "model": {"kind": "rigid_body", "inertia": {"matrix": J},
-                  "torques": [{"kind": "uniform_gravity", "weight": 1.0,
-                               "com": [0.0, 0.0, 0.5]}]},
-        "initial": {"omega": {"dist": "normal", "mean": [0.8, 0.1, 0.6], "std": 0.05},
-                    "attitude": {"euler": [0.3, 0.7, 0.2], "seq": "ZXZ"}},
-        "time": {"t1": t_end, "n": n_out},
-        "solver": solver,
-        "outputs": {"summaries": ["energy_drift", "max_nutation"]},
-    })
+    return Scenario.from_dict(
+        {
+            "name": "heavy_top_long",
+            "description": "Heavy top over a long horizon",
+            "model": {
+                "kind": "rigid_body",
+                "inertia": {"matrix": J},
+                "torques": [{"kind": "uniform_gravity", "weight": 1.0, "com": [0.0, 0.0, 0.5]}],
+            },
+            "initial": {
+                "omega": {"dist": "normal", "mean": [0.8, 0.1, 0.6], "std": 0.05},
+                "attitude": {"euler": [0.3, 0.7, 0.2], "seq": "ZXZ"},
+            },
+            "time": {"t1": t_end, "n": n_out},
+            "solver": solver,
+            "outputs": {"summaries": ["energy_drift", "max_nutation"]},
+        }
+    )
 
 
 def run(sc: Scenario, n: int, folder: pathlib.Path, name: str):
@@ -62,26 +68,37 @@ def run(sc: Scenario, n: int, folder: pathlib.Path, name: str):
     out = sweep.run(sc, n, folder / f"{name}.zarr", seed=0, lanes=lanes)
     wall = time.perf_counter() - t0
     ds = sweep.open_dataset(out)
-    return {k: ds[k].values for k in ("omega", "quat", "inertia", "status", "num_steps",
-                                      "energy_drift")}, wall
+    return {
+        k: ds[k].values for k in ("omega", "quat", "inertia", "status", "num_steps", "energy_drift")
+    }, wall
 
 
 def energy_error(sc: Scenario, store: dict, i: int) -> np.ndarray:
     """|E(t)/E0 − 1| of trajectory `i` from its stored states."""
-    model = rb.RigidBody(jnp.asarray(store["inertia"][i]),
-                         rb.UniformGravity(1.0, jnp.array([0.0, 0.0, 0.5])))
-    traj = rb.Trajectory(ts=jnp.asarray(sc.ts), ys=rb.State(jnp.asarray(store["omega"][i]),
-                                                            jnp.asarray(store["quat"][i])),
-                         stats={}, result=rb.RESULTS.successful)
+    model = rb.RigidBody(
+        jnp.asarray(store["inertia"][i]), rb.UniformGravity(1.0, jnp.array([0.0, 0.0, 0.5]))
+    )
+    traj = rb.Trajectory(
+        ts=jnp.asarray(sc.ts),
+        ys=rb.State(jnp.asarray(store["omega"][i]), jnp.asarray(store["quat"][i])),
+        stats={},
+        result=rb.RESULTS.successful,
+    )
     E = np.asarray(rb.invariants.energy(model, traj))
     return np.abs(E / E[0] - 1.0)
 
 
-def main(n: int = 32, t_end: float = 5_000.0, dt: float = 0.2, n_out: int = 2001,
-         out_dir: str = "results/examples") -> dict:
+def main(
+    n: int = 32,
+    t_end: float = 5_000.0,
+    dt: float = 0.2,
+    n_out: int = 2001,
+    out_dir: str = "results/examples",
+) -> dict:
     splitting = scenario(t_end, n_out, {"method": "LiePoissonSplitting", "order": 6, "dt": dt})
-    adaptive = scenario(t_end, n_out, {"method": "Tsit5", "rtol": 1e-8, "atol": 1e-8,
-                                       "max_steps": 1 << 24})
+    adaptive = scenario(
+        t_end, n_out, {"method": "Tsit5", "rtol": 1e-8, "atol": 1e-8, "max_steps": 1 << 24}
+    )
     with tempfile.TemporaryDirectory() as tmp:
         folder = pathlib.Path(tmp)
         split_store, split_wall = run(splitting, n, folder, "splitting")
@@ -99,20 +116,29 @@ def main(n: int = 32, t_end: float = 5_000.0, dt: float = 0.2, n_out: int = 2001
     e_tsit = energy_error(adaptive, tsit_store, 0)
     # The splitting's error is the same at the start and at the end; Tsit5's grows.
     quarter = len(e_split) // 4
-    summary["splitting_late_over_early"] = float(e_split[-quarter:].max()
-                                                 / e_split[1:quarter].max())
+    summary["splitting_late_over_early"] = float(
+        e_split[-quarter:].max() / e_split[1:quarter].max()
+    )
     summary["tsit5_late_over_early"] = float(e_tsit[-quarter:].max() / e_tsit[1:quarter].max())
-    print(f"{n} heavy tops to t = {t_end:g} ({n_out} output times), energy drift "
-          "max |E/E0 − 1| over the outputs:")
-    print(f"  LiePoissonSplitting(6), dt = {dt:g}: {summary['splitting_steps']:.0f} steps, "
-          f"median {np.median(split_store['energy_drift']):.1e}, largest "
-          f"{summary['splitting_max_energy_drift']:.1e}; {split_wall:.1f} s")
-    print(f"  Tsit5, rtol = atol = 1e-8: {summary['tsit5_mean_steps']:.0f} steps on average, "
-          f"median {np.median(tsit_store['energy_drift']):.1e}, largest "
-          f"{summary['tsit5_max_energy_drift']:.1e}; {tsit_wall:.1f} s")
-    print("  largest error over the last quarter ÷ over the first, top 0: splitting "
-          f"{summary['splitting_late_over_early']:.2f}, "
-          f"Tsit5 {summary['tsit5_late_over_early']:.1f}")
+    print(
+        f"{n} heavy tops to t = {t_end:g} ({n_out} output times), energy drift "
+        "max |E/E0 − 1| over the outputs:"
+    )
+    print(
+        f"  LiePoissonSplitting(6), dt = {dt:g}: {summary['splitting_steps']:.0f} steps, "
+        f"median {np.median(split_store['energy_drift']):.1e}, largest "
+        f"{summary['splitting_max_energy_drift']:.1e}; {split_wall:.1f} s"
+    )
+    print(
+        f"  Tsit5, rtol = atol = 1e-8: {summary['tsit5_mean_steps']:.0f} steps on average, "
+        f"median {np.median(tsit_store['energy_drift']):.1e}, largest "
+        f"{summary['tsit5_max_energy_drift']:.1e}; {tsit_wall:.1f} s"
+    )
+    print(
+        "  largest error over the last quarter ÷ over the first, top 0: splitting "
+        f"{summary['splitting_late_over_early']:.2f}, "
+        f"Tsit5 {summary['tsit5_late_over_early']:.1f}"
+    )
 
     import matplotlib
 
@@ -128,13 +154,18 @@ def main(n: int = 32, t_end: float = 5_000.0, dt: float = 0.2, n_out: int = 2001
     ax1.set_title("Energy error of one top")
     ax1.legend()
     ax1.grid(True, which="both", alpha=0.3)
-    bins = np.logspace(np.log10(min(split_store["energy_drift"].min(),
-                                    tsit_store["energy_drift"].min())) - 0.2,
-                       np.log10(max(split_store["energy_drift"].max(),
-                                    tsit_store["energy_drift"].max())) + 0.2, 40)
+    bins = np.logspace(
+        np.log10(min(split_store["energy_drift"].min(), tsit_store["energy_drift"].min())) - 0.2,
+        np.log10(max(split_store["energy_drift"].max(), tsit_store["energy_drift"].max())) + 0.2,
+        40,
+    )
     ax2.hist(tsit_store["energy_drift"], bins=bins, alpha=0.7, label="Tsit5, rtol = 1e-8")
-    ax2.hist(split_store["energy_drift"], bins=bins, alpha=0.7,
-             label=f"LiePoissonSplitting(6), dt = {dt:g}")
+    ax2.hist(
+        split_store["energy_drift"],
+        bins=bins,
+        alpha=0.7,
+        label=f"LiePoissonSplitting(6), dt = {dt:g}",
+    )
     ax2.set_xscale("log")
     ax2.set_xlabel(f"energy drift over t ≤ {t_end:g}")
     ax2.set_ylabel("tops")

@@ -30,8 +30,9 @@ def platform_angles(t):
 def main(t_end: float = 100.0, n_out: int = 4001, out_dir: str = "results/examples") -> dict:
     moments = jnp.array([1.0, 2.0, 2.6])
     J = jnp.diag(moments)
-    model = rb.RelativeRigidBody(J, rb.EulerAngleFrame(platform_angles, seq="ZXZ"),
-                                 rb.BalancingTransport())
+    model = rb.RelativeRigidBody(
+        J, rb.EulerAngleFrame(platform_angles, seq="ZXZ"), rb.BalancingTransport()
+    )
     y0 = rb.State(omega=jnp.array([0.5, 1.0, -0.3]), quat=jnp.array([1.0, 0.0, 0.0, 0.0]))
     ts = jnp.linspace(0.0, t_end, n_out)
     traj = rb.simulate(model, y0, ts, rtol=1e-10, atol=1e-10)
@@ -48,8 +49,10 @@ def main(t_end: float = 100.0, n_out: int = 4001, out_dir: str = "results/exampl
         "bound_high": float(hi),
     }
     print(f"relative kinetic energy drift: {summary['T_r_relative_drift']:.2e}")
-    print(f"|ω_r| in [{speed.min():.4f}, {speed.max():.4f}] ⊂ [{lo:.4f}, {hi:.4f}] "
-          f"(Mukhametzyanov (2009), eq. (18); end ratio sqrt(C/A) = {np.sqrt(C / A):.4f})")
+    print(
+        f"|ω_r| in [{speed.min():.4f}, {speed.max():.4f}] ⊂ [{lo:.4f}, {hi:.4f}] "
+        f"(Mukhametzyanov (2009), eq. (18); end ratio sqrt(C/A) = {np.sqrt(C / A):.4f})"
+    )
 
     import matplotlib
 
@@ -61,8 +64,13 @@ def main(t_end: float = 100.0, n_out: int = 4001, out_dir: str = "results/exampl
     ax = fig.add_subplot(1, 2, 1, projection="3d")
     u, v = np.mgrid[0 : 2 * np.pi : 40j, 0 : np.pi : 20j]
     a, b, c = (np.sqrt(2 * Tr[0] / m) for m in np.asarray(moments))
-    ax.plot_wireframe(a * np.cos(u) * np.sin(v), b * np.sin(u) * np.sin(v), c * np.cos(v),
-                      color="0.8", linewidth=0.4)
+    ax.plot_wireframe(
+        a * np.cos(u) * np.sin(v),
+        b * np.sin(u) * np.sin(v),
+        c * np.cos(v),
+        color="0.8",
+        linewidth=0.4,
+    )
     ax.plot(w[:, 0], w[:, 1], w[:, 2], color="C3", linewidth=0.8)
     ax.set(xlim=(-a, a), ylim=(-b, b), zlim=(-c, c))
     ax.set_box_aspect((a, b, c), zoom=0.85)  # equal scale on p, q, r: the ellipsoid's shape

@@ -29,15 +29,20 @@ def pitch_angle(quat):
     return 2.0 * np.arctan2(quat[..., 2], quat[..., 0])
 
 
-def main(orbits: float = 3.0, amplitude_deg: float = 2.0, n_out: int = 3001,
-         out_dir: str = "results/examples") -> dict:
+def main(
+    orbits: float = 3.0,
+    amplitude_deg: float = 2.0,
+    n_out: int = 3001,
+    out_dir: str = "results/examples",
+) -> dict:
     n = 2 * np.pi / 5400.0  # a 90-minute orbit [rad/s]
     Ix, Iy, Iz = 120.0, 100.0, 60.0
     J = jnp.diag(jnp.array([Ix, Iy, Iz]))
     model = rb.RelativeRigidBody(J, rb.CircularOrbit(n), rb.GravityGradient.from_orbit_rate(n))
     theta0 = np.radians(amplitude_deg)
-    y0 = rb.State(omega=jnp.zeros(3),
-                  quat=jnp.array([np.cos(theta0 / 2), 0.0, np.sin(theta0 / 2), 0.0]))
+    y0 = rb.State(
+        omega=jnp.zeros(3), quat=jnp.array([np.cos(theta0 / 2), 0.0, np.sin(theta0 / 2), 0.0])
+    )
     ts = jnp.linspace(0.0, orbits * 2 * np.pi / n, n_out)
     traj = rb.simulate(model, y0, ts, rtol=1e-10, atol=1e-12)
     pitch = pitch_angle(np.asarray(traj.ys.quat))
@@ -47,10 +52,15 @@ def main(orbits: float = 3.0, amplitude_deg: float = 2.0, n_out: int = 3001,
     crossings = t[i] - pitch[i] * (t[i + 1] - t[i]) / (pitch[i + 1] - pitch[i])
     measured = float(np.mean(np.diff(crossings))) if len(crossings) > 1 else float("nan")
     predicted = 2 * np.pi / (n * np.sqrt(3 * (Ix - Iz) / Iy))
-    summary = {"period_measured_s": measured, "period_linear_s": predicted,
-               "relative_difference": measured / predicted - 1.0}
-    print(f"pitch period: measured {measured:.2f} s, linear theory {predicted:.2f} s "
-          f"(difference {summary['relative_difference']:+.2e}; amplitude {amplitude_deg}°)")
+    summary = {
+        "period_measured_s": measured,
+        "period_linear_s": predicted,
+        "relative_difference": measured / predicted - 1.0,
+    }
+    print(
+        f"pitch period: measured {measured:.2f} s, linear theory {predicted:.2f} s "
+        f"(difference {summary['relative_difference']:+.2e}; amplitude {amplitude_deg}°)"
+    )
 
     import matplotlib
 
@@ -59,8 +69,12 @@ def main(orbits: float = 3.0, amplitude_deg: float = 2.0, n_out: int = 3001,
 
     fig, ax = plt.subplots(figsize=(10, 3.5), layout="constrained")
     ax.plot(t * n / (2 * np.pi), pitch, label="simulated pitch")
-    ax.plot(t * n / (2 * np.pi), theta0 * np.cos(2 * np.pi * t / predicted), "--",
-            label="θ0 cos(ω_p t),\nω_p = n sqrt(3(Ix − Iz)/Iy)")
+    ax.plot(
+        t * n / (2 * np.pi),
+        theta0 * np.cos(2 * np.pi * t / predicted),
+        "--",
+        label="θ0 cos(ω_p t),\nω_p = n sqrt(3(Ix − Iz)/Iy)",
+    )
     ax.set_xlabel("t [orbital periods]")
     ax.set_ylabel("pitch θ [rad]")
     ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))  # beside the axes

@@ -43,13 +43,14 @@ def main(t_end: float = 120.0, n_out: int = 2401, out_dir: str = "results/exampl
     summary = {
         "max_error_vs_elliptic": float(np.max(np.abs(w_principal - w_ref))),
         "energy_drift": float(np.max(np.abs(T - T[0])) / T[0]),
-        "momentum_drift": float(np.max(np.linalg.norm(L - L[:1], axis=-1))
-                                / np.linalg.norm(L[0])),
+        "momentum_drift": float(np.max(np.linalg.norm(L - L[:1], axis=-1)) / np.linalg.norm(L[0])),
         "flips": flips,
     }
     print(f"flips of the intermediate axis: {flips}")
-    print(f"max |ω − ω_elliptic| = {summary['max_error_vs_elliptic']:.2e} rad/s "
-          f"(rtol = atol = 1e-10, t ≤ {t_end:g})")
+    print(
+        f"max |ω − ω_elliptic| = {summary['max_error_vs_elliptic']:.2e} rad/s "
+        f"(rtol = atol = 1e-10, t ≤ {t_end:g})"
+    )
     print(f"energy drift {summary['energy_drift']:.1e}, |L| drift {summary['momentum_drift']:.1e}")
 
     import matplotlib
@@ -62,8 +63,13 @@ def main(t_end: float = 120.0, n_out: int = 2401, out_dir: str = "results/exampl
     ax = fig.add_subplot(1, 2, 1, projection="3d")
     u, v = np.mgrid[0 : 2 * np.pi : 40j, 0 : np.pi : 20j]
     a, b, c = (np.sqrt(2 * T[0] / m) for m in np.asarray(moments))
-    ax.plot_wireframe(a * np.cos(u) * np.sin(v), b * np.sin(u) * np.sin(v), c * np.cos(v),
-                      color="0.8", linewidth=0.4)
+    ax.plot_wireframe(
+        a * np.cos(u) * np.sin(v),
+        b * np.sin(u) * np.sin(v),
+        c * np.cos(v),
+        color="0.8",
+        linewidth=0.4,
+    )
     ax.plot(*w_principal.T, color="C3", linewidth=1.0)
     ax.set(xlim=(-a, a), ylim=(-b, b), zlim=(-c, c))
     ax.set_box_aspect((a, b, c), zoom=0.85)  # equal scale on p, q, r: the ellipsoid's shape

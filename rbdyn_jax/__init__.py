@@ -82,20 +82,65 @@ if TYPE_CHECKING:  # what the lazy names below resolve to, for type checkers and
     )
 
 # The same modules and names as the block above (tests/test_package.py checks it).
-_SUBMODULES = ("analytic", "dynamics", "frames", "identify", "inertia", "integrate",
-               "invariants", "models", "rotation", "scenario", "state", "sweep", "torques")
+_SUBMODULES = (
+    "analytic",
+    "dynamics",
+    "frames",
+    "identify",
+    "inertia",
+    "integrate",
+    "invariants",
+    "models",
+    "rotation",
+    "scenario",
+    "state",
+    "sweep",
+    "torques",
+)
 _EXPORTS = {
-    "frames": ("AbstractFrame", "CircularOrbit", "ConstantRate", "EulerAngleFrame",
-               "HarmonicAngles", "Inertial"),
-    "integrate": ("COMPILER_OPTIONS", "RESULTS", "AbstractBatching", "Kernel", "Lanes",
-                  "LiePoissonSplitting", "Trajectory", "Vmap", "configure_xla", "simulate",
-                  "simulate_batch"),
-    "models": ("AbstractRigidBody", "EulerAngleRigidBody", "PoissonRigidBody",
-               "RelativeRigidBody", "RigidBody", "with_log_cholesky"),
+    "frames": (
+        "AbstractFrame",
+        "CircularOrbit",
+        "ConstantRate",
+        "EulerAngleFrame",
+        "HarmonicAngles",
+        "Inertial",
+    ),
+    "integrate": (
+        "COMPILER_OPTIONS",
+        "RESULTS",
+        "AbstractBatching",
+        "Kernel",
+        "Lanes",
+        "LiePoissonSplitting",
+        "Trajectory",
+        "Vmap",
+        "configure_xla",
+        "simulate",
+        "simulate_batch",
+    ),
+    "models": (
+        "AbstractRigidBody",
+        "EulerAngleRigidBody",
+        "PoissonRigidBody",
+        "RelativeRigidBody",
+        "RigidBody",
+        "with_log_cholesky",
+    ),
     "state": ("EulerState", "Kinematics", "PoissonState", "State"),
-    "torques": ("AbstractConservativeTorque", "AbstractTorque", "BalancingTransport",
-                "BodyTorque", "GravityGradient", "InertialTorque", "NoTorque",
-                "PolynomialSinPsi", "RestoringMoment", "SumTorque", "UniformGravity"),
+    "torques": (
+        "AbstractConservativeTorque",
+        "AbstractTorque",
+        "BalancingTransport",
+        "BodyTorque",
+        "GravityGradient",
+        "InertialTorque",
+        "NoTorque",
+        "PolynomialSinPsi",
+        "RestoringMoment",
+        "SumTorque",
+        "UniformGravity",
+    ),
 }
 _ORIGIN = {name: module for module, names in _EXPORTS.items() for name in names}
 

@@ -16,5 +16,7 @@ def list_scenarios() -> list[str]:
 def catalogue() -> dict[str, str]:
     """`{name: description}` of every shipped scenario, in name order: the `description`
     its file gives (`""` if none), as `Scenario.load(name).description` reads it."""
-    return {name: tomllib.loads((SCENARIO_DIR / f"{name}.toml").read_text())
-            .get("description", "") for name in list_scenarios()}
+    return {
+        name: tomllib.loads((SCENARIO_DIR / f"{name}.toml").read_text()).get("description", "")
+        for name in list_scenarios()
+    }

@@ -108,4 +108,3 @@ def error_mode_set(mode: str, jitted=()):
     finally:
         errors.EQX_ON_ERROR = old
         forget_error_traces(jitted)
-

@@ -119,15 +119,17 @@ def _ellipsoid_is_invariant(attrs) -> bool:
     if kind == "rigid_body":
         return not torques
     return kind == "relative_rigid_body" and (
-        torques == ["balancing_transport"] or (not torques and frame == "inertial"))
+        torques == ["balancing_transport"] or (not torques and frame == "inertial")
+    )
 
 
 def _status_names(attrs) -> dict[int, str]:
     """`{code: name}` from the CF attributes `flag_values` and `flag_meanings` of `status`."""
     if "flag_values" not in attrs or "flag_meanings" not in attrs:
         return {}
-    return dict(zip((int(c) for c in np.ravel(attrs["flag_values"])),
-                    str(attrs["flag_meanings"]).split()))
+    return dict(
+        zip((int(c) for c in np.ravel(attrs["flag_values"])), str(attrs["flag_meanings"]).split())
+    )
 
 
 def _units(attrs, default: str = "") -> str:
@@ -300,8 +302,13 @@ def _draw_polhodes(fig, omega, inertia, labels, relative: bool, surface: str, ra
         ax.zaxis.label.set_rotation(90)
         _equal_axes_3d(ax, points)
         _open_view(ax, omega[k])
-    fig.legend(list(handles.values()), list(handles), loc="outside lower center",
-               ncols=len(handles), fontsize=8)
+    fig.legend(
+        list(handles.values()),
+        list(handles),
+        loc="outside lower center",
+        ncols=len(handles),
+        fontsize=8,
+    )
 
 
 def _draw_status(fig, status: np.ndarray, names: dict[int, str]) -> None:
@@ -418,8 +425,15 @@ def plot_sweep(path, out_dir=None, *, n_sample: int = 8) -> list[pathlib.Path]:
                     title = "polhode on the energy ellipsoid"
                     surface = r"$\omega^T J \omega = 2T(0)$"
                 fig = _new_figure(prefix + title, (5 * cols, 4.5 * rows + 0.4))
-                _draw_polhodes(fig, omega[:n_poly], inertia[:n_poly], labels[:n_poly], relative,
-                               surface, _units(ds["omega"].attrs, "rad/s"))
+                _draw_polhodes(
+                    fig,
+                    omega[:n_poly],
+                    inertia[:n_poly],
+                    labels[:n_poly],
+                    relative,
+                    surface,
+                    _units(ds["omega"].attrs, "rad/s"),
+                )
                 save(fig, "polhodes.png")
 
         status = np.asarray(ds["status"].values)

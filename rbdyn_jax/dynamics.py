@@ -74,8 +74,14 @@ def _inverse_parts(L):
     i10 = -l10 * i00 * i11
     i21 = -l21 * i11 * i22
     i20 = -(l20 * i00 + l21 * i10) * i22
-    return (i00 * i00 + i10 * i10 + i20 * i20, i10 * i11 + i20 * i21, i20 * i22,
-            i11 * i11 + i21 * i21, i21 * i22, i22 * i22)
+    return (
+        i00 * i00 + i10 * i10 + i20 * i20,
+        i10 * i11 + i20 * i21,
+        i20 * i22,
+        i11 * i11 + i21 * i21,
+        i21 * i22,
+        i22 * i22,
+    )
 
 
 def _solve_jvp(primals, tangents):
@@ -93,6 +99,7 @@ def _solve_jvp(primals, tangents):
     x = _cholesky_solve(L, split(b))
     rhs = None if isinstance(db, SymbolicZero) else split(db)
     if not isinstance(dJ, SymbolicZero):
+
         def entry(i, j):
             return dJ[..., max(i, j), min(i, j)]
 
@@ -100,8 +107,11 @@ def _solve_jvp(primals, tangents):
         rhs = [-d for d in dJx] if rhs is None else [r - d for r, d in zip(rhs, dJx)]
     a00, a01, a02, a11, a12, a22 = _inverse_parts(L)
     r0, r1, r2 = rhs
-    dx = [a00 * r0 + a01 * r1 + a02 * r2, a01 * r0 + a11 * r1 + a12 * r2,
-          a02 * r0 + a12 * r1 + a22 * r2]
+    dx = [
+        a00 * r0 + a01 * r1 + a02 * r2,
+        a01 * r0 + a11 * r1 + a12 * r2,
+        a02 * r0 + a12 * r1 + a22 * r2,
+    ]
     return jnp.stack(x, axis=-1), jnp.stack(dx, axis=-1)
 
 
@@ -140,8 +150,13 @@ def transport_moment(J: MatrixLike, omega_e: VectorLike, eps_e: VectorLike) -> V
     """
     J, (omega_e, eps_e) = _prepare(J, {"omega_e": omega_e, "eps_e": eps_e})
     w_e = split(omega_e)
-    return jnp.stack([c - a for a, c in zip(matvec_parts(J, split(eps_e)),
-                                            cross_parts(matvec_parts(J, w_e), w_e))], axis=-1)
+    return jnp.stack(
+        [
+            c - a
+            for a, c in zip(matvec_parts(J, split(eps_e)), cross_parts(matvec_parts(J, w_e), w_e))
+        ],
+        axis=-1,
+    )
 
 
 def coriolis_moment(J: MatrixLike, omega_r: VectorLike, omega_e: VectorLike) -> Vector:
@@ -187,11 +202,13 @@ def relative_rhs(
         J, {"omega_r": omega_r, "omega_e": omega_e, "eps_e": eps_e, "moment": moment}
     )
     w_r, w_e = split(omega_r), split(omega_e)
-    terms = (cross_parts(matvec_parts(J, w_r), w_r),
-             matvec_parts(J, split(eps_e)),
-             cross_parts(matvec_parts(J, w_e), w_e),
-             cross_parts(w_r, matvec_parts(planar(J), w_e)),
-             split(moment))
+    terms = (
+        cross_parts(matvec_parts(J, w_r), w_r),
+        matvec_parts(J, split(eps_e)),
+        cross_parts(matvec_parts(J, w_e), w_e),
+        cross_parts(w_r, matvec_parts(planar(J), w_e)),
+        split(moment),
+    )
     rhs = [a - b + c + 2.0 * d + m for a, b, c, d, m in zip(*terms)]
     return _solve(J, jnp.stack(rhs, axis=-1))
 

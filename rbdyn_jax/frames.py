@@ -114,14 +114,22 @@ class HarmonicAngles(eqx.Module):
     phase: Float[Array, "3"]
 
     def __init__(self, offset=None, rate=None, amplitude=None, frequency=None, phase=None):
-        vals = [jnp.zeros(3) if v is None else check_trailing(v, (3,), name) for v, name in (
-            (offset, "offset"), (rate, "rate"), (amplitude, "amplitude"),
-            (frequency, "frequency"), (phase, "phase"))]
+        vals = [
+            jnp.zeros(3) if v is None else check_trailing(v, (3,), name)
+            for v, name in (
+                (offset, "offset"),
+                (rate, "rate"),
+                (amplitude, "amplitude"),
+                (frequency, "frequency"),
+                (phase, "phase"),
+            )
+        ]
         self.offset, self.rate, self.amplitude, self.frequency, self.phase = vals
 
     def __call__(self, t):
-        return (self.offset + self.rate * t
-                + self.amplitude * jnp.sin(self.frequency * t + self.phase))
+        return (
+            self.offset + self.rate * t + self.amplitude * jnp.sin(self.frequency * t + self.phase)
+        )
 
 
 class CircularOrbit(AbstractFrame):

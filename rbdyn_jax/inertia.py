@@ -110,8 +110,9 @@ def from_principal(moments: VectorLike, axes: MatrixLike | None = None) -> Matri
     bad = jnp.any(~(planar_moments >= -tol * scale), axis=-1)
     moments = eqx.error_if(moments, bad, "`moments` " + _NOT_PHYSICAL)
     c = jax.lax.stop_gradient(axes)
-    not_orthonormal = ~(_max_abs(jnp.matmul(_transpose(c), c, precision=HIGHEST)
-                                 - _eye_like(c)) <= tol)
+    not_orthonormal = ~(
+        _max_abs(jnp.matmul(_transpose(c), c, precision=HIGHEST) - _eye_like(c)) <= tol
+    )
     axes = eqx.error_if(axes, not_orthonormal, "`axes` must be orthonormal (CᵀC = I).")
     return jnp.einsum("...ij,...j,...kj->...ik", axes, moments, axes, precision=HIGHEST)
 
@@ -151,8 +152,9 @@ def from_point_masses(
         ndim = max(about.ndim, positions.ndim)
         positions = _align(positions, ndim) - _align(about, ndim)
     masses = eqx.error_if(masses, jnp.any(masses < 0, axis=-1), "`masses` must be non-negative.")
-    return from_planar(jnp.einsum("...n,...ni,...nj->...ij", masses, positions, positions,
-                                  precision=HIGHEST))
+    return from_planar(
+        jnp.einsum("...n,...ni,...nj->...ij", masses, positions, positions, precision=HIGHEST)
+    )
 
 
 def planar(J: MatrixLike) -> Matrix:

@@ -65,12 +65,16 @@ def energy(model: AbstractRigidBody, traj: Trajectory) -> Float[Array, " n"]:
     frame this sum is not an integral (use the frame's own integral, e.g. the Jacobi
     integral of a circular orbit): a `ValueError`."""
     if isinstance(model, RelativeRigidBody) and not isinstance(model.frame, Inertial):
-        raise ValueError("`energy` is the absolute-motion energy; a RelativeRigidBody in a "
-                         "moving frame does not conserve it.")
+        raise ValueError(
+            "`energy` is the absolute-motion energy; a RelativeRigidBody in a "
+            "moving frame does not conserve it."
+        )
     kin = _kinematics(model, traj)
     if not isinstance(model.torque, AbstractConservativeTorque | SumTorque):
-        raise ValueError(f"{type(model.torque).__name__} has no potential energy (it is not "
-                         "an `AbstractConservativeTorque`).")
+        raise ValueError(
+            f"{type(model.torque).__name__} has no potential energy (it is not "
+            "an `AbstractConservativeTorque`)."
+        )
     V = jax.vmap(lambda k: model.torque.potential(k, model.inertia))(kin)
     return 0.5 * _quad(model.inertia, kin.omega) + V
 
@@ -82,8 +86,9 @@ def angular_momentum_inertial(model: AbstractRigidBody, traj: Trajectory) -> Flo
     Poisson form)."""
     kin = _kinematics(model, traj)
     if kin.quat_inertial is None:
-        raise ValueError("`angular_momentum_inertial` needs the attitude; the Poisson form "
-                         "only carries γ.")
+        raise ValueError(
+            "`angular_momentum_inertial` needs the attitude; the Poisson form only carries γ."
+        )
     L_body = jnp.einsum("ij,nj->ni", model.inertia, kin.omega, precision=HIGHEST)
     return rotation.quat_rotate(kin.quat_inertial, L_body)
 
@@ -136,8 +141,9 @@ def gg_integrable_integrals(model: AbstractRigidBody, traj: Trajectory):
     not_axisymmetric = (jnp.max(off) + jnp.abs(J[0, 0] - J[1, 1])) > sqrt_eps(J.dtype) * jnp.max(
         jnp.abs(J)
     )
-    J = eqx.error_if(J, not_axisymmetric,
-                     "`gg_integrable_integrals` needs a principal J = diag(A, A, C).")
+    J = eqx.error_if(
+        J, not_axisymmetric, "`gg_integrable_integrals` needs a principal J = diag(A, A, C)."
+    )
     kin = _kinematics(model, traj)
     A, C = J[0, 0], J[2, 2]
     n = (C - A) / A  # (1 − m)/m with m = A / C

@@ -53,9 +53,13 @@ def _inertia(J: Float[ArrayLike, "3 3"]) -> Float[Array, "3 3"]:
     J = check_inertia(J, "inertia")
     if holds_now(_definite, J):
         return J  # concrete and valid: checked now, in NumPy
-    return eqx.error_if(J, ~_definite(jax.lax.stop_gradient(J)), "`inertia` must be positive "
-                        "definite (a principal moment is zero: a rod or a point has no "
-                        "rotational dynamics).")
+    return eqx.error_if(
+        J,
+        ~_definite(jax.lax.stop_gradient(J)),
+        "`inertia` must be positive "
+        "definite (a principal moment is zero: a rod or a point has no "
+        "rotational dynamics).",
+    )
 
 
 def _torque(torque: AbstractTorque | None) -> AbstractTorque:
@@ -77,14 +81,24 @@ def _definite(J, xp=jnp):
 
 def _absolute_kinematics(t, omega, quat, gamma):
     zero = jnp.zeros_like(omega)
-    return Kinematics(t=jnp.asarray(t), omega=omega, omega_r=omega, omega_e=zero, eps_e=zero,
-                      gamma=gamma, gamma_inertial=gamma, quat=quat, quat_inertial=quat)
+    return Kinematics(
+        t=jnp.asarray(t),
+        omega=omega,
+        omega_r=omega,
+        omega_e=zero,
+        eps_e=zero,
+        gamma=gamma,
+        gamma_inertial=gamma,
+        quat=quat,
+        quat_inertial=quat,
+    )
 
 
 def _z_in_body(quat):
     """Body components of the parent z-axis: R(q)ᵀ e_z."""
-    return rotation.quat_rotate(rotation.quat_conjugate(quat), jnp.array([0.0, 0.0, 1.0],
-                                                                          dtype=quat.dtype))
+    return rotation.quat_rotate(
+        rotation.quat_conjugate(quat), jnp.array([0.0, 0.0, 1.0], dtype=quat.dtype)
+    )
 
 
 def _normalize_quat(y: State):
@@ -132,8 +146,10 @@ class RigidBody(AbstractRigidBody):
 
     def vector_field(self, t, y: State, args) -> State:
         M = self.torque(self.kinematics(t, y), self.inertia)
-        return State(omega=euler_rhs(self.inertia, y.omega, M),
-                     quat=rotation.quat_derivative(y.quat, y.omega))
+        return State(
+            omega=euler_rhs(self.inertia, y.omega, M),
+            quat=rotation.quat_derivative(y.quat, y.omega),
+        )
 
     def normalize(self, y: State):
         return _normalize_quat(y)
@@ -163,15 +179,25 @@ class RelativeRigidBody(AbstractRigidBody):
         omega_e = rotation.quat_rotate(to_body, w_e1)
         eps_e = rotation.quat_rotate(to_body, e_e1)
         q_abs = rotation.quat_multiply(q_e, y.quat)
-        return Kinematics(t=jnp.asarray(t), omega=y.omega + omega_e, omega_r=y.omega,
-                          omega_e=omega_e, eps_e=eps_e, gamma=_z_in_body(y.quat),
-                          gamma_inertial=_z_in_body(q_abs), quat=y.quat, quat_inertial=q_abs)
+        return Kinematics(
+            t=jnp.asarray(t),
+            omega=y.omega + omega_e,
+            omega_r=y.omega,
+            omega_e=omega_e,
+            eps_e=eps_e,
+            gamma=_z_in_body(y.quat),
+            gamma_inertial=_z_in_body(q_abs),
+            quat=y.quat,
+            quat_inertial=q_abs,
+        )
 
     def vector_field(self, t, y: State, args) -> State:
         kin = self.kinematics(t, y)
         M = self.torque(kin, self.inertia)
-        return State(omega=relative_rhs(self.inertia, y.omega, kin.omega_e, kin.eps_e, M),
-                     quat=rotation.quat_derivative(y.quat, y.omega))
+        return State(
+            omega=relative_rhs(self.inertia, y.omega, kin.omega_e, kin.eps_e, M),
+            quat=rotation.quat_derivative(y.quat, y.omega),
+        )
 
     def normalize(self, y: State):
         return _normalize_quat(y)
@@ -193,14 +219,17 @@ class EulerAngleRigidBody(AbstractRigidBody):
     def kinematics(self, t, y: EulerState) -> Kinematics:
         theta, phi = y.angles[1], y.angles[2]
         # Shinibaev et al. (2013), eq. (4); docs/physics.md#poisson-equations
-        gamma = jnp.stack([jnp.sin(theta) * jnp.sin(phi), jnp.sin(theta) * jnp.cos(phi),
-                           jnp.cos(theta)])
+        gamma = jnp.stack(
+            [jnp.sin(theta) * jnp.sin(phi), jnp.sin(theta) * jnp.cos(phi), jnp.cos(theta)]
+        )
         return _absolute_kinematics(t, y.omega, rotation.euler_to_quat(y.angles, "ZXZ"), gamma)
 
     def vector_field(self, t, y: EulerState, args) -> EulerState:
         M = self.torque(self.kinematics(t, y), self.inertia)
-        return EulerState(omega=euler_rhs(self.inertia, y.omega, M),
-                          angles=rotation.omega_to_euler_rates(y.angles, y.omega, "ZXZ"))
+        return EulerState(
+            omega=euler_rhs(self.inertia, y.omega, M),
+            angles=rotation.omega_to_euler_rates(y.angles, y.omega, "ZXZ"),
+        )
 
     def normalize(self, y: EulerState):
         return y, jnp.zeros((), dtype=y.omega.dtype)
@@ -227,16 +256,18 @@ class PoissonRigidBody(AbstractRigidBody):
 
     def vector_field(self, t, y: PoissonState, args) -> PoissonState:
         M = self.torque(self.kinematics(t, y), self.inertia)
-        return PoissonState(omega=euler_rhs(self.inertia, y.omega, M),
-                            gamma=rotation.poisson(y.gamma, y.omega))
+        return PoissonState(
+            omega=euler_rhs(self.inertia, y.omega, M), gamma=rotation.poisson(y.gamma, y.omega)
+        )
 
     def normalize(self, y: PoissonState):
         n = jnp.linalg.norm(y.gamma, axis=-1)
         return PoissonState(y.omega, y.gamma / n[..., None]), jnp.max(jnp.abs(n - 1.0))
 
 
-def with_log_cholesky(model: AbstractRigidBody, theta: Float[ArrayLike, "*batch 6"]
-                      ) -> AbstractRigidBody:
+def with_log_cholesky(
+    model: AbstractRigidBody, theta: Float[ArrayLike, "*batch 6"]
+) -> AbstractRigidBody:
     """`model` with its inertia replaced by `inertia.from_log_cholesky(theta)`, unchecked:
     the way to fit an inertia (what `identify.fit` does).
 

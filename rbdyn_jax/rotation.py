@@ -349,8 +349,9 @@ def quat_to_euler(
     angles = jnp.stack(out, axis=-1)
     # Into [−π, π] as scipy does: only values outside move, so an exact ±π keeps its sign.
     two_pi = 2.0 * jnp.pi
-    angles = jnp.where(angles > jnp.pi, angles - two_pi,
-                       jnp.where(angles < -jnp.pi, angles + two_pi, angles))
+    angles = jnp.where(
+        angles > jnp.pi, angles - two_pi, jnp.where(angles < -jnp.pi, angles + two_pi, angles)
+    )
     if return_gimbal_lock:
         return angles, locked
     return angles

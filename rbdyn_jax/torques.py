@@ -90,9 +90,11 @@ class SumTorque(AbstractTorque):
     def potential(self, kin, inertia):
         for t in self.torques:
             if not isinstance(t, AbstractConservativeTorque):
-                raise ValueError(f"{type(t).__name__} has no potential energy (it is not an "
-                                 "`AbstractConservativeTorque`), so neither has the "
-                                 f"`SumTorque` of {[type(u).__name__ for u in self.torques]}.")
+                raise ValueError(
+                    f"{type(t).__name__} has no potential energy (it is not an "
+                    "`AbstractConservativeTorque`), so neither has the "
+                    f"`SumTorque` of {[type(u).__name__ for u in self.torques]}."
+                )
         total = jnp.zeros_like(kin.t)
         for t in self.torques:
             total = total + t.potential(kin, inertia)
@@ -233,8 +235,10 @@ class RestoringMoment(AbstractConservativeTorque):
 
     def potential(self, kin, inertia):
         if callable(self.k):
-            raise ValueError("RestoringMoment with a callable k(τ, ψ) has no potential energy "
-                             "(only a number k has one, k cosθ).")
+            raise ValueError(
+                "RestoringMoment with a callable k(τ, ψ) has no potential energy "
+                "(only a number k has one, k cosθ)."
+            )
         return self.k * kin.gamma[..., 2]  # k cosθ: the heavy top's mgl cosθ
 
 

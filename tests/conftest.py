@@ -21,11 +21,29 @@ def rng():
 # The suite's core (marked `core`): the physics, the solves, their derivatives and the
 # compile layer, run again under the next JAX (`make test-jax-next`). The sweep store, the
 # Dask cluster, the CLI, the docs and the benchmarks are checked on the locked versions.
-CORE = {"test_analytic.py", "test_batching.py", "test_cheapest.py", "test_compat.py",
-        "test_dynamics.py", "test_float32.py", "test_frames.py", "test_identify.py",
-        "test_inertia.py", "test_integrate.py", "test_lanes.py", "test_layering.py",
-        "test_models.py", "test_program.py", "test_reference.py", "test_rotation.py",
-        "test_rows.py", "test_splitting.py", "test_torques.py", "test_vector.py", "test_xla.py"}
+CORE = {
+    "test_analytic.py",
+    "test_batching.py",
+    "test_cheapest.py",
+    "test_compat.py",
+    "test_dynamics.py",
+    "test_float32.py",
+    "test_frames.py",
+    "test_identify.py",
+    "test_inertia.py",
+    "test_integrate.py",
+    "test_lanes.py",
+    "test_layering.py",
+    "test_models.py",
+    "test_program.py",
+    "test_reference.py",
+    "test_rotation.py",
+    "test_rows.py",
+    "test_splitting.py",
+    "test_torques.py",
+    "test_vector.py",
+    "test_xla.py",
+}
 
 
 def pytest_collection_modifyitems(config, items):
@@ -36,7 +54,8 @@ def pytest_collection_modifyitems(config, items):
             item.add_marker(pytest.mark.core)
     marked = [item for item in items if "gpu" in item.keywords]
     if marked and jax.default_backend() != "gpu":
-        skip = pytest.mark.skip(reason="needs a GPU (JAX's default backend is "
-                                       f"{jax.default_backend()})")
+        skip = pytest.mark.skip(
+            reason=f"needs a GPU (JAX's default backend is {jax.default_backend()})"
+        )
         for item in marked:
             item.add_marker(skip)

@@ -170,11 +170,13 @@ def zxz_omega(angles, rates):
     """docs/physics.md#euler-angle-rates, literally: p = ψ' sinθ sinφ + θ' cosφ, …"""
     psi, th, ph = angles
     dpsi, dth, dph = rates
-    return np.array([
-        dpsi * np.sin(th) * np.sin(ph) + dth * np.cos(ph),
-        dpsi * np.sin(th) * np.cos(ph) - dth * np.sin(ph),
-        dpsi * np.cos(th) + dph,
-    ])
+    return np.array(
+        [
+            dpsi * np.sin(th) * np.sin(ph) + dth * np.cos(ph),
+            dpsi * np.sin(th) * np.cos(ph) - dth * np.sin(ph),
+            dpsi * np.cos(th) + dph,
+        ]
+    )
 
 
 def np_rates(c, t):
@@ -206,12 +208,23 @@ def relative_setup(rng):
     Ra = Re * Rr
     # ω_e¹ by the literal ZXZ formula with hand derivatives of the angles; ε_e¹ by FD of it.
     w_e1 = zxz_omega(np_angles(FRAME_C, t), np_rates(FRAME_C, t))
-    e_e1 = (zxz_omega(np_angles(FRAME_C, t + FD_H), np_rates(FRAME_C, t + FD_H))
-            - zxz_omega(np_angles(FRAME_C, t - FD_H), np_rates(FRAME_C, t - FD_H))) / (2 * FD_H)
-    ref = dict(J=J, t=t, w_r=w_r, q_r=q_r, Rr=Rr, Ra=Ra,
-               w_e=Rr.inv().apply(w_e1), e_e=Rr.inv().apply(e_e1),
-               gamma=Rr.inv().apply(E_Z), gamma0=Ra.inv().apply(E_Z),
-               q_abs=xyzw_to_wxyz(Ra.as_quat()))
+    e_e1 = (
+        zxz_omega(np_angles(FRAME_C, t + FD_H), np_rates(FRAME_C, t + FD_H))
+        - zxz_omega(np_angles(FRAME_C, t - FD_H), np_rates(FRAME_C, t - FD_H))
+    ) / (2 * FD_H)
+    ref = dict(
+        J=J,
+        t=t,
+        w_r=w_r,
+        q_r=q_r,
+        Rr=Rr,
+        Ra=Ra,
+        w_e=Rr.inv().apply(w_e1),
+        e_e=Rr.inv().apply(e_e1),
+        gamma=Rr.inv().apply(E_Z),
+        gamma0=Ra.inv().apply(E_Z),
+        q_abs=xyzw_to_wxyz(Ra.as_quat()),
+    )
     return model, kin, ref
 
 
@@ -220,10 +233,14 @@ def small_scenario(**over) -> dict:
     inertia, rates and attitude."""
     d = {
         "name": "small",
-        "model": {"kind": "rigid_body",
-                  "inertia": {"principal": [1.0, 2.0, 2.5], "log_cholesky_sigma": 0.05}},
-        "initial": {"omega": {"dist": "normal", "mean": [0.1, 1.0, 0.1], "std": 0.3},
-                    "attitude": {"dist": "uniform_so3"}},
+        "model": {
+            "kind": "rigid_body",
+            "inertia": {"principal": [1.0, 2.0, 2.5], "log_cholesky_sigma": 0.05},
+        },
+        "initial": {
+            "omega": {"dist": "normal", "mean": [0.1, 1.0, 0.1], "std": 0.3},
+            "attitude": {"dist": "uniform_so3"},
+        },
         "time": {"t1": 4.0, "n": 9},
         "solver": {"rtol": 1e-9, "atol": 1e-9},
         "outputs": {"summaries": ["energy_drift", "max_abs_omega", "first_flip_time"]},
@@ -233,8 +250,16 @@ def small_scenario(**over) -> dict:
     return d
 
 
-SWEEP_NAMES = ("omega", "quat", "inertia", "status", "num_steps", "energy_drift",
-               "max_abs_omega", "first_flip_time")
+SWEEP_NAMES = (
+    "omega",
+    "quat",
+    "inertia",
+    "status",
+    "num_steps",
+    "energy_drift",
+    "max_abs_omega",
+    "first_flip_time",
+)
 
 
 def load_store(path, names=SWEEP_NAMES) -> dict:

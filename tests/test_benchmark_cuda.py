@@ -115,8 +115,13 @@ def run(mode, n, t_end, n_out, timeout):
     env.pop("NUMBA_ENABLE_CUDASIM", None)
     if mode == "sim":
         env["NUMBA_ENABLE_CUDASIM"] = "1"
-    proc = subprocess.run([sys.executable, "-c", SCRIPT, str(BENCH), mode, str(n), str(t_end),
-                           str(n_out)], env=env, capture_output=True, text=True, timeout=timeout)
+    proc = subprocess.run(
+        [sys.executable, "-c", SCRIPT, str(BENCH), mode, str(n), str(t_end), str(n_out)],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
     assert proc.returncode == 0, proc.stderr[-4000:]
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
@@ -172,8 +177,11 @@ def test_float32_build_has_no_float64(sim):
 
 def has_cuda_gpu() -> bool:
     """Cheap guess: a CUDA driver library, device node or nvidia-smi."""
-    return bool(ctypes.util.find_library("cuda") or os.path.exists("/dev/nvidiactl")
-                or shutil.which("nvidia-smi"))
+    return bool(
+        ctypes.util.find_library("cuda")
+        or os.path.exists("/dev/nvidiactl")
+        or shutil.which("nvidia-smi")
+    )
 
 
 @pytest.mark.gpu

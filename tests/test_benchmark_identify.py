@@ -20,8 +20,13 @@ SCRIPT = pathlib.Path(__file__).resolve().parents[1] / "benchmarks" / "identify.
 def test_identify_benchmark_runs_and_recovers_inertia(tmp_path):
     out = tmp_path / "identify.json"
     args = ["--trajectories", "1", "--samples", "15", "--repeats", "1", "--out", str(out)]
-    proc = subprocess.run([sys.executable, "-W", "error", str(SCRIPT), *args],
-                          capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    proc = subprocess.run(
+        [sys.executable, "-W", "error", str(SCRIPT), *args],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        cwd=tmp_path,
+    )
     assert proc.returncode == 0, proc.stderr
     assert "scipy least_squares trf" in proc.stdout
     res = json.loads(out.read_text())
@@ -38,8 +43,17 @@ def test_identify_benchmark_runs_and_recovers_inertia(tmp_path):
     # the same program as this process's first call (same flags and options), to round-off.
     assert warm["J_fit"] == empty["J_fit"] and warm["cost"] == empty["cost"]
     np.testing.assert_allclose(empty["J_fit"], first["J_fit"], rtol=1e-12, atol=1e-12)
-    keys = {"method", "wall_s", "residual_evals", "jacobian_evals", "cost", "max_abs_err_J",
-            "max_err_in_stderr", "J_fit", "time_ratio_scipy_over_this"}
+    keys = {
+        "method",
+        "wall_s",
+        "residual_evals",
+        "jacobian_evals",
+        "cost",
+        "max_abs_err_J",
+        "max_err_in_stderr",
+        "J_fit",
+        "time_ratio_scipy_over_this",
+    }
     j_true = np.array(meta["J_true"])
     guess_err = np.max(np.abs(np.array(meta["J_guess"]) - j_true))  # 0.35
     for row in res["rows"]:

@@ -18,11 +18,36 @@ SCRIPT = pathlib.Path(__file__).resolve().parents[1] / "benchmarks" / "sweep_sca
 
 def test_sweep_scale_runs_all_parts(tmp_path):
     out = tmp_path / "sweep_scale.json"
-    args = ["--n", "64", "--chunks", "32", "--compare-chunk", "32", "--rss-chunk", "32",
-            "--sizes", "64", "128", "--devices", "2", "--workers", "2", "--lanes", "8",
-            "--jobs", "4", "--out", str(out)]
-    proc = subprocess.run([sys.executable, str(SCRIPT), *args], capture_output=True,
-                          text=True, timeout=300, cwd=tmp_path)
+    args = [
+        "--n",
+        "64",
+        "--chunks",
+        "32",
+        "--compare-chunk",
+        "32",
+        "--rss-chunk",
+        "32",
+        "--sizes",
+        "64",
+        "128",
+        "--devices",
+        "2",
+        "--workers",
+        "2",
+        "--lanes",
+        "8",
+        "--jobs",
+        "4",
+        "--out",
+        str(out),
+    ]
+    proc = subprocess.run(
+        [sys.executable, str(SCRIPT), *args],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        cwd=tmp_path,
+    )
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.count("identical: True") == 2  # parts 2 and 4
     res = json.loads(out.read_text())
@@ -40,8 +65,13 @@ def test_sweep_scale_runs_all_parts(tmp_path):
     assert [r["devices"] for r in res["devices"]["rows"]] == [1, 2]
 
     assert res["devices"]["identical"] is True
-    assert set(res["devices"]["compared"]) >= {"omega", "quat", "status", "summarize",
-                                               "first_flip_time"}
+    assert set(res["devices"]["compared"]) >= {
+        "omega",
+        "quat",
+        "status",
+        "summarize",
+        "first_flip_time",
+    }
     assert [r["n"] for r in res["memory"]["rows"]] == [64, 128]
     assert res["memory"]["peak_rss_ratio"] > 0 and res["memory"]["n_ratio"] == 2
 
@@ -50,8 +80,9 @@ def test_sweep_scale_runs_all_parts(tmp_path):
     assert set(dask["compared"]) == set(res["devices"]["compared"])
     local, cluster = dask["rows"]
     assert local["engine"] == "in-process" and local["devices"] == 2
-    assert {k: v for k, v in local.items() if k in res["devices"]["rows"][1]} \
-        == res["devices"]["rows"][1]  # part 2's run, not run again
+    assert {k: v for k, v in local.items() if k in res["devices"]["rows"][1]} == res["devices"][
+        "rows"
+    ][1]  # part 2's run, not run again
     assert cluster["engine"] == "dask" and cluster["workers"] == 2
     assert cluster["devices"] == cluster["jax_devices"] == 1
     assert cluster["n_chunks"] == 2 and cluster["status"] == {"successful": 64}

@@ -15,8 +15,15 @@ def test_throughput_runs_and_is_accurate(tmp_path):
     spec.loader.exec_module(mod)
     # the plain path is left out (plain_max=0): the lane solver's equality with it is
     # tested in tests/test_lanes.py, and each plain solve is one more compilation here
-    rows = mod.main(sizes=(3,), models=("torque_free", "heavy_top"), lanes=2, scipy_max=2,
-                    plain_max=0, ref_max=3, out=str(tmp_path))
+    rows = mod.main(
+        sizes=(3,),
+        models=("torque_free", "heavy_top"),
+        lanes=2,
+        scipy_max=2,
+        plain_max=0,
+        ref_max=3,
+        out=str(tmp_path),
+    )
     saved = json.loads((tmp_path / "throughput.json").read_text())
     assert saved["rows"] == rows and [r["batch"] for r in rows] == [3, 3]
     for r in rows:
@@ -53,8 +60,9 @@ def test_compile_latency_runs_in_fresh_processes(tmp_path):
     assert len(saved["rows"]) == len(rows) == 2
     row, bare = rows
     assert row["entries"] > 0
-    assert all(np.isfinite(r[k]) and r[k] > 0 for k in ("no_cache_s", "cold_s", "warm_s")
-               for r in rows)
+    assert all(
+        np.isfinite(r[k]) and r[k] > 0 for k in ("no_cache_s", "cold_s", "warm_s") for r in rows
+    )
     assert set(row["callback_programs"]) <= {"jit_branched_error_if_impl"}
     assert row["trace_hits"] == 1 and bare["trace_hits"] == 0  # rbdyn_jax's trace cache
     assert bare["vs_bare"] == 1.0 and row["vs_bare"] == row["no_cache_s"] / bare["no_cache_s"]
@@ -63,9 +71,12 @@ def test_compile_latency_runs_in_fresh_processes(tmp_path):
     ys = np.asarray(mod.build_call(mod.YARDSTICK)())
     traj = mod.build_call("simulate")()
     np.testing.assert_allclose(ys[0, :, :3], np.asarray(traj.ys.omega), rtol=0, atol=1e-12)
-    np.testing.assert_allclose(ys[0, :, 3:] / np.linalg.norm(ys[0, :, 3:], axis=-1,
-                                                             keepdims=True),
-                               np.asarray(traj.ys.quat), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(
+        ys[0, :, 3:] / np.linalg.norm(ys[0, :, 3:], axis=-1, keepdims=True),
+        np.asarray(traj.ys.quat),
+        rtol=0,
+        atol=1e-12,
+    )
 
 
 def load(name):
@@ -78,8 +89,13 @@ def load(name):
 def test_work_precision_runs(tmp_path):
     # three of the six methods: the plain path, the lane solver and numba (each diffrax
     # solver is one more compilation; Dopri5 through the lanes is in tests/test_lanes.py)
-    rows = load("work_precision").main(n=4, tols=(1e-7,), out=str(tmp_path), repeats=1,
-                                       methods=("Tsit5", "Tsit5 lanes", "numba DP5"))
+    rows = load("work_precision").main(
+        n=4,
+        tols=(1e-7,),
+        out=str(tmp_path),
+        repeats=1,
+        methods=("Tsit5", "Tsit5 lanes", "numba DP5"),
+    )
     assert (tmp_path / "work_precision.json").exists()
     by = {r["method"]: r for r in rows}
     # the lane solver takes diffrax's steps: same count and same error as the plain path
@@ -92,8 +108,10 @@ def test_work_precision_runs(tmp_path):
 def test_gradients_runs_and_agrees(tmp_path):
     # jacfwd through the lanes only (its equality with reverse mode is in tests/test_lanes.py)
     rows = load("gradients").main(n=4, out=str(tmp_path), repeats=1, only=("jacfwd, lanes",))
-    by = {r["method"].split(",")[0] + ("" if "lanes" not in r["method"] else " lanes"): r
-          for r in rows}
+    by = {
+        r["method"].split(",")[0] + ("" if "lanes" not in r["method"] else " lanes"): r
+        for r in rows
+    }
     assert set(by) == {"forward loss", "forward loss lanes", "jacfwd lanes"}
     # the losses and the gradient within the rtol-1e-8 solve's error of the 1e-12 reference
     # (reverse mode at rtol 1e-12; measured 2.8e-9 at N = 64)
@@ -102,8 +120,9 @@ def test_gradients_runs_and_agrees(tmp_path):
 
 
 def test_gradient_steps_runs_and_agrees(tmp_path):
-    rows, error = load("gradient_steps").main(lanes=2, steps=3, rounds=1,
-                                              kinds=("checkpointed",), out=str(tmp_path))
+    rows, error = load("gradient_steps").main(
+        lanes=2, steps=3, rounds=1, kinds=("checkpointed",), out=str(tmp_path)
+    )
     saved = json.loads((tmp_path / "gradient_steps.json").read_text())
     assert saved["rows"] == rows and saved["meta"]["reverse_vs_sensitivities"] == error
     assert [r["method"] for r in rows][:2] == ["forward", "sensitivities"] and len(rows) == 5
@@ -122,15 +141,37 @@ def test_gpu_report_runs_on_a_cpu(tmp_path):
     mode, and its gradients are tested in tests/test_kernel.py."""
     mod = load("gpu")
     mod.T_END, mod.N_OUT = 3.0, 4
-    rows = mod.main(sizes=[3], grad_max=0, vmap_max=0, cpu_layout_max=0, whole_min=10,
-                    lanes=[], ref_max=3, budget=600.0, out=str(tmp_path), sweep_n=4,
-                    models=["heavy_top"], model_min=0)
+    rows = mod.main(
+        sizes=[3],
+        grad_max=0,
+        vmap_max=0,
+        cpu_layout_max=0,
+        whole_min=10,
+        lanes=[],
+        ref_max=3,
+        budget=600.0,
+        out=str(tmp_path),
+        sweep_n=4,
+        models=["heavy_top"],
+        model_min=0,
+    )
     saved = json.loads((tmp_path / "gpu.json").read_text())
     assert saved["rows"] == rows
     by = {r["method"]: r for r in rows}
-    assert set(by) == {"cuda f64", "cuda f32", "kernel", "kernel f32", "default",
-                       "default f32", "lanes", "lanes f32", "sweep", "cuda f64 heavy_top",
-                       "kernel heavy_top", "lanes heavy_top"}
+    assert set(by) == {
+        "cuda f64",
+        "cuda f32",
+        "kernel",
+        "kernel f32",
+        "default",
+        "default f32",
+        "lanes",
+        "lanes f32",
+        "sweep",
+        "cuda f64 heavy_top",
+        "kernel heavy_top",
+        "lanes heavy_top",
+    }
     assert "failed" in by["cuda f64"]
     assert by["default"]["batching"] == "Lanes"  # a CPU backend
     for m in ("kernel", "default", "lanes"):
@@ -152,17 +193,27 @@ def test_long_horizon_runs_and_the_splitting_keeps_its_invariants(tmp_path):
     spec = importlib.util.spec_from_file_location("long_horizon", BENCH / "long_horizon.py")
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
-    rows = mod.main(periods=30.0, per_decade=20, out=str(tmp_path), repeats=1,
-                    methods=("Tsit5 1e-10", "Splitting 6, T/50"), potential_periods=30.0,
-                    potential_methods=("Splitting 6, T/200",))
+    rows = mod.main(
+        periods=30.0,
+        per_decade=20,
+        out=str(tmp_path),
+        repeats=1,
+        methods=("Tsit5 1e-10", "Splitting 6, T/50"),
+        potential_periods=30.0,
+        potential_methods=("Splitting 6, T/200",),
+    )
     saved = json.loads((tmp_path / "long_horizon.json").read_text())
     assert saved["rows"] == rows and (tmp_path / "long_horizon.png").stat().st_size > 1000
     tsit, split, top, gg = rows
     assert split["steps"] == 1500 and split["energy_max"] < 5e-9 and split["L_max"] < 1e-13
     assert tsit["L_max"] > 100 * split["L_max"]
-    assert all(np.isfinite(r["us_per_period"]) and len(r["curve"]["energy"][0]) > 10
-               for r in rows)
+    assert all(np.isfinite(r["us_per_period"]) and len(r["curve"]["energy"][0]) > 10 for r in rows)
     assert (top["body"], gg["body"]) == ("heavy top", "gravity gradient")
-    assert all(r["steps"] == 6000 and r["energy_max"] < 1e-7 and r["quat_norm_drift"] < 1e-13
-               and "L_max" not in r for r in (top, gg))
+    assert all(
+        r["steps"] == 6000
+        and r["energy_max"] < 1e-7
+        and r["quat_norm_drift"] < 1e-13
+        and "L_max" not in r
+        for r in (top, gg)
+    )
     assert saved["meta"]["targets"]["energy_le_1e-8"]

@@ -54,13 +54,15 @@ def test_vmap_keeps_the_choice_open_and_batches_the_programs():
 
     ys = jnp.array([1.0, 2.0, 3.0])
     assert chosen(jax.vmap(f, in_axes=(None, 0)), X, ys) == 0
-    np.testing.assert_allclose(jax.jit(jax.vmap(f, in_axes=(None, 0)))(X, ys),
-                               jnp.sin(X)[None] * ys[:, None], rtol=1e-15)
+    np.testing.assert_allclose(
+        jax.jit(jax.vmap(f, in_axes=(None, 0)))(X, ys), jnp.sin(X)[None] * ys[:, None], rtol=1e-15
+    )
 
 
 def test_derivatives_of_the_chosen_program():
     """Forward mode differentiates the program chosen so far (the last one, before
     elimination); reverse mode transposes that: both against the closed form."""
+
     def f(x):
         out = both(x, Y)
         return jnp.sum(out["a"] + out["b"] ** 2)

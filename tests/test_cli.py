@@ -47,8 +47,9 @@ def test_version_of_the_installed_command():
     script = shutil.which("rbdyn", path=str(pathlib.Path(sys.executable).parent))
     if script is None:
         pytest.skip("the `rbdyn` script is not installed beside this Python")
-    run = subprocess.run([script, "--version"], capture_output=True, text=True, timeout=300,
-                         check=True)
+    run = subprocess.run(
+        [script, "--version"], capture_output=True, text=True, timeout=300, check=True
+    )
     assert run.stdout.strip() == f"rbdyn {rbdyn_jax.__version__}"
 
 
@@ -67,11 +68,22 @@ def test_cli_imports_jax_only_inside_commands():
             if isinstance(node, ast.Import):
                 top.update(alias.name.split(".")[0] for alias in node.names)
             elif isinstance(node, ast.ImportFrom):
-                top.add("." * node.level + (node.module or "") if node.level
-                        else (node.module or "").split(".")[0])
+                top.add(
+                    "." * node.level + (node.module or "")
+                    if node.level
+                    else (node.module or "").split(".")[0]
+                )
         siblings = {"." + f.stem for f in files} | {"."}
-        assert top <= {"argparse", "os", "shlex", "sys", "time", "warnings", ".._version",
-                       *siblings}, (path.name, top)
+        assert top <= {
+            "argparse",
+            "os",
+            "shlex",
+            "sys",
+            "time",
+            "warnings",
+            ".._version",
+            *siblings,
+        }, (path.name, top)
     version = package.with_name("_version.py").read_text()
     assert "import" not in version
 
@@ -79,8 +91,13 @@ def test_cli_imports_jax_only_inside_commands():
 def test_scenarios_lists_the_shipped_ones(capsys):
     assert cli.main(["scenarios"]) == 0
     out = capsys.readouterr().out
-    for name in ("torque_free_flip", "lagrange_top_restoring", "gg_axisymmetric",
-                 "rotating_platform", "satellite_gravity_gradient"):
+    for name in (
+        "torque_free_flip",
+        "lagrange_top_restoring",
+        "gg_axisymmetric",
+        "rotating_platform",
+        "satellite_gravity_gradient",
+    ):
         assert name in out
 
 
@@ -90,7 +107,8 @@ _QUICK = {
     "--help": lambda: cli.build_parser().format_help(),
     "--version": lambda: f"rbdyn {rbdyn_jax.__version__}\n",
     "scenarios": lambda: "".join(
-        f"{name:28s} {Scenario.load(name).description}\n" for name in list_scenarios()),
+        f"{name:28s} {Scenario.load(name).description}\n" for name in list_scenarios()
+    ),
 }
 
 
@@ -98,15 +116,22 @@ _QUICK = {
 def test_quick_commands_print_the_same_without_importing_jax(command, monkeypatch):
     """`rbdyn --help`, `--version` and `scenarios` in a fresh process import neither JAX
     nor NumPy, and print what the parser, the package and the validated scenarios say."""
-    code = ("import sys\nfrom rbdyn_jax import cli\n"
-            "try:\n    code = cli.main(sys.argv[1:])\n"
-            "except SystemExit as e:\n    code = e.code\n"
-            "heavy = sorted(m for m in sys.modules if m.split('.')[0] in "
-            "('jax', 'jaxlib', 'numpy'))\n"
-            "assert not heavy, heavy\nsys.exit(code)\n")
+    code = (
+        "import sys\nfrom rbdyn_jax import cli\n"
+        "try:\n    code = cli.main(sys.argv[1:])\n"
+        "except SystemExit as e:\n    code = e.code\n"
+        "heavy = sorted(m for m in sys.modules if m.split('.')[0] in "
+        "('jax', 'jaxlib', 'numpy'))\n"
+        "assert not heavy, heavy\nsys.exit(code)\n"
+    )
     monkeypatch.setenv("COLUMNS", "100")  # argparse's width, here and in the child
-    run = subprocess.run([sys.executable, "-c", code, command], capture_output=True,
-                         text=True, timeout=300, env=dict(os.environ, COLUMNS="100"))
+    run = subprocess.run(
+        [sys.executable, "-c", code, command],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env=dict(os.environ, COLUMNS="100"),
+    )
     assert run.returncode == 0, run.stderr[-3000:]
     assert run.stdout == _QUICK[command]()
 
@@ -123,9 +148,27 @@ def test_sweep_and_plot_commands(tmp_path):
     out = tmp_path / "flip.zarr"
     env = dict(os.environ, RBDYN_JAX_CACHE_DIR=str(tmp_path / "cache"))
     run = subprocess.run(
-        [sys.executable, "-m", "rbdyn_jax.cli", "sweep", "torque_free_flip", "--n", "40",
-         "--chunk", "16", "--lanes", "8", "--out", str(out)],
-        capture_output=True, text=True, timeout=300, check=True, env=env)
+        [
+            sys.executable,
+            "-m",
+            "rbdyn_jax.cli",
+            "sweep",
+            "torque_free_flip",
+            "--n",
+            "40",
+            "--chunk",
+            "16",
+            "--lanes",
+            "8",
+            "--out",
+            str(out),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=True,
+        env=env,
+    )
     # the sweep's program has no host callbacks, so JAX's persistent cache stores it
     assert any((tmp_path / "cache").iterdir())
     assert "successful" in run.stdout and "first_flip_time" in run.stdout
@@ -136,17 +179,38 @@ def test_sweep_and_plot_commands(tmp_path):
     # spun 0.02 rad/s-dispersed about the intermediate axis: every body flips within 40 s
     flips = ds.first_flip_time.values
     assert np.all((flips > 0) & (flips < 40))
-    plots = subprocess.run([sys.executable, "-m", "rbdyn_jax.cli", "plot", str(out)],
-                           capture_output=True, text=True, timeout=300, check=True)
-    written = [line.split(" ", 1)[1] for line in plots.stdout.splitlines()
-               if line.startswith("wrote ")]
+    plots = subprocess.run(
+        [sys.executable, "-m", "rbdyn_jax.cli", "plot", str(out)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=True,
+    )
+    written = [
+        line.split(" ", 1)[1] for line in plots.stdout.splitlines() if line.startswith("wrote ")
+    ]
     assert len(written) == 4 and all(p.endswith(".png") for p in written)
     bad = tmp_path / "bad.toml"
-    bad.write_text('[model]\nkind = "rigid_body"\n[model.inertia]\nprincipal = [1, 1, 3]\n'
-                   '[initial]\nomega = [0, 1, 0]\n[time]\nt1 = 1\nn = 3\n')
-    fail = subprocess.run([sys.executable, "-m", "rbdyn_jax.cli", "sweep", str(bad), "--n", "2",
-                           "--out", str(tmp_path / "bad.zarr")], capture_output=True, text=True,
-                          timeout=300)
+    bad.write_text(
+        '[model]\nkind = "rigid_body"\n[model.inertia]\nprincipal = [1, 1, 3]\n'
+        "[initial]\nomega = [0, 1, 0]\n[time]\nt1 = 1\nn = 3\n"
+    )
+    fail = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "rbdyn_jax.cli",
+            "sweep",
+            str(bad),
+            "--n",
+            "2",
+            "--out",
+            str(tmp_path / "bad.zarr"),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert fail.returncode == 2 and "`model.inertia.principal`" in fail.stderr
 
 
@@ -165,9 +229,14 @@ def test_fit_command_recovers_the_inertia_from_csv(tmp_path, capsys, no_cache):
     w0 = np.array([[0.5, -1.0, 0.8], [1.0, 0.4, -0.6]])
     q0 = np.array([[0.9, 0.3, 0.1, 0.2], [0.7, -0.2, 0.6, 0.1]])
     q0 /= np.linalg.norm(q0, axis=1, keepdims=True)
-    traj = rb.simulate_batch(rb.RigidBody(jnp.asarray(J_true), gravity),
-                             rb.State(jnp.asarray(w0), jnp.asarray(q0)), ts, rtol=1e-12,
-                             atol=1e-12, throw=True)
+    traj = rb.simulate_batch(
+        rb.RigidBody(jnp.asarray(J_true), gravity),
+        rb.State(jnp.asarray(w0), jnp.asarray(q0)),
+        ts,
+        rtol=1e-12,
+        atol=1e-12,
+        throw=True,
+    )
     rng = np.random.default_rng(1)
     sw, sq = 1e-3, 1e-3
     w = np.asarray(traj.ys.omega) + sw * rng.standard_normal((2, 16, 3))
@@ -181,12 +250,31 @@ def test_fit_command_recovers_the_inertia_from_csv(tmp_path, capsys, no_cache):
     (tmp_path / "top.toml").write_text(
         '[model]\nkind = "rigid_body"\n[model.inertia]\nprincipal = [2.2, 2.8, 3.3]\n'
         '[[model.torques]]\nkind = "uniform_gravity"\nweight = 2.0\ncom = [0.0, 0.0, 0.1]\n'
-        '[initial]\nomega = [0, 0, 0]\n[time]\nt1 = 3.0\nn = 16\n'
-        '[outputs]\nsummaries = ["energy_drift"]\n')
+        "[initial]\nomega = [0, 0, 0]\n[time]\nt1 = 3.0\nn = 16\n"
+        '[outputs]\nsummaries = ["energy_drift"]\n'
+    )
     out = tmp_path / "fit"
-    assert cli.main(["fit", str(tmp_path / "obs.csv"), "--model", str(tmp_path / "top.toml"),
-                     "--free", "inertia,ic", "--sigma-omega", str(sw), "--sigma-quat",
-                     str(sq), "--steps", "12", "--out", str(out)]) == 0
+    assert (
+        cli.main(
+            [
+                "fit",
+                str(tmp_path / "obs.csv"),
+                "--model",
+                str(tmp_path / "top.toml"),
+                "--free",
+                "inertia,ic",
+                "--sigma-omega",
+                str(sw),
+                "--sigma-quat",
+                str(sq),
+                "--steps",
+                "12",
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     text = capsys.readouterr().out
     assert "inertia J ± stderr" in text and "2 trajectories × 16 samples" in text
     report = json.loads((out / "fit.json").read_text())
@@ -196,8 +284,19 @@ def test_fit_command_recovers_the_inertia_from_csv(tmp_path, capsys, no_cache):
     assert (out / "fit.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     # a bad file exits 2 with the reason
     (tmp_path / "bad.csv").write_text("time,wx\n0,1\n")
-    assert cli.main(["fit", str(tmp_path / "bad.csv"), "--model", str(tmp_path / "top.toml"),
-                     "--out", str(out)]) == 2
+    assert (
+        cli.main(
+            [
+                "fit",
+                str(tmp_path / "bad.csv"),
+                "--model",
+                str(tmp_path / "top.toml"),
+                "--out",
+                str(out),
+            ]
+        )
+        == 2
+    )
     assert "`t` column" in capsys.readouterr().err
 
 
@@ -206,8 +305,9 @@ def test_free_k_picks_only_the_restoring_coefficients():
 
     import rbdyn_jax as rb
 
-    torque = rb.RestoringMoment(rb.PolynomialSinPsi(jnp.array([1.0, 0.5]), 0.1)) + \
-        rb.BodyTorque(jnp.array([0.0, 0.0, 1e-3]))
+    torque = rb.RestoringMoment(rb.PolynomialSinPsi(jnp.array([1.0, 0.5]), 0.1)) + rb.BodyTorque(
+        jnp.array([0.0, 0.0, 1e-3])
+    )
     params, where = cli_fit.free_params(["inertia", "k"], torque)
     assert params == ("inertia", "torque")
     (coeffs,) = where(torque)
@@ -228,15 +328,17 @@ def no_cache(monkeypatch):
     monkeypatch.setenv("RBDYN_JAX_CACHE_DIR", "")
 
 
-def _small_toml(path, max_steps=None, omega='{ dist = "normal", mean = [0.1, 1.0, 0.1], '
-                                           'std = 0.3 }', tol="1e-8"):
+def _small_toml(
+    path, max_steps=None, omega='{ dist = "normal", mean = [0.1, 1.0, 0.1], std = 0.3 }', tol="1e-8"
+):
     path.write_text(
         'name = "tiny"\n[model]\nkind = "rigid_body"\n[model.inertia]\n'
-        'principal = [1.0, 2.0, 2.5]\n'
-        f'[initial]\nomega = {omega}\n[time]\nt1 = 4.0\nn = 5\n'
-        f'[solver]\nrtol = {tol}\natol = {tol}\n'
+        "principal = [1.0, 2.0, 2.5]\n"
+        f"[initial]\nomega = {omega}\n[time]\nt1 = 4.0\nn = 5\n"
+        f"[solver]\nrtol = {tol}\natol = {tol}\n"
         + (f"max_steps = {max_steps}\n" if max_steps else "")
-        + '[outputs]\nsummaries = ["energy_drift"]\n')
+        + '[outputs]\nsummaries = ["energy_drift"]\n'
+    )
     return path
 
 
@@ -283,8 +385,11 @@ def test_sweep_exit_status_when_trajectories_fail(tmp_path, capsys, case, no_cac
     if case == "all":  # 3 steps cannot reach t1 = 4 at rtol 1e-8
         toml = _small_toml(tmp_path / "t.toml", max_steps=3)
     else:  # lognormal rates: some overflow (non-finite), some run out of steps
-        toml = _small_toml(tmp_path / "t.toml", max_steps=400, omega=(
-            '{ dist = "lognormal", median = [0.3, 1.0, 0.2], sigma = [0.0, 300.0, 0.0] }'))
+        toml = _small_toml(
+            tmp_path / "t.toml",
+            max_steps=400,
+            omega=('{ dist = "lognormal", median = [0.3, 1.0, 0.2], sigma = [0.0, 300.0, 0.0] }'),
+        )
     out = tmp_path / "f.zarr"
     code = cli.main(["sweep", str(toml), "--n", "40", "--out", str(out), "--lanes", "8"])
     status = xr.open_zarr(out).status.values
@@ -316,8 +421,25 @@ def test_sweep_in_float32_of_no_states_and_its_plots(tmp_path, capsys, no_cache,
 
     toml = _small_toml(tmp_path / "t.toml", tol="1e-6")
     out = tmp_path / "n.zarr"
-    assert cli.main(["sweep", str(toml), "--n", "16", "--out", str(out), "--lanes", "8",
-                     "--trajectories", "none", "--dtype", "float32"]) == 0
+    assert (
+        cli.main(
+            [
+                "sweep",
+                str(toml),
+                "--n",
+                "16",
+                "--out",
+                str(out),
+                "--lanes",
+                "8",
+                "--trajectories",
+                "none",
+                "--dtype",
+                "float32",
+            ]
+        )
+        == 0
+    )
     assert not jax.config.jax_enable_x64
     text = capsys.readouterr().out
     devices = f"on {len(jax.devices())} × cpu device"
@@ -325,7 +447,10 @@ def test_sweep_in_float32_of_no_states_and_its_plots(tmp_path, capsys, no_cache,
     assert "in chunks of 1024 with 8 lanes per device" in text
     ds = xr.open_zarr(out)
     assert (ds.attrs["dtype"], ds.attrs["trajectories"], ds.attrs["lanes"]) == (
-        "float32", "none", 8)
+        "float32",
+        "none",
+        8,
+    )
     assert "omega" not in ds and ds.energy_drift.dtype == np.float32
     assert cli.main(["plot", str(out)]) == 0
     assert "note: no trajectories.png or polhodes.png" in capsys.readouterr().out
@@ -337,14 +462,17 @@ def test_sweep_refuses_a_dtype_or_states_the_scenario_cannot_take(tmp_path, caps
     """The shipped scenarios' rtol (1e-8, 1e-9) is finer than float32 resolves: exit 2,
     naming the option and the key; `--trajectories` takes all, none or K ≥ 1."""
     out = tmp_path / "x.zarr"
-    assert cli.main(["sweep", "torque_free_flip", "--n", "4", "--out", str(out), "--dtype",
-                     "float32"]) == 2
+    assert (
+        cli.main(["sweep", "torque_free_flip", "--n", "4", "--out", str(out), "--dtype", "float32"])
+        == 2
+    )
     err = capsys.readouterr().err
     assert "--dtype float32" in err and "`solver.rtol`" in err and "9.5e-07" in err
     assert not out.exists()
     for bad in ("0", "-3", "some"):
         with pytest.raises(SystemExit) as e:
-            cli.main(["sweep", "torque_free_flip", "--n", "4", "--out", str(out),
-                      "--trajectories", bad])
+            cli.main(
+                ["sweep", "torque_free_flip", "--n", "4", "--out", str(out), "--trajectories", bad]
+            )
         assert e.value.code == 2
     assert "expected all, none or a positive integer K" in capsys.readouterr().err

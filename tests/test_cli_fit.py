@@ -29,18 +29,47 @@ def flip_store(tmp_path_factory):
     store = tmp_path_factory.mktemp("fit") / "flip.zarr"
     with pytest.MonkeyPatch.context() as mp:
         mp.setenv("RBDYN_JAX_CACHE_DIR", "")
-        assert cli.main(["sweep", "torque_free_flip", "--n", "8", "--lanes", "1",
-                         "--devices", "1", "--out", str(store)]) == 0
+        assert (
+            cli.main(
+                [
+                    "sweep",
+                    "torque_free_flip",
+                    "--n",
+                    "8",
+                    "--lanes",
+                    "1",
+                    "--devices",
+                    "1",
+                    "--out",
+                    str(store),
+                ]
+            )
+            == 0
+        )
     return store
 
 
 def _fit(store, out, *extra):
-    return cli.main(["fit", str(store), "--model", "torque_free_flip", "--trajectories", "1",
-                     "--scale", "trace=5.5", "--out", str(out), *extra])
+    return cli.main(
+        [
+            "fit",
+            str(store),
+            "--model",
+            "torque_free_flip",
+            "--trajectories",
+            "1",
+            "--scale",
+            "trace=5.5",
+            "--out",
+            str(out),
+            *extra,
+        ]
+    )
 
 
-def test_the_cli_pages_example_converges_and_a_whole_record_fit_exits_6(flip_store, tmp_path,
-                                                                      capsys):
+def test_the_cli_pages_example_converges_and_a_whole_record_fit_exits_6(
+    flip_store, tmp_path, capsys
+):
     """`rbdyn fit runs/flip.zarr --model torque_free_flip --trajectories 1 --scale
     trace=5.5` (docs/cli.md): with the default horizons it converges to the drawn inertia
     (exit 0). Fitted whole at once (`--horizons 1`) the same record stalls in a local minimum:
@@ -98,6 +127,7 @@ def test_the_time_claims_only_what_happened():
     meter = {"tracing_s": 0.1, "loaded": 2}  # small programs around the loaded fit
     assert cli_fit.time_text(0.52, meter) == "0.5 s (program loaded from the cache)"
     meter = {"tracing_s": 2.1, "loaded": 1}  # the trace redone, the compiled program loaded
-    assert cli_fit.time_text(2.6, meter) == ("2.6 s (program loaded from the cache, 2.1 s of it "
-                                          "tracing and compiling)")
+    assert cli_fit.time_text(2.6, meter) == (
+        "2.6 s (program loaded from the cache, 2.1 s of it tracing and compiling)"
+    )
     assert cli_fit.time_text(0.31, {"tracing_s": 0.0, "loaded": 0}) == "0.3 s"

@@ -27,18 +27,34 @@ def no_cache(monkeypatch):
 def _toml(path, t1=4.0):
     path.write_text(
         'name = "tiny"\n[model]\nkind = "rigid_body"\n[model.inertia]\n'
-        'principal = [1.0, 2.0, 2.5]\nlog_cholesky_sigma = 0.05\n'
+        "principal = [1.0, 2.0, 2.5]\nlog_cholesky_sigma = 0.05\n"
         '[initial]\nomega = { dist = "normal", mean = [0.1, 1.0, 0.1], std = 0.3 }\n'
-        f'[time]\nt1 = {t1}\nn = 5\n[solver]\nrtol = 1e-8\natol = 1e-8\n'
-        '[outputs]\nsummaries = ["energy_drift"]\n')
+        f"[time]\nt1 = {t1}\nn = 5\n[solver]\nrtol = 1e-8\natol = 1e-8\n"
+        '[outputs]\nsummaries = ["energy_drift"]\n'
+    )
     return path
 
 
 @pytest.fixture
 def store(tmp_path, no_cache, capsys):
     out = tmp_path / "s.zarr"
-    assert cli.main(["sweep", str(_toml(tmp_path / "tiny.toml")), "--n", "16", "--chunk", "8",
-                     "--lanes", "8", "--out", str(out)]) == 0
+    assert (
+        cli.main(
+            [
+                "sweep",
+                str(_toml(tmp_path / "tiny.toml")),
+                "--n",
+                "16",
+                "--chunk",
+                "8",
+                "--lanes",
+                "8",
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     capsys.readouterr()
     return out
 
@@ -55,16 +71,32 @@ def test_verify_export_and_plot_on_damaged_and_incomplete_stores(store, tmp_path
     assert cli.main(["verify", str(store)]) == cli.EXIT_DAMAGED == 5
     out = capsys.readouterr().out
     assert "omega chunk 1: missing (trajectories 8..15)" in out
-    assert (f"finish it with: rbdyn sweep SCENARIO.toml --n 16 --trajectories all --dtype "
-            f"float64 --out {store} --resume") in out
+    assert (
+        f"finish it with: rbdyn sweep SCENARIO.toml --n 16 --trajectories all --dtype "
+        f"float64 --out {store} --resume"
+    ) in out
     for args in (["export", str(store), str(tmp_path / "s.nc")], ["plot", str(store)]):
         assert cli.main(args) == cli.EXIT_DAMAGED
         err = capsys.readouterr().err
         assert f"rbdyn verify {store}" in err and "--resume" in err and "Traceback" not in err
     assert not (tmp_path / "s.nc").exists()
     # Resumed, the store is whole again; then with a trajectory not run it is incomplete.
-    assert cli.main(["sweep", str(tmp_path / "tiny.toml"), "--n", "16", "--lanes", "8",
-                     "--out", str(store), "--resume"]) == 0
+    assert (
+        cli.main(
+            [
+                "sweep",
+                str(tmp_path / "tiny.toml"),
+                "--n",
+                "16",
+                "--lanes",
+                "8",
+                "--out",
+                str(store),
+                "--resume",
+            ]
+        )
+        == 0
+    )
     capsys.readouterr()
     zarr.open_group(str(store), mode="r+")["status"][3] = -1
     assert cli.main(["verify", str(store)]) == cli.EXIT_INCOMPLETE == 7
@@ -104,11 +136,18 @@ def test_ctrl_c_exits_130_and_names_the_resume_command(tmp_path):
     # SIGINT handled as in a terminal's shell: a pytest-xdist worker ignores it, and a child
     # started with it ignored keeps ignoring it (Python then installs no handler).
     # (The child installs Python's handler itself: no fork-time hook in this JAX process.)
-    code = ("import runpy, signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler)"
-            "; sys.argv = ['rbdyn', *sys.argv[1:]]"
-            "; runpy.run_module('rbdyn_jax.cli', run_name='__main__')")
-    proc = subprocess.Popen([sys.executable, "-c", code, *argv],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    code = (
+        "import runpy, signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler)"
+        "; sys.argv = ['rbdyn', *sys.argv[1:]]"
+        "; runpy.run_module('rbdyn_jax.cli', run_name='__main__')"
+    )
+    proc = subprocess.Popen(
+        [sys.executable, "-c", code, *argv],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+    )
     deadline = time.time() + 240
     try:
         while time.time() < deadline and proc.poll() is None:
@@ -131,8 +170,13 @@ def test_ctrl_c_exits_130_and_names_the_resume_command(tmp_path):
     command = shlex.split(line.split("`")[1])
     assert command[0] == "rbdyn" and command[-1] == "--resume"
     env["RBDYN_JAX_CACHE_DIR"] = ""
-    run = subprocess.run([sys.executable, "-m", "rbdyn_jax.cli", *command[1:]],
-                         capture_output=True, text=True, env=env, timeout=300)
+    run = subprocess.run(
+        [sys.executable, "-m", "rbdyn_jax.cli", *command[1:]],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=300,
+    )
     assert run.returncode == 0, run.stderr[-2000:]
     assert np.all(zarr.open_group(str(out), mode="r")["status"][:] == 0)
 
@@ -140,8 +184,23 @@ def test_ctrl_c_exits_130_and_names_the_resume_command(tmp_path):
 def test_progress_in_a_log_is_lines(tmp_path, no_cache, capsys, monkeypatch):
     """Not a terminal: a line every few seconds and at the end, never a redrawn bar."""
     monkeypatch.setattr(cli_sweep, "LOG_EVERY", 0.0)  # every chunk
-    assert cli.main(["sweep", str(_toml(tmp_path / "tiny.toml")), "--n", "16", "--chunk", "8",
-                     "--lanes", "8", "--out", str(tmp_path / "s.zarr")]) == 0
+    assert (
+        cli.main(
+            [
+                "sweep",
+                str(_toml(tmp_path / "tiny.toml")),
+                "--n",
+                "16",
+                "--chunk",
+                "8",
+                "--lanes",
+                "8",
+                "--out",
+                str(tmp_path / "s.zarr"),
+            ]
+        )
+        == 0
+    )
     err = capsys.readouterr().err
     assert "\r" not in err
     assert "solved 8 of 16 (50 %), 0 failed" in err and "solved 16 of 16 (100 %)" in err

@@ -50,8 +50,9 @@ def test_wrapped_term_is_the_term_diffeqsolve_hands_its_solver():
     wrapped = _compat.wrapped_term(term)
     state = diffrax.Tsit5().init(wrapped, 0.0, 0.1, y0, None)
     mine = diffrax.Tsit5().step(wrapped, 0.0, 0.1, y0, None, state, False)[0]
-    direct = diffrax.diffeqsolve(term, diffrax.Tsit5(), 0.0, 0.1, 0.1, y0,
-                                 stepsize_controller=diffrax.ConstantStepSize()).ys[-1]
+    direct = diffrax.diffeqsolve(
+        term, diffrax.Tsit5(), 0.0, 0.1, 0.1, y0, stepsize_controller=diffrax.ConstantStepSize()
+    ).ys[-1]
     np.testing.assert_array_equal(mine, direct)
 
 
@@ -82,8 +83,9 @@ def test_result_values_are_int_codes_of_the_enumeration():
     assert names["successful"] is diffrax.RESULTS.successful
     codes = {name: int(_compat.result_value(item)) for name, item in names.items()}
     assert codes["successful"] == 0 and len(set(codes.values())) == len(codes)
-    held = _compat.result_with_value(diffrax.RESULTS.successful,
-                                     jnp.asarray([codes["max_steps_reached"], 0]))
+    held = _compat.result_with_value(
+        diffrax.RESULTS.successful, jnp.asarray([codes["max_steps_reached"], 0])
+    )
     assert isinstance(held, type(diffrax.RESULTS.successful))
     np.testing.assert_array_equal(held == diffrax.RESULTS.max_steps_reached, [True, False])
 
@@ -110,8 +112,13 @@ def test_error_mode_nan_turns_a_failed_check_into_nan():
 
 
 def test_only_compat_reaches_into_internals():
-    pattern = re.compile(r"jax\._src|diffrax\._|equinox\._|\._value\b|\._name_to_item|"
-                         r"EQX_ON_ERROR")
-    offenders = [str(p.relative_to(PACKAGE)) for p in PACKAGE.rglob("*.py")
-                 if p.name != "_compat.py" and pattern.search(p.read_text())]
+    pattern = re.compile(
+        r"jax\._src|diffrax\._|equinox\._|\._value\b|\._name_to_item|"
+        r"EQX_ON_ERROR"
+    )
+    offenders = [
+        str(p.relative_to(PACKAGE))
+        for p in PACKAGE.rglob("*.py")
+        if p.name != "_compat.py" and pattern.search(p.read_text())
+    ]
     assert offenders == []

@@ -29,8 +29,21 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 DOCS = ROOT / "docs"
 
 # The public modules documented on the API pages (`rbdyn_jax.cli` is the CLI page's).
-MODULES = ("analytic", "dynamics", "frames", "identify", "inertia", "integrate",
-           "invariants", "models", "rotation", "scenario", "state", "sweep", "torques")
+MODULES = (
+    "analytic",
+    "dynamics",
+    "frames",
+    "identify",
+    "inertia",
+    "integrate",
+    "invariants",
+    "models",
+    "rotation",
+    "scenario",
+    "state",
+    "sweep",
+    "torques",
+)
 
 
 def public_names() -> dict[str, list[str]]:
@@ -39,17 +52,24 @@ def public_names() -> dict[str, list[str]]:
     ids: dict[str, list[str]] = {}
     top = getattr(rbdyn_jax, "__all__", None)
     if top is None:
-        top = [n for n, v in vars(rbdyn_jax).items()
-               if not n.startswith("_") and not isinstance(v, types.ModuleType)]
+        top = [
+            n
+            for n, v in vars(rbdyn_jax).items()
+            if not n.startswith("_") and not isinstance(v, types.ModuleType)
+        ]
     for name in top:
         ids.setdefault(f"rbdyn_jax.{name}", []).append(f"rbdyn_jax.{name}")
     for mod_name in MODULES:
         mod = importlib.import_module(f"rbdyn_jax.{mod_name}")
         names = getattr(mod, "__all__", None)
         if names is None:  # its own public functions and classes
-            names = [n for n, v in vars(mod).items() if not n.startswith("_")
-                     and (inspect.isfunction(v) or inspect.isclass(v))
-                     and v.__module__ == mod.__name__]
+            names = [
+                n
+                for n, v in vars(mod).items()
+                if not n.startswith("_")
+                and (inspect.isfunction(v) or inspect.isclass(v))
+                and v.__module__ == mod.__name__
+            ]
         for name in names:
             ref = f"rbdyn_jax.{mod_name}.{name}"
             ids.setdefault(ref, [ref])
@@ -61,8 +81,14 @@ def public_names() -> dict[str, list[str]]:
 def _build(out: pathlib.Path) -> tuple[int, str]:
     # The figures hook runs the examples as a reader does (cached while their sources stand).
     env = {**os.environ, "NO_MKDOCS_2_WARNING": "1"}
-    proc = subprocess.run([sys.executable, "-m", "mkdocs", "build", "--strict", "-d", str(out)],
-                          cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
+    proc = subprocess.run(
+        [sys.executable, "-m", "mkdocs", "build", "--strict", "-d", str(out)],
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     return proc.returncode, proc.stdout + proc.stderr
 
 
@@ -107,14 +133,16 @@ def test_strict_build(site):
 def test_every_public_name_has_an_api_entry(site):
     built = "\n".join(p.read_text() for p in (site / "api").rglob("*.html"))
     ids = set(re.findall(r'id="(rbdyn_jax\.[\w.]+)"', built))
-    missing = [ref for ref, accepted in public_names().items()
-               if not any(a in ids for a in accepted)]
+    missing = [
+        ref for ref, accepted in public_names().items() if not any(a in ids for a in accepted)
+    ]
     assert not missing, f"public names with no entry in docs/api/: {missing}"
 
 
 def _cli_reference():
-    spec = importlib.util.spec_from_file_location("cli_reference",
-                                                  DOCS / "hooks" / "cli_reference.py")
+    spec = importlib.util.spec_from_file_location(
+        "cli_reference", DOCS / "hooks" / "cli_reference.py"
+    )
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
@@ -139,7 +167,7 @@ def test_cli_page_documents_every_subcommand(site):
 
 def _section(text: str, title: str, end: str) -> str:
     start = text.index(title)
-    return text[start:text.index(end, start + len(title))]
+    return text[start : text.index(end, start + len(title))]
 
 
 def test_scenarios_page_documents_every_kind_and_key(site):
@@ -179,8 +207,11 @@ def test_scenarios_page_examples_validate():
     frame, an attitude) set into a minimal scenario; the shipped example is included."""
     page = (DOCS / "scenarios.md").read_text()
     assert '--8<-- "rbdyn_jax/scenarios/torque_free_flip.toml"' in page
-    minimal = {"model": {"kind": "rigid_body", "inertia": {"principal": [1.0, 2.0, 2.5]}},
-               "initial": {"omega": [0.0, 0.0, 1.0]}, "time": {"t1": 1.0, "n": 11}}
+    minimal = {
+        "model": {"kind": "rigid_body", "inertia": {"principal": [1.0, 2.0, 2.5]}},
+        "initial": {"omega": [0.0, 0.0, 1.0]},
+        "time": {"t1": 1.0, "n": 11},
+    }
     complete = 0
     for block in re.findall(r"```toml\n(.*?)```", page, re.S):
         if block.startswith("--8<--"):
@@ -227,8 +258,7 @@ def test_getting_started_snippets_run(tmp_path, monkeypatch):
     assert bool(np.all(namespace["batch"].result == rbdyn_jax.RESULTS.successful))
     assert np.all(np.isfinite(np.asarray(namespace["grad"])))
     assert namespace["stats"]["status"] == {"successful": 64}
-    np.testing.assert_allclose(namespace["result"].model.inertia, namespace["J_true"],
-                               atol=1e-4)
+    np.testing.assert_allclose(namespace["result"].model.inertia, namespace["J_true"], atol=1e-4)
 
 
 def test_home_page_snippet_runs(tmp_path, monkeypatch):
@@ -256,8 +286,13 @@ def test_docstring_lists_are_set_off_from_their_label():
             code = False
             for prev, line in zip(lines, lines[1:]):
                 code ^= prev.lstrip().startswith("```")
-                if (not code and item.match(line) and prev.strip()
-                        and not item.match(prev) and not prev.startswith(" ")):
+                if (
+                    not code
+                    and item.match(line)
+                    and prev.strip()
+                    and not item.match(prev)
+                    and not prev.startswith(" ")
+                ):
                     bad.append(f"{path.relative_to(ROOT)}: {getattr(node, 'name', '')}")
     assert not bad, bad
 
@@ -268,21 +303,33 @@ def test_docstring_lists_are_set_off_from_their_label():
 _REMOTE = re.compile(r"^\s*(?:(?:https?|wss?|ftp):)?//", re.I)
 # In CSS: url(...) and @import of such an address (data: URIs and relative paths are local).
 _CSS_REMOTE = re.compile(
-    r"""(?:url\(|@import)\s*(?:url\()?\s*["']?\s*((?:(?:https?|wss?|ftp):)?//[^"')\s]*)""", re.I)
+    r"""(?:url\(|@import)\s*(?:url\()?\s*["']?\s*((?:(?:https?|wss?|ftp):)?//[^"')\s]*)""", re.I
+)
 # In JavaScript: a string literal that starts with an address off the machine.
 _JS_REMOTE = re.compile(r"""["'`]((?:https?:|wss?:)?//[\w-]+(?:\.[\w-]+)+[^"'`\s]*)""")
 # Elements' attributes that make the browser request their address as the page loads.
-_REQUEST_ATTRS = {"script": ("src",), "img": ("src", "srcset"), "iframe": ("src",),
-                  "frame": ("src",), "embed": ("src",), "object": ("data",),
-                  "source": ("src", "srcset"), "video": ("src", "poster"), "audio": ("src",),
-                  "track": ("src",), "input": ("src",), "image": ("href", "xlink:href"),
-                  "use": ("href", "xlink:href"), "link": ("href",)}
+_REQUEST_ATTRS = {
+    "script": ("src",),
+    "img": ("src", "srcset"),
+    "iframe": ("src",),
+    "frame": ("src",),
+    "embed": ("src",),
+    "object": ("data",),
+    "source": ("src", "srcset"),
+    "video": ("src", "poster"),
+    "audio": ("src",),
+    "track": ("src",),
+    "input": ("src",),
+    "image": ("href", "xlink:href"),
+    "use": ("href", "xlink:href"),
+    "link": ("href",),
+}
 # Remote addresses that the site's scripts name without requesting them from these pages.
 _NAMED_NOT_REQUESTED = {
     "http://www.w3.org/": "XML namespace names (KaTeX's SVG and MathML elements)",
     # Material's bundle, on conditions this site never meets:
     "https://unpkg.com/resize-observer-polyfill": "only where a browser lacks ResizeObserver "
-                                                   "(every browser since 2020 has it)",
+    "(every browser since 2020 has it)",
     "https://unpkg.com/mermaid@": "only on a page with a Mermaid diagram (none: checked)",
     "https://api.github.com/": "the repository's facts, only with `repo_url` (unset: checked)",
 }
@@ -344,8 +391,11 @@ def _scan_site(site: pathlib.Path) -> dict[pathlib.Path, _PageScan]:
 
 
 def _remote_literals(text: str) -> list[str]:
-    return [url for url in _JS_REMOTE.findall(text)
-            if not any(url.startswith(known) for known in _NAMED_NOT_REQUESTED)]
+    return [
+        url
+        for url in _JS_REMOTE.findall(text)
+        if not any(url.startswith(known) for known in _NAMED_NOT_REQUESTED)
+    ]
 
 
 def test_site_requests_nothing_off_the_machine(site):
@@ -358,20 +408,31 @@ def test_site_requests_nothing_off_the_machine(site):
     found = []
     for path, scan in scans.items():
         page = path.relative_to(site)
-        found += [f"{page}: <{tag} {name}={url!r}>" for tag, name, url in scan.requests
-                  if _REMOTE.match(url)]
-        found += [f"{page}: inline CSS {url!r}" for style in scan.styles
-                  for url in _CSS_REMOTE.findall(style)]
-        found += [f"{page}: inline script {url!r}" for text in scan.inline_scripts
-                  for url in _remote_literals(text)]
+        found += [
+            f"{page}: <{tag} {name}={url!r}>"
+            for tag, name, url in scan.requests
+            if _REMOTE.match(url)
+        ]
+        found += [
+            f"{page}: inline CSS {url!r}"
+            for style in scan.styles
+            for url in _CSS_REMOTE.findall(style)
+        ]
+        found += [
+            f"{page}: inline script {url!r}"
+            for text in scan.inline_scripts
+            for url in _remote_literals(text)
+        ]
     for path in sorted(site.rglob("*.css")):
-        found += [f"{path.relative_to(site)}: {url!r}"
-                  for url in _CSS_REMOTE.findall(path.read_text())]
+        found += [
+            f"{path.relative_to(site)}: {url!r}" for url in _CSS_REMOTE.findall(path.read_text())
+        ]
     for path in sorted(site.rglob("*.js")):
         if path.relative_to(site).as_posix() == "search/search_index.js":
             continue  # the search index: data (the pages' text), checked below as such
-        found += [f"{path.relative_to(site)}: {url!r}"
-                  for url in _remote_literals(path.read_text())]
+        found += [
+            f"{path.relative_to(site)}: {url!r}" for url in _remote_literals(path.read_text())
+        ]
     assert not found, "requests off the machine:\n" + "\n".join(found)
     # The conditions on which Material's bundle would load what it names.
     pages = "".join(path.read_text() for path in scans)
@@ -414,7 +475,7 @@ def test_search_works_from_the_file_system(site):
         shim = _local_file(path, site, shims[0]).read_text()
         assert 'location.protocol==="file:"&&(window.Worker=' in shim, path
         _local_file(path, site, scan.config["search"])  # the search worker, in the site
-        _local_file(path, site, f'{scan.config["base"]}/search/search_index.js')
+        _local_file(path, site, f"{scan.config['base']}/search/search_index.js")
 
 
 def test_wide_tables_and_equations_scroll_in_their_column(site):
@@ -426,8 +487,9 @@ def test_wide_tables_and_equations_scroll_in_their_column(site):
     assert sheet.is_file(), "docs/assets/stylesheets/overflow.css was not built"
     css = sheet.read_text()
     rules: dict[str, str] = {}
-    for selectors, body in re.findall(r"([^{}]+)\{([^{}]*)\}", re.sub(r"/\*.*?\*/", "", css,
-                                                                       flags=re.S)):
+    for selectors, body in re.findall(
+        r"([^{}]+)\{([^{}]*)\}", re.sub(r"/\*.*?\*/", "", css, flags=re.S)
+    ):
         for selector in selectors.split(","):
             rules[" ".join(selector.split())] = rules.get(" ".join(selector.split()), "") + body
     for selector in (".md-typeset table:not([class])", ".md-typeset .arithmatex .katex-display"):

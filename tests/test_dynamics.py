@@ -39,8 +39,13 @@ def principal_euler(m, w, M):
     A, B, C = m[..., 0], m[..., 1], m[..., 2]
     p, q, r = w[..., 0], w[..., 1], w[..., 2]
     return np.stack(
-        [((B - C) * q * r + M[..., 0]) / A, ((C - A) * r * p + M[..., 1]) / B,
-         ((A - B) * p * q + M[..., 2]) / C], -1)
+        [
+            ((B - C) * q * r + M[..., 0]) / A,
+            ((C - A) * r * p + M[..., 1]) / B,
+            ((A - B) * p * q + M[..., 2]) / C,
+        ],
+        -1,
+    )
 
 
 def principal_relative(m, w_r, w_e, eps_e, M):
@@ -50,12 +55,15 @@ def principal_relative(m, w_r, w_e, eps_e, M):
     p, q, r = w_r[..., 0], w_r[..., 1], w_r[..., 2]
     pe, qe, re = w_e[..., 0], w_e[..., 1], w_e[..., 2]
     ex, ey, ez = eps_e[..., 0], eps_e[..., 1], eps_e[..., 2]
-    dp = ((B - C) * q * r - A * ex + (B - C) * qe * re + 2 * (Cp * q * re - Bp * r * qe)
-          + M[..., 0]) / A
-    dq = ((C - A) * r * p - B * ey + (C - A) * re * pe + 2 * (Ap * r * pe - Cp * p * re)
-          + M[..., 1]) / B
-    dr = ((A - B) * p * q - C * ez + (A - B) * pe * qe + 2 * (Bp * p * qe - Ap * q * pe)
-          + M[..., 2]) / C
+    dp = (
+        (B - C) * q * r - A * ex + (B - C) * qe * re + 2 * (Cp * q * re - Bp * r * qe) + M[..., 0]
+    ) / A
+    dq = (
+        (C - A) * r * p - B * ey + (C - A) * re * pe + 2 * (Ap * r * pe - Cp * p * re) + M[..., 1]
+    ) / B
+    dr = (
+        (A - B) * p * q - C * ez + (A - B) * pe * qe + 2 * (Bp * p * qe - Ap * q * pe) + M[..., 2]
+    ) / C
     return np.stack([dp, dq, dr], -1)
 
 
@@ -80,21 +88,18 @@ def test_euler_rhs_energy_and_momentum_theorems(rng):
     w, M = rng.normal(size=(2, 50, 3))
     wdot = np.asarray(dynamics.euler_rhs(J, w, M))
     # dT/dt = ωᵀ J ω' = ω · M  (the gyroscopic term does no work)
-    np.testing.assert_allclose(np.einsum("ni,nij,nj->n", w, J, wdot), np.sum(w * M, -1),
-                               atol=TOL)
+    np.testing.assert_allclose(np.einsum("ni,nij,nj->n", w, J, wdot), np.sum(w * M, -1), atol=TOL)
     # torque-free: d|L|²/dt = 2 L · (J ω') = 2 L · (L × ω) = 0
     wdot0 = np.asarray(dynamics.euler_rhs(J, w, np.zeros_like(w)))
     L = np.einsum("nij,nj->ni", J, w)
-    np.testing.assert_allclose(np.sum(L * np.einsum("nij,nj->ni", J, wdot0), -1), 0.0,
-                               atol=TOL)
+    np.testing.assert_allclose(np.sum(L * np.einsum("nij,nj->ni", J, wdot0), -1), 0.0, atol=TOL)
 
 
 def test_euler_poinsot_special_cases():
     """docs/physics.md#torque-free-motion: spherical body keeps ω; symmetric body keeps r and
     (p, q) turns at (C − A) r / A in the body."""
     w = jnp.array([0.3, -0.7, 1.9])
-    np.testing.assert_allclose(dynamics.euler_rhs(2.5 * jnp.eye(3), w, jnp.zeros(3)), 0.0,
-                               atol=TOL)
+    np.testing.assert_allclose(dynamics.euler_rhs(2.5 * jnp.eye(3), w, jnp.zeros(3)), 0.0, atol=TOL)
     A, Cm = 2.0, 3.5
     wdot = np.asarray(dynamics.euler_rhs(jnp.diag(jnp.array([A, A, Cm])), w, jnp.zeros(3)))
     lam = (Cm - A) * w[2] / A
@@ -107,8 +112,9 @@ def test_coriolis_theorem_equals_three_term_form(rng):
     J, _, _ = random_body(rng, 50)
     w_r, w_e = rng.normal(size=(2, 50, 3))
     Jw_r, Jw_e = np.einsum("nij,nj->ni", J, w_r), np.einsum("nij,nj->ni", J, w_e)
-    three = np.cross(Jw_r, w_e) + np.cross(Jw_e, w_r) - np.einsum("nij,nj->ni", J,
-                                                                   np.cross(w_e, w_r))
+    three = (
+        np.cross(Jw_r, w_e) + np.cross(Jw_e, w_r) - np.einsum("nij,nj->ni", J, np.cross(w_e, w_r))
+    )
     np.testing.assert_allclose(dynamics.coriolis_moment(J, w_r, w_e), three, atol=TOL)
 
 
@@ -153,12 +159,15 @@ def test_batching_broadcast_jit_vmap_and_grad(rng):
     M = rng.normal(size=3)
     batched = dynamics.euler_rhs(J, w, M)  # J and M broadcast against a (4, 5) batch
     assert batched.shape == (4, 5, 3)
-    loop = np.stack([[np.asarray(dynamics.euler_rhs(J, w[i, j], M)) for j in range(5)]
-                     for i in range(4)])
+    loop = np.stack(
+        [[np.asarray(dynamics.euler_rhs(J, w[i, j], M)) for j in range(5)] for i in range(4)]
+    )
     np.testing.assert_allclose(batched, loop, atol=1e-14)
-    np.testing.assert_allclose(jax.jit(dynamics.relative_rhs)(J, w, w[::-1], w, M),
-                               jax.vmap(dynamics.relative_rhs, (None, 0, 0, 0, None))(
-                                   J, w, w[::-1], w, M), atol=1e-14)
+    np.testing.assert_allclose(
+        jax.jit(dynamics.relative_rhs)(J, w, w[::-1], w, M),
+        jax.vmap(dynamics.relative_rhs, (None, 0, 0, 0, None))(J, w, w[::-1], w, M),
+        atol=1e-14,
+    )
     w1, w2, w3, M1 = rng.normal(size=(4, 3))
     for f, args in [
         (dynamics.euler_rhs, (J, w1, M1)),
@@ -183,18 +192,22 @@ def test_solve_derivative_is_the_inverse_rule_on_the_lower_triangle(rng):
 
     x = np.linalg.solve(J, b)
     expected = np.linalg.solve(J, db - sym_lower(dJ) @ x)
-    _, dx = jax.jvp(dynamics._solve, (jnp.asarray(J), jnp.asarray(b)),
-                    (jnp.asarray(dJ), jnp.asarray(db)))
+    _, dx = jax.jvp(
+        dynamics._solve, (jnp.asarray(J), jnp.asarray(b)), (jnp.asarray(dJ), jnp.asarray(db))
+    )
     np.testing.assert_allclose(dx, expected, atol=TOL)
-    _, dx_upper = jax.jvp(lambda J: dynamics._solve(J, jnp.asarray(b)), (jnp.asarray(J),),
-                          (jnp.asarray(np.triu(dJ, 1)),))
+    _, dx_upper = jax.jvp(
+        lambda J: dynamics._solve(J, jnp.asarray(b)),
+        (jnp.asarray(J),),
+        (jnp.asarray(np.triu(dJ, 1)),),
+    )
     np.testing.assert_allclose(dx_upper, 0.0, atol=TOL)
     # reverse mode transposes the same rule: ⟨c, dx⟩ for every (dJ, db)
     c = rng.normal(size=3)
-    gJ, gb = jax.grad(lambda J, b: jnp.dot(jnp.asarray(c), dynamics._solve(J, b)),
-                      argnums=(0, 1))(jnp.asarray(J), jnp.asarray(b))
-    np.testing.assert_allclose(np.sum(gJ * dJ) + np.dot(gb, db), np.dot(c, expected),
-                               atol=TOL)
+    gJ, gb = jax.grad(lambda J, b: jnp.dot(jnp.asarray(c), dynamics._solve(J, b)), argnums=(0, 1))(
+        jnp.asarray(J), jnp.asarray(b)
+    )
+    np.testing.assert_allclose(np.sum(gJ * dJ) + np.dot(gb, db), np.dot(c, expected), atol=TOL)
 
 
 def test_written_out_solve_matches_numpy(rng):
@@ -205,16 +218,19 @@ def test_written_out_solve_matches_numpy(rng):
     a = rng.normal(size=(5, 3))
     J = np.einsum("nij,nkj->nik", M, M) + np.eye(3)  # symmetric positive definite
     # cond(J) is small here: 1e-12 is ~1e4 ulps of slack for the two triangular solves.
-    np.testing.assert_allclose(dynamics._solve(jnp.asarray(J), jnp.asarray(a)),
-                               np.linalg.solve(J, a[..., None])[..., 0], rtol=1e-12, atol=1e-13)
+    np.testing.assert_allclose(
+        dynamics._solve(jnp.asarray(J), jnp.asarray(a)),
+        np.linalg.solve(J, a[..., None])[..., 0],
+        rtol=1e-12,
+        atol=1e-13,
+    )
 
 
 def test_shapes_are_checked():
     with pytest.raises(ValueError, match="`J`"):
         dynamics.euler_rhs(jnp.eye(2), jnp.zeros(3), jnp.zeros(3))
     with pytest.raises(ValueError, match="`omega_e`"):
-        dynamics.relative_rhs(jnp.eye(3), jnp.zeros(3), jnp.zeros(4), jnp.zeros(3),
-                              jnp.zeros(3))
+        dynamics.relative_rhs(jnp.eye(3), jnp.zeros(3), jnp.zeros(4), jnp.zeros(3), jnp.zeros(3))
     with pytest.raises(ValueError, match="`moment`"):
         dynamics.euler_rhs(jnp.eye(3), jnp.zeros(3), jnp.zeros((2, 2)))
 
@@ -224,5 +240,8 @@ def test_inertia_planar_is_the_one_used(rng):
     rbdyn_jax.inertia)."""
     J, _, _ = random_body(rng)
     w_r, w_e = rng.normal(size=(2, 3))
-    np.testing.assert_allclose(dynamics.coriolis_moment(J, w_r, w_e),
-                               2 * np.cross(w_r, np.asarray(inertia.planar(J)) @ w_e), atol=TOL)
+    np.testing.assert_allclose(
+        dynamics.coriolis_moment(J, w_r, w_e),
+        2 * np.cross(w_r, np.asarray(inertia.planar(J)) @ w_e),
+        atol=TOL,
+    )

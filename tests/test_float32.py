@@ -66,8 +66,7 @@ CHILD = textwrap.dedent(f"""
 
 @pytest.fixture(scope="module")
 def child():
-    run = subprocess.run([sys.executable, "-c", CHILD], capture_output=True, text=True,
-                         timeout=600)
+    run = subprocess.run([sys.executable, "-c", CHILD], capture_output=True, text=True, timeout=600)
     assert run.returncode == 0, run.stderr[-3000:]
     return json.loads(run.stdout.splitlines()[-1])
 
@@ -79,8 +78,9 @@ def test_default_tolerance_and_the_finest_rtol_follow_the_dtype():
     assert default_tolerance(np.float32) == pytest.approx(1e-6)
     assert default_tolerance(np.float32, 1e-4) == 1e-4
     # float32 inputs with float64 on: the solve is float32 and refuses a finer rtol too
-    y0s = rb.State(jnp.ones((2, 3), jnp.float32), jnp.tile(jnp.array([1.0, 0, 0, 0],
-                                                                     jnp.float32), (2, 1)))
+    y0s = rb.State(
+        jnp.ones((2, 3), jnp.float32), jnp.tile(jnp.array([1.0, 0, 0, 0], jnp.float32), (2, 1))
+    )
     model = rb.RigidBody(jnp.asarray(J, jnp.float32))
     ts = jnp.linspace(0.0, 1.0, 3, dtype=jnp.float32)
     with pytest.raises(ValueError, match=r"`rtol` = 1e-07 is finer than float32 resolves"):
@@ -88,8 +88,9 @@ def test_default_tolerance_and_the_finest_rtol_follow_the_dtype():
     tr = rb.simulate_batch(model, y0s, ts)
     assert tr.ys.omega.dtype == jnp.float32
     # float64 times and model make it a float64 solve, where 1e-10 is fine
-    tr = rb.simulate_batch(rb.RigidBody(jnp.asarray(J)), y0s, ts.astype(jnp.float64),
-                           rtol=1e-10, atol=1e-10)
+    tr = rb.simulate_batch(
+        rb.RigidBody(jnp.asarray(J)), y0s, ts.astype(jnp.float64), rtol=1e-10, atol=1e-10
+    )
     assert tr.ys.omega.dtype == jnp.float64
 
 
@@ -113,8 +114,7 @@ def test_float32_solves_with_x64_off(child):
         assert np.max(err) < 3e-3 and np.median(err) < 1e-4, (name, err)
         # the step control sees rounding near the tolerance: a few steps more or less
         assert np.all(np.abs(np.asarray(got["steps"]) - ref_steps) <= 0.1 * ref_steps + 3)
-    np.testing.assert_allclose(child["simulate"], child["vmap"]["omega"][0], rtol=0,
-                               atol=1e-5)
+    np.testing.assert_allclose(child["simulate"], child["vmap"]["omega"][0], rtol=0, atol=1e-5)
 
 
 def test_identification_in_float32(child):
@@ -147,9 +147,12 @@ def test_matrix_products_ask_for_full_precision(monkeypatch):
     `identify.fit` (its normal equations and covariance), traced as `fit` calls it."""
     J32 = jnp.asarray(np.diag([1.0, 2.0, 3.0]), jnp.float32)
     w = jnp.ones((5, 3), jnp.float32)
-    tr = rb.Trajectory(ts=jnp.zeros(5, jnp.float32),
-                       ys=rb.State(w, jnp.tile(jnp.array([1.0, 0, 0, 0], jnp.float32), (5, 1))),
-                       stats={}, result=rb.RESULTS.successful)
+    tr = rb.Trajectory(
+        ts=jnp.zeros(5, jnp.float32),
+        ys=rb.State(w, jnp.tile(jnp.array([1.0, 0, 0, 0], jnp.float32), (5, 1))),
+        stats={},
+        result=rb.RESULTS.successful,
+    )
     for fn, args in [
         (rb.inertia.kinetic_energy, (J32, w)),
         (rb.inertia.moment_about, (J32, w[0])),
@@ -175,8 +178,10 @@ def test_matrix_products_ask_for_full_precision(monkeypatch):
     ts = jnp.linspace(0.0, 1.0, 6)
     y0 = rb.State(jnp.array([0.3, -0.2, 1.5]), jnp.array([1.0, 0.0, 0.0, 0.0]))
     observed = rb.simulate(rb.RigidBody(jnp.asarray(J)), y0, ts).ys.omega
-    identify.fit(rb.RigidBody(jnp.asarray(J) * 1.1),
-                 identify.Observations(ts, omega=observed[None], sigma_omega=1e-3),
-                 optimizer=identify.LevenbergMarquardt(steps=2))
+    identify.fit(
+        rb.RigidBody(jnp.asarray(J) * 1.1),
+        identify.Observations(ts, omega=observed[None], sigma_omega=1e-3),
+        optimizer=identify.LevenbergMarquardt(steps=2),
+    )
     count, default = full_precision(traced[0])
     assert count and not default

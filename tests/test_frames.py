@@ -57,11 +57,14 @@ def _check_frame_derivatives(frame, times):
         t = float(t)
         q, w1, e1 = eval_frame(frame, t)
         R = np.asarray(rb.rotation.quat_to_dcm(q))
-        dR = (np.asarray(rb.rotation.quat_to_dcm(eval_frame(frame, t + FD_H)[0]))
-              - np.asarray(rb.rotation.quat_to_dcm(eval_frame(frame, t - FD_H)[0]))) / (2 * FD_H)
+        dR = (
+            np.asarray(rb.rotation.quat_to_dcm(eval_frame(frame, t + FD_H)[0]))
+            - np.asarray(rb.rotation.quat_to_dcm(eval_frame(frame, t - FD_H)[0]))
+        ) / (2 * FD_H)
         np.testing.assert_allclose(R.T @ dR, skew(np.asarray(w1)), atol=FD_TOL)
-        dw = (np.asarray(eval_frame(frame, t + FD_H)[1])
-              - np.asarray(eval_frame(frame, t - FD_H)[1])) / (2 * FD_H)
+        dw = (
+            np.asarray(eval_frame(frame, t + FD_H)[1]) - np.asarray(eval_frame(frame, t - FD_H)[1])
+        ) / (2 * FD_H)
         np.testing.assert_allclose(e1, dw, atol=FD_TOL)
 
 
@@ -80,9 +83,11 @@ def test_euler_angle_frame(seq, rng):
     # docs/physics.md#euler-angle-frames
     if seq == "ZXZ":
         t = 1.1
-        np.testing.assert_allclose(eval_frame(frame, t)[1],
-                                   zxz_omega(np_angles(FRAME_C, t), np_rates(FRAME_C, t)),
-                                   atol=TIGHT)
+        np.testing.assert_allclose(
+            eval_frame(frame, t)[1],
+            zxz_omega(np_angles(FRAME_C, t), np_rates(FRAME_C, t)),
+            atol=TIGHT,
+        )
     # Zero angles at t = 0 ⇒ identity; quat0 pre-multiplies and leaves ω_e¹, ε_e¹ unchanged.
     c0 = FRAME_C.copy()
     c0[1, 0] = 0.0
@@ -93,8 +98,9 @@ def test_euler_angle_frame(seq, rng):
     for t in ts:
         qa, wa, ea = eval_frame(framed, t)
         qb, wb, eb = eval_frame(frame, t)
-        assert_quat_equal(qa, xyzw_to_wxyz((scipy_rot(q0) * frame_rot(FRAME_C, seq, t))
-                                           .as_quat()), atol=TIGHT)
+        assert_quat_equal(
+            qa, xyzw_to_wxyz((scipy_rot(q0) * frame_rot(FRAME_C, seq, t)).as_quat()), atol=TIGHT
+        )
         np.testing.assert_allclose(wa, wb, atol=TIGHT)
         np.testing.assert_allclose(ea, eb, atol=TIGHT)
 
@@ -114,9 +120,11 @@ def test_constant_rate_frame(rng):
         assert_quat_equal(q, xyzw_to_wxyz(Rotation.from_rotvec(w_e * t).as_quat()), atol=TIGHT)
         np.testing.assert_allclose(w1, w_e, atol=TIGHT)
         np.testing.assert_allclose(e1, 0.0, atol=0)
-        assert_quat_equal(eval_frame(framed, t)[0],
-                          xyzw_to_wxyz((scipy_rot(q0) * Rotation.from_rotvec(w_e * t))
-                                       .as_quat()), atol=TIGHT)
+        assert_quat_equal(
+            eval_frame(framed, t)[0],
+            xyzw_to_wxyz((scipy_rot(q0) * Rotation.from_rotvec(w_e * t)).as_quat()),
+            atol=TIGHT,
+        )
 
 
 def test_circular_orbit_frame():

@@ -36,8 +36,12 @@ def states(n=N, dtype=np.float64, seed=0):
 
 def elliptic(y0s, ts):
     moments, axes = rb.inertia.principal_axes(jnp.asarray(J))
-    return jax.vmap(lambda w: rb.analytic.torque_free_elliptic(moments, w, jnp.asarray(ts))
-                    )(y0s.omega @ axes) @ axes.T
+    return (
+        jax.vmap(lambda w: rb.analytic.torque_free_elliptic(moments, w, jnp.asarray(ts)))(
+            y0s.omega @ axes
+        )
+        @ axes.T
+    )
 
 
 def test_the_default_is_the_kernel_and_lanes_a_lane_per_trajectory():
@@ -45,8 +49,7 @@ def test_the_default_is_the_kernel_and_lanes_a_lane_per_trajectory():
     lanes = default_lanes(N, 1, "gpu", lane_bytes(y0s), device_memory(jax.devices()[0]))
     assert lanes == N
     model, ts = rb.RigidBody(jnp.asarray(J)), jnp.asarray(TS)
-    for batching, explicit in ((None, rb.Kernel()),
-                               (rb.Lanes(), rb.Lanes(N, layout="array"))):
+    for batching, explicit in ((None, rb.Kernel()), (rb.Lanes(), rb.Lanes(N, layout="array"))):
         a = rb.simulate_batch(model, y0s, ts, batching=batching)
         b = rb.simulate_batch(model, y0s, ts, batching=explicit)
         for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)):
@@ -59,8 +62,9 @@ def test_same_steps_as_vmapped_diffeqsolve_and_the_elliptic_solution():
     O(1) rates: ≲ 1e-5, as on a CPU)."""
     y0s, ts = states(), jnp.asarray(TS)
     default = rb.simulate_batch(rb.RigidBody(jnp.asarray(J)), y0s, ts, rtol=TOL, atol=TOL)
-    plain = rb.simulate_batch(rb.RigidBody(jnp.asarray(J)), y0s, ts, rtol=TOL, atol=TOL,
-                              batching=rb.Vmap())
+    plain = rb.simulate_batch(
+        rb.RigidBody(jnp.asarray(J)), y0s, ts, rtol=TOL, atol=TOL, batching=rb.Vmap()
+    )
     for k in ("num_steps", "num_accepted_steps", "num_rejected_steps"):
         np.testing.assert_array_equal(default.stats[k], plain.stats[k])
     np.testing.assert_allclose(default.ys.omega, plain.ys.omega, rtol=0, atol=1e-11)
@@ -89,8 +93,9 @@ def test_float32_reaches_the_stated_accuracy():
     float32 figures)."""
     ts32 = jnp.asarray(TS, jnp.float32)
     y32 = states(dtype=np.float32)
-    tr = rb.simulate_batch(rb.RigidBody(jnp.asarray(J, jnp.float32)), y32, ts32,
-                           rtol=1e-6, atol=1e-6)
+    tr = rb.simulate_batch(
+        rb.RigidBody(jnp.asarray(J, jnp.float32)), y32, ts32, rtol=1e-6, atol=1e-6
+    )
     assert tr.ys.omega.dtype == jnp.float32
     assert bool(jnp.all(tr.result == rb.RESULTS.successful))
     ref = elliptic(states(), jnp.asarray(TS))

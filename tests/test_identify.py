@@ -45,8 +45,9 @@ UPPER = np.triu_indices(3)
 
 
 def truth(model, w0=W0, q0=Q0, ts=TS):
-    traj = rb.simulate_batch(model, rb.State(jnp.asarray(w0), jnp.asarray(q0)), ts,
-                             rtol=1e-12, atol=1e-12, throw=True)
+    traj = rb.simulate_batch(
+        model, rb.State(jnp.asarray(w0), jnp.asarray(q0)), ts, rtol=1e-12, atol=1e-12, throw=True
+    )
     return np.asarray(traj.ys.omega), np.asarray(traj.ys.quat)
 
 
@@ -104,8 +105,7 @@ def test_every_iterate_is_physical(gravity_fit):
 
 def test_coverage_over_noise_seeds(gravity_truth):
     # Same structure and sizes: the compiled fit is reused (~0.5 s per fit).
-    z = np.concatenate([z_scores(fit_gravity(noisy(*gravity_truth, seed=s)))
-                        for s in range(1, 7)])
+    z = np.concatenate([z_scores(fit_gravity(noisy(*gravity_truth, seed=s))) for s in range(1, 7)])
     # Mean of z² over 36 components (correlated within a fit): 1 if the stderr are right.
     # Bounds catch a factor ~2 misestimate of the stderr in either direction.
     assert 0.25 < np.mean(z**2) < 3.0, z
@@ -270,8 +270,11 @@ def test_fit_argument_errors():
     with pytest.raises(ValueError, match="`params`"):
         idf.fit(model, data, params=("mass",))
     for scale in (("trace", 1.0), ("moment", 0, 1.0), 1.0):
-        with pytest.raises(ValueError, match=r"`scale` must be None, identify.TraceScale\(value\) "
-                           r"or identify.MomentScale\(axis, value\)"):
+        with pytest.raises(
+            ValueError,
+            match=r"`scale` must be None, identify.TraceScale\(value\) "
+            r"or identify.MomentScale\(axis, value\)",
+        ):
             idf.fit(model, data, scale=scale)
     controller = diffrax.PIDController(rtol=1e-8, atol=1e-8)
     for tols in ({"rtol": 1e-8}, {"atol": 1e-8}):
@@ -284,8 +287,11 @@ def test_fit_argument_errors():
     import optax
 
     for optimizer in (optax.adam(1e-2), None, "lm"):
-        with pytest.raises(ValueError, match=r"`optimizer` must be identify.LevenbergMarquardt"
-                           r"\(...\) or identify.Optax\(tx, ...\)"):
+        with pytest.raises(
+            ValueError,
+            match=r"`optimizer` must be identify.LevenbergMarquardt"
+            r"\(...\) or identify.Optax\(tx, ...\)",
+        ):
             idf.fit(model, data, optimizer=optimizer)
 
 
@@ -332,8 +338,12 @@ def test_stepsize_controller_is_the_tolerance_shorthand(gravity_truth, monkeypat
     monkeypatch.setattr(_fit, "residuals", lambda *a, **k: traced.append(1) or residuals(*a, **k))
     controller = diffrax.PIDController(rtol=3e-9, atol=3e-11)
     idf.fit(guess, data, optimizer=LM12, stepsize_controller=controller)
-    by_controller = idf.fit(guess, data, optimizer=LM12,
-                            stepsize_controller=diffrax.PIDController(rtol=1e-9, atol=1e-11))
+    by_controller = idf.fit(
+        guess,
+        data,
+        optimizer=LM12,
+        stepsize_controller=diffrax.PIDController(rtol=1e-9, atol=1e-11),
+    )
     assert not traced
     np.testing.assert_array_equal(by_controller.model.inertia, by_tol.model.inertia)
     np.testing.assert_array_equal(by_controller.loss_history, by_tol.loss_history)
@@ -349,8 +359,11 @@ def test_optax_optimizer_path_descends_and_stays_physical(gravity_truth):
     data = noisy(*gravity_truth, seed=0)
     # optax's L-BFGS mixes int32/int64 internally: strict promotion is relaxed for it only.
     with jax.numpy_dtype_promotion("standard"):
-        res = idf.fit(rb.RigidBody(jnp.asarray(J_GUESS), GRAVITY), data,
-                      optimizer=idf.Optax(optax.lbfgs(), steps=20))
+        res = idf.fit(
+            rb.RigidBody(jnp.asarray(J_GUESS), GRAVITY),
+            data,
+            optimizer=idf.Optax(optax.lbfgs(), steps=20),
+        )
     lh = np.asarray(res.loss_history)
     assert np.all(np.isfinite(lh)) and lh[-1] < lh[0] / 10
     assert np.all(np.asarray(rb.inertia.is_physical(res.model.inertia)))
@@ -363,16 +376,16 @@ def test_euler_angle_observations_equal_quaternion_ones(gravity_truth):
     angles = Rotation.from_quat(q.reshape(-1, 4), scalar_first=True).as_euler("ZXZ")
     angles = angles.reshape(q.shape[:-1] + (3,))
     by_q = idf.Observations(TS, omega=w, quat=q, sigma_omega=SIGMA_W, sigma_quat=SIGMA_Q)
-    by_e = idf.Observations(TS, omega=w, euler=angles, seq="ZXZ", sigma_omega=SIGMA_W,
-                            sigma_quat=SIGMA_Q)
+    by_e = idf.Observations(
+        TS, omega=w, euler=angles, seq="ZXZ", sigma_omega=SIGMA_W, sigma_quat=SIGMA_Q
+    )
     by_deg = idf.Observations(TS, omega=w, euler=np.degrees(angles), degrees=True)
     sign = np.sign(np.sum(np.asarray(by_e.quat) * q, axis=-1, keepdims=True))
     np.testing.assert_allclose(sign * np.asarray(by_e.quat), q, atol=1e-12)
     np.testing.assert_allclose(np.abs(np.sum(np.asarray(by_deg.quat) * q, -1)), 1.0, atol=1e-12)
     model = rb.RigidBody(jnp.asarray(J_GUESS), GRAVITY)
     y0s = rb.State(jnp.asarray(W0), jnp.asarray(Q0))
-    np.testing.assert_allclose(idf.loss(model, y0s, by_e), idf.loss(model, y0s, by_q),
-                               rtol=1e-9)
+    np.testing.assert_allclose(idf.loss(model, y0s, by_e), idf.loss(model, y0s, by_q), rtol=1e-9)
     with pytest.raises(ValueError, match="not both"):
         idf.Observations(TS, quat=q, euler=angles)
     with pytest.raises(ValueError, match="`euler` must have shape"):
@@ -385,8 +398,11 @@ def test_staged_horizons_rescue_a_long_record():
     (10 %, 25 %, 50 %, 100 % of the record) reach the noise floor (χ²/dof ≈ 1) with the
     inertia within a few standard errors, and every stage reuses the one compilation."""
     ts = np.linspace(0.0, 40.0, 61)
-    data = noisy(*truth(rb.RigidBody(jnp.asarray(J_TRUE), GRAVITY), w0=W0[:2], q0=Q0[:2],
-                        ts=ts), seed=0, ts=ts)
+    data = noisy(
+        *truth(rb.RigidBody(jnp.asarray(J_TRUE), GRAVITY), w0=W0[:2], q0=Q0[:2], ts=ts),
+        seed=0,
+        ts=ts,
+    )
     guess = rb.RigidBody(jnp.asarray(np.diag(np.diag(J_TRUE)) * 1.3), GRAVITY)
     dof = 2 * 61 * 6 - (6 + 12)
     direct = idf.fit(guess, data, optimizer=LM20)

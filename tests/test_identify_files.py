@@ -10,8 +10,7 @@ from scipy.spatial.transform import Rotation
 
 from rbdyn_jax.identify import Observations
 
-FIELDS = ("ts", "omega", "quat", "sigma_omega", "sigma_quat", "mask", "mask_omega",
-          "mask_quat")
+FIELDS = ("ts", "omega", "quat", "sigma_omega", "sigma_quat", "mask", "mask_omega", "mask_quat")
 K, N = 3, 6
 TS = np.linspace(0.0, 1.0, N)
 
@@ -45,8 +44,7 @@ def test_npz_round_trip(tmp_path, record):
     assert_same(got, Observations(TS, omega=w, quat=q, sigma_omega=0.1, sigma_quat=0.02))
     # a str path; the first K; a noise level given overrides the file's
     two = Observations.from_file(str(tmp_path / "obs.npz"), trajectories=2, sigma_omega=0.5)
-    assert_same(two, Observations(TS, omega=w[:2], quat=q[:2], sigma_omega=0.5,
-                                  sigma_quat=0.02))
+    assert_same(two, Observations(TS, omega=w[:2], quat=q[:2], sigma_omega=0.5, sigma_quat=0.02))
 
 
 def test_npz_of_euler_angles_per_trajectory_times_and_a_mask(tmp_path, record):
@@ -73,32 +71,50 @@ def test_csv_round_trip_pads_records_of_different_lengths(tmp_path, record):
     got = Observations.from_file(_csv(tmp_path / "obs.csv", rows), sigma_quat=0.01)
     mask = np.arange(N)[None, :] < np.array(lengths)[:, None]
     ts = np.where(mask, TS, np.nan)
-    want = Observations(ts, omega=np.where(mask[..., None], w, np.nan),
-                        quat=np.where(mask[..., None], q, np.nan), mask=mask, sigma_quat=0.01)
+    want = Observations(
+        ts,
+        omega=np.where(mask[..., None], w, np.nan),
+        quat=np.where(mask[..., None], q, np.nan),
+        mask=mask,
+        sigma_quat=0.01,
+    )
     assert_same(got, want)
-    assert not bool(got.mask_omega[2, N - 3:].any())
+    assert not bool(got.mask_omega[2, N - 3 :].any())
     # no `trajectory` column: one record; ω only
     only = _csv(tmp_path / "w.csv", [[TS[i], *w[0, i]] for i in range(N)], "t,wx,wy,wz")
     assert_same(Observations.from_file(only), Observations(TS, omega=w[:1]))
-    assert_same(Observations.from_file(tmp_path / "obs.csv", trajectories=2),
-                Observations(ts[:2], omega=np.where(mask[:2, :, None], w[:2], np.nan),
-                             quat=np.where(mask[:2, :, None], q[:2], np.nan), mask=mask[:2]))
+    assert_same(
+        Observations.from_file(tmp_path / "obs.csv", trajectories=2),
+        Observations(
+            ts[:2],
+            omega=np.where(mask[:2, :, None], w[:2], np.nan),
+            quat=np.where(mask[:2, :, None], q[:2], np.nan),
+            mask=mask[:2],
+        ),
+    )
 
 
 def test_netcdf_and_zarr_round_trip_keep_the_successful_trajectories(tmp_path, record):
     """A dataset as a sweep store holds it: `omega` and `quat` over (trajectory, time) and a
     `status`; only the successful trajectories (status 0) are read."""
     w, q = record
-    ds = xr.Dataset({"omega": (("trajectory", "time", "axis"), w),
-                     "quat": (("trajectory", "time", "quat_component"), q),
-                     "status": ("trajectory", np.array([0, 2, 0]))}, coords={"time": TS})
+    ds = xr.Dataset(
+        {
+            "omega": (("trajectory", "time", "axis"), w),
+            "quat": (("trajectory", "time", "quat_component"), q),
+            "status": ("trajectory", np.array([0, 2, 0])),
+        },
+        coords={"time": TS},
+    )
     ds.to_netcdf(tmp_path / "obs.nc", engine="scipy")
     ds.to_zarr(tmp_path / "obs.zarr", zarr_format=2)
     want = Observations(TS, omega=w[[0, 2]], quat=q[[0, 2]])
     for path in (tmp_path / "obs.nc", tmp_path / "obs.zarr"):
         assert_same(Observations.from_file(path), want)
-        assert_same(Observations.from_file(path, trajectories=1, sigma_omega=0.3),
-                    Observations(TS, omega=w[:1], quat=q[:1], sigma_omega=0.3))
+        assert_same(
+            Observations.from_file(path, trajectories=1, sigma_omega=0.3),
+            Observations(TS, omega=w[:1], quat=q[:1], sigma_omega=0.3),
+        )
 
 
 def test_the_formats_load_the_same_record(tmp_path, record):
@@ -106,9 +122,13 @@ def test_the_formats_load_the_same_record(tmp_path, record):
     `Observations`."""
     w, q = record
     np.savez(tmp_path / "obs.npz", ts=TS, omega=w, quat=q, sigma_omega=0.1)
-    xr.Dataset({"omega": (("trajectory", "time", "axis"), w),
-                "quat": (("trajectory", "time", "quat_component"), q)},
-               coords={"time": TS}).to_netcdf(tmp_path / "obs.nc", engine="scipy")
+    xr.Dataset(
+        {
+            "omega": (("trajectory", "time", "axis"), w),
+            "quat": (("trajectory", "time", "quat_component"), q),
+        },
+        coords={"time": TS},
+    ).to_netcdf(tmp_path / "obs.nc", engine="scipy")
     rows = [[k, TS[i], *w[k, i], *q[k, i]] for k in range(K) for i in range(N)]
     a = Observations.from_file(tmp_path / "obs.npz")
     b = Observations.from_file(tmp_path / "obs.nc", sigma_omega=0.1)
@@ -143,10 +163,12 @@ def test_a_missing_or_bad_file_is_a_clear_error(tmp_path, record):
     with pytest.raises(ValueError, match="ragged.csv: not a CSV table of numbers"):
         Observations.from_file(tmp_path / "ragged.csv")
     (tmp_path / "obs.txt").write_text("not a dataset\n")
-    with pytest.raises(ValueError, match="obs.txt: not a .npz or .csv file, nor a dataset "
-                                         "xarray opens"):
+    with pytest.raises(
+        ValueError, match="obs.txt: not a .npz or .csv file, nor a dataset xarray opens"
+    ):
         Observations.from_file(tmp_path / "obs.txt")
     xr.Dataset({"energy_drift": ("trajectory", np.zeros(K))}).to_netcdf(
-        tmp_path / "summaries.nc", engine="scipy")
+        tmp_path / "summaries.nc", engine="scipy"
+    )
     with pytest.raises(ValueError, match="summaries.nc holds no ω or attitude to fit"):
         Observations.from_file(tmp_path / "summaries.nc")

@@ -144,8 +144,9 @@ def test_principal_axes_decomposition(rng):
     ref = np.stack([scipy.linalg.eigh(j, eigvals_only=True) for j in J])
     np.testing.assert_allclose(moments, ref, rtol=1e-12)
     assert np.all(np.diff(moments, axis=-1) > 0)
-    np.testing.assert_allclose(C.swapaxes(-1, -2) @ C, np.broadcast_to(np.eye(3), C.shape),
-                               atol=1e-12)
+    np.testing.assert_allclose(
+        C.swapaxes(-1, -2) @ C, np.broadcast_to(np.eye(3), C.shape), atol=1e-12
+    )
     np.testing.assert_allclose(np.linalg.det(C), 1.0, atol=1e-12)
     recon = C @ (moments[..., :, None] * C.swapaxes(-1, -2))
     np.testing.assert_allclose(recon, J, atol=1e-12 * np.abs(J).max())
@@ -171,8 +172,9 @@ def test_from_principal_matches_numpy_and_round_trips(rng):
     R = random_rotation_matrices(rng, N)
     J = np.asarray(inertia.from_principal(moments, R))
     np.testing.assert_allclose(J, np.einsum("bij,bj,bkj->bik", R, moments, R), atol=1e-14)
-    np.testing.assert_allclose(inertia.from_principal(moments), np.stack(
-        [np.diag(m) for m in moments]), atol=0)
+    np.testing.assert_allclose(
+        inertia.from_principal(moments), np.stack([np.diag(m) for m in moments]), atol=0
+    )
     m2, C2 = inertia.principal_axes(J)
     np.testing.assert_allclose(m2, moments, rtol=1e-12)
     np.testing.assert_allclose(inertia.from_principal(m2, C2), J, atol=1e-12)
@@ -214,9 +216,10 @@ def test_triangle_violators_rejected(moments, rng):
     R = random_rotation_matrices(rng, 1)[0]
     J = R @ np.diag(moments) @ R.T
     assert not bool(inertia.is_physical(J))
-    with pytest.raises(eqx.EquinoxRuntimeError,
-                       match="`J_body` is not physical .*A \\+ B ≥ C.*"
-                             "docs/physics\\.md#physical-consistency"):
+    with pytest.raises(
+        eqx.EquinoxRuntimeError,
+        match="`J_body` is not physical .*A \\+ B ≥ C.*docs/physics\\.md#physical-consistency",
+    ):
         jax.block_until_ready(inertia.check_inertia(J, name="J_body"))
     with pytest.raises(eqx.EquinoxRuntimeError, match="`moments` is not physical"):
         jax.block_until_ready(inertia.from_principal(np.array(moments), R))
@@ -341,8 +344,9 @@ def test_log_cholesky_of_random_physical_round_trips(rng):
     np.testing.assert_allclose(inertia.from_log_cholesky(theta), J, atol=1e-12 * np.abs(J).max())
     # Ordering (log L00, log L11, log L22, L10, L20, L21) against NumPy's Cholesky of J'.
     L = np.linalg.cholesky(np.asarray(inertia.planar(J)))
-    ref = np.concatenate([np.log(np.diagonal(L, axis1=-2, axis2=-1)), L[:, 1, :1], L[:, 2, :2]],
-                         axis=-1)
+    ref = np.concatenate(
+        [np.log(np.diagonal(L, axis1=-2, axis2=-1)), L[:, 1, :1], L[:, 2, :2]], axis=-1
+    )
     np.testing.assert_allclose(theta, ref, atol=1e-12)
 
 
@@ -437,19 +441,20 @@ def test_mixed_batch_ranks_broadcast(rng):
     np.testing.assert_allclose(inertia.angular_momentum(J[0], ws), ws @ J[0].T, rtol=1e-13)
     R = random_rotation_matrices(rng, N)
     moments = np.array([1.0, 1.5, 2.0])
-    np.testing.assert_allclose(inertia.from_principal(moments, R),
-                               R @ np.diag(moments) @ R.swapaxes(-1, -2), atol=1e-14)
+    np.testing.assert_allclose(
+        inertia.from_principal(moments, R), R @ np.diag(moments) @ R.swapaxes(-1, -2), atol=1e-14
+    )
     masses, positions = random_cloud(rng, batch=(N,))
     about = rng.normal(size=3)
     ref = np.stack([hand_inertia(m, p - about) for m, p in zip(masses, positions, strict=True)])
-    np.testing.assert_allclose(inertia.from_point_masses(masses, positions, about), ref,
-                               atol=1e-12)
+    np.testing.assert_allclose(inertia.from_point_masses(masses, positions, about), ref, atol=1e-12)
     ref = np.stack([hand_inertia(masses[0], p) for p in positions])
     np.testing.assert_allclose(inertia.from_point_masses(masses[0], positions), ref, atol=1e-12)
     abouts = rng.normal(size=(N, 3))
     ref = np.stack([hand_inertia(masses[0], positions[0] - a) for a in abouts])
-    np.testing.assert_allclose(inertia.from_point_masses(masses[0], positions[0], abouts), ref,
-                               atol=1e-12)
+    np.testing.assert_allclose(
+        inertia.from_point_masses(masses[0], positions[0], abouts), ref, atol=1e-12
+    )
 
 
 def _inputs(rng, batch):
@@ -541,8 +546,11 @@ def _grad_cases(rng):
     return [
         ("from_principal/moments", lambda m: inertia.from_principal(m, R), (moments,)),
         # Along orthogonal directions of the axes (Cayley parameters), which stay orthonormal.
-        ("from_principal/axes", lambda a: inertia.from_principal(moments, R @ cayley(a)),
-         (np.zeros(3),)),
+        (
+            "from_principal/axes",
+            lambda a: inertia.from_principal(moments, R @ cayley(a)),
+            (np.zeros(3),),
+        ),
         ("from_point_masses", inertia.from_point_masses, (masses, positions, omega)),
         ("planar", inertia.planar, (A,)),
         ("from_planar", inertia.from_planar, (A,)),
@@ -576,8 +584,9 @@ def test_grads_vs_finite_differences(rng):
 def test_second_order_grads_log_cholesky(rng):
     # Second derivatives of the parametrisation used in identification (Hessians, Gauss-Newton).
     theta = rng.uniform(-1.0, 1.0, 6)
-    check_grads(jax.jit(inertia.from_log_cholesky), (theta,), 2, modes=("rev",), atol=FD_TOL,
-                rtol=FD_TOL)
+    check_grads(
+        jax.jit(inertia.from_log_cholesky), (theta,), 2, modes=("rev",), atol=FD_TOL, rtol=FD_TOL
+    )
 
 
 def test_grads_closed_forms(rng):
@@ -589,8 +598,7 @@ def test_grads_closed_forms(rng):
     np.testing.assert_allclose(gJ, 0.5 * np.outer(omega, omega), rtol=1e-14)
     np.testing.assert_allclose(gw, J @ omega, rtol=1e-13)
     n = axis / np.linalg.norm(axis)
-    np.testing.assert_allclose(jax.grad(inertia.moment_about)(J, axis), np.outer(n, n),
-                               atol=1e-14)
+    np.testing.assert_allclose(jax.grad(inertia.moment_about)(J, axis), np.outer(n, n), atol=1e-14)
     # At degenerate moments (A = B) the moments' gradient stays finite: d(ΣA)/dJ = I exactly.
     J_sym = np.diag([1.0, 1.0, 2.0])
     g = jax.grad(lambda J: jnp.sum(inertia.principal_axes(J)[0]))(J_sym)

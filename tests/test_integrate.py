@@ -340,8 +340,9 @@ def test_simulate_throw_switch():
         rb.simulate(gen_model(), y0, TS, rtol=1e-8, atol=1e-8, throw=True)
     # A concrete result is read on the host; a traced one (the caller's jit) is checked by
     # `error_if` in the caller's program: both raise.
-    jitted = eqx.filter_jit(lambda y: rb.simulate(gen_model(), y, TS, rtol=1e-8, atol=1e-8,
-                                                  throw=True))
+    jitted = eqx.filter_jit(
+        lambda y: rb.simulate(gen_model(), y, TS, rtol=1e-8, atol=1e-8, throw=True)
+    )
     with pytest.raises(eqx.EquinoxRuntimeError, match=re.escape(message)):
         jax.block_until_ready(jitted(y0))
     traj = rb.simulate(gen_model(), y0, TS, rtol=1e-8, atol=1e-8)
@@ -349,8 +350,10 @@ def test_simulate_throw_switch():
     assert np.all(np.isnan(traj.ys.omega))
     assert inspect.signature(rb.simulate).parameters["throw"].default is False
     for name in ("throw", "adjoint"):
-        assert (inspect.signature(rb.simulate).parameters[name].default
-                is inspect.signature(rb.simulate_batch).parameters[name].default), name
+        assert (
+            inspect.signature(rb.simulate).parameters[name].default
+            is inspect.signature(rb.simulate_batch).parameters[name].default
+        ), name
 
 
 def test_diffrax_codes_keep_their_values():
@@ -359,13 +362,15 @@ def test_diffrax_codes_keep_their_values():
     # message, in rb.RESULTS, which is what RESULTS.promote computes.
     items = list(diffrax.RESULTS._name_to_item.values())  # equinox lists them nowhere public
     assert {"successful", "max_steps_reached", "dt_min_reached"} <= set(
-        diffrax.RESULTS._name_to_item)
+        diffrax.RESULTS._name_to_item
+    )
     for item in items:
         ours = rb.RESULTS.promote(item)
         assert int(rb.integrate.result_code(item)) == int(ours._value) == int(item._value)
         assert rb.RESULTS[ours] == diffrax.RESULTS[item]
     assert int(rb.integrate.result_code(rb.RESULTS.nonfinite_state)) not in {
-        int(item._value) for item in items}
+        int(item._value) for item in items
+    }
 
 
 # ---------------------------------------------------------------------------------------
@@ -418,15 +423,20 @@ def test_the_shared_field_trace_keeps_its_check_mode(first):
     callbacks: neither may reuse the other's trace of the field, whichever comes first.
     Here the field holds a check (the frame's `quat0` is normalised in it, and a zero one
     is an error): a callback in the checked solve's field, none in the other's."""
-    frame = rb.frames.EulerAngleFrame(lambda t: jnp.stack([0.3 * t, 0.2 + 0.0 * t, 0.1 * t]),
-                                      quat0=jnp.array([1.0, 0.0, 0.0, 0.0]))
+    frame = rb.frames.EulerAngleFrame(
+        lambda t: jnp.stack([0.3 * t, 0.2 + 0.0 * t, 0.1 * t]),
+        quat0=jnp.array([1.0, 0.0, 0.0, 0.0]),
+    )
     model = rb.RelativeRigidBody(jnp.asarray(J_GEN), frame)
     y0, ts = state(W0, Q0), jnp.asarray(TS)
-    traced = {"nan": lambda: jax.make_jaxpr(lambda y: rb.simulate(model, y, ts))(y0),
-              "checked": lambda: jax.make_jaxpr(lambda t: rb.simulate(model, y0, t))(ts)}
+    traced = {
+        "nan": lambda: jax.make_jaxpr(lambda y: rb.simulate(model, y, ts))(y0),
+        "checked": lambda: jax.make_jaxpr(lambda t: rb.simulate(model, y0, t))(ts),
+    }
     for mode in (first, "checked" if first == "nan" else "nan"):
-        fields = [e.params["jaxpr"] for e in equations(traced[mode]())
-                  if e.params.get("name") == "field"]
+        fields = [
+            e.params["jaxpr"] for e in equations(traced[mode]()) if e.params.get("name") == "field"
+        ]
         assert fields, "the solve's field is not the jitted `field`"
         for field in fields:
             assert (len(host_callbacks(field)) > 0) == (mode == "checked"), mode
@@ -521,7 +531,8 @@ def test_gradient_matches_finite_differences(adjoint, top_fd):
 
 
 @pytest.mark.parametrize(
-    "adjoint", [diffrax.RecursiveCheckpointAdjoint(), diffrax.BacksolveAdjoint()],
+    "adjoint",
+    [diffrax.RecursiveCheckpointAdjoint(), diffrax.BacksolveAdjoint()],
     ids=["recursive_checkpoint", "backsolve"],
 )
 def test_batched_gradient_equals_sum_of_single_gradients(adjoint):
@@ -566,8 +577,7 @@ def test_non_increasing_ts(fn, ts):
         fn(gen_model(), y0_for(fn), jnp.asarray(ts))
     # … traced ones inside it (throw=False: the only check left to fire is that of `ts`)
     with pytest.raises(eqx.EquinoxRuntimeError, match="strictly increasing"):
-        eqx.filter_jit(lambda t: fn(gen_model(), y0_for(fn), t, throw=False).ys)(
-            jnp.asarray(ts))
+        eqx.filter_jit(lambda t: fn(gen_model(), y0_for(fn), t, throw=False).ys)(jnp.asarray(ts))
 
 
 @SIMULATORS

@@ -38,8 +38,10 @@ QUICK = {"xla_backend_optimization_level": 0}
 def initial_states(n=N, seed=0, dtype=np.float64):
     rng = np.random.default_rng(seed)
     q = rng.normal(size=(n, 4))
-    return rb.State(jnp.asarray(rng.normal(size=(n, 3)), dtype),
-                    jnp.asarray(q / np.linalg.norm(q, axis=1, keepdims=True), dtype))
+    return rb.State(
+        jnp.asarray(rng.normal(size=(n, 3)), dtype),
+        jnp.asarray(q / np.linalg.norm(q, axis=1, keepdims=True), dtype),
+    )
 
 
 def assert_same_solves(a, b, tol=ROUND_OFF):
@@ -61,23 +63,43 @@ CASES = {
     "torque_free_dopri5": lambda: (rb.RigidBody(J), None, diffrax.Dopri5()),
     "torque_free_bosh3": lambda: (rb.RigidBody(J), None, diffrax.Bosh3()),
     "heavy_top_per_trajectory_dopri5": lambda: (
-        eqx.filter_vmap(heavy_top)(jnp.linspace(0.5, 2.0, N)), 0, diffrax.Dopri5()),
+        eqx.filter_vmap(heavy_top)(jnp.linspace(0.5, 2.0, N)),
+        0,
+        diffrax.Dopri5(),
+    ),
     "torque_sum_tsit5": lambda: (
-        rb.RigidBody(J, rb.GravityGradient(0.3) + rb.BodyTorque(jnp.array([0.1, 0.0, -0.2]))
-                     + rb.InertialTorque(jnp.array([0.0, 0.05, 0.1]))), None, diffrax.Tsit5()),
+        rb.RigidBody(
+            J,
+            rb.GravityGradient(0.3)
+            + rb.BodyTorque(jnp.array([0.1, 0.0, -0.2]))
+            + rb.InertialTorque(jnp.array([0.0, 0.05, 0.1])),
+        ),
+        None,
+        diffrax.Tsit5(),
+    ),
     # k(τ, ψ) a polynomial: a `scan` in the field, unrolled on rows
     "restoring_polynomial_tsit5": lambda: (
-        rb.RigidBody(J, rb.RestoringMoment(rb.PolynomialSinPsi(jnp.array([1.0, 0.5, 0.2]),
-                                                               0.1))), None, diffrax.Tsit5()),
+        rb.RigidBody(J, rb.RestoringMoment(rb.PolynomialSinPsi(jnp.array([1.0, 0.5, 0.2]), 0.1))),
+        None,
+        diffrax.Tsit5(),
+    ),
     # weight seen from a turning frame: the torque depends on t through the frame's attitude
     "relative_rotating_frame_tsit5": lambda: (
-        rb.RelativeRigidBody(J, rb.ConstantRate(jnp.array([0.0, 0.3, 1.0])),
-                             rb.UniformGravity(1.0, jnp.array([0.0, 0.1, 0.5]))), None,
-        diffrax.Tsit5()),
+        rb.RelativeRigidBody(
+            J,
+            rb.ConstantRate(jnp.array([0.0, 0.3, 1.0])),
+            rb.UniformGravity(1.0, jnp.array([0.0, 0.1, 0.5])),
+        ),
+        None,
+        diffrax.Tsit5(),
+    ),
     "orbit_gravity_gradient_balanced_tsit5": lambda: (
-        rb.RelativeRigidBody(J, rb.CircularOrbit(0.5),
-                             rb.GravityGradient(0.75) + rb.BalancingTransport()), None,
-        diffrax.Tsit5()),
+        rb.RelativeRigidBody(
+            J, rb.CircularOrbit(0.5), rb.GravityGradient(0.75) + rb.BalancingTransport()
+        ),
+        None,
+        diffrax.Tsit5(),
+    ),
     "torque_free_dopri8": lambda: (rb.RigidBody(J), None, diffrax.Dopri8()),
 }
 # Where the round-off grows further (measured, with a margin of 4 or more):
@@ -111,8 +133,7 @@ def test_same_steps_and_values_as_vmapped_diffeqsolve(case):
     assert kernel.ys.omega.shape == (N, len(TS), 3)
 
 
-def test_blocks_of_the_batch_and_the_default_on_a_faked_gpu_give_the_same_solves(
-        monkeypatch):
+def test_blocks_of_the_batch_and_the_default_on_a_faked_gpu_give_the_same_solves(monkeypatch):
     """Several programs (blocks of 4, the batch padded from 10 to 12): each trajectory's
     solve is its own, to the bit, whatever block it ran in. With JAX's backend reported as
     a GPU, `simulate_batch`'s default runs the kernel (here in interpret mode, asked for:
@@ -127,8 +148,10 @@ def test_blocks_of_the_batch_and_the_default_on_a_faked_gpu_give_the_same_solves
     monkeypatch.setattr(batching.jax, "default_backend", lambda: "gpu")
     default = rb.simulate_batch(rb.RigidBody(J), y0s, TS, **kw)
     for other in (blocks, default):
-        for x, y in zip(jax.tree_util.tree_leaves((one.ys, one.stats)),
-                        jax.tree_util.tree_leaves((other.ys, other.stats))):
+        for x, y in zip(
+            jax.tree_util.tree_leaves((one.ys, one.stats)),
+            jax.tree_util.tree_leaves((other.ys, other.stats)),
+        ):
             np.testing.assert_array_equal(x, y)
 
 
@@ -169,8 +192,7 @@ def test_float32_times_with_a_float64_state():
     model, y0s = rb.RigidBody(J), initial_states()
     ts = np.linspace(0.0, 3.0, 7, dtype=np.float32)
     with jax.numpy_dtype_promotion("standard"):
-        kernel = rb.simulate_batch(model, y0s, ts, rtol=RTOL, atol=RTOL,
-                                   batching=rb.Kernel())
+        kernel = rb.simulate_batch(model, y0s, ts, rtol=RTOL, atol=RTOL, batching=rb.Kernel())
         plain = rb.simulate_batch(model, y0s, ts, rtol=RTOL, atol=RTOL, batching=rb.Vmap())
     assert kernel.ys.omega.dtype == plain.ys.omega.dtype == jnp.float64
     # Same steps; the values differ by the rounding of the float32 times themselves (the
@@ -188,12 +210,16 @@ class _Looped(rb.AbstractTorque):
 def test_what_the_kernel_cannot_run_is_refused_by_name():
     y0s = initial_states(4)
     with pytest.raises(ValueError, match="Kvaerno5"):
-        rb.simulate_batch(rb.RigidBody(J), y0s, TS, solver=diffrax.Kvaerno5(),
-                          batching=rb.Kernel())
+        rb.simulate_batch(rb.RigidBody(J), y0s, TS, solver=diffrax.Kvaerno5(), batching=rb.Kernel())
     with pytest.raises(ValueError, match="ConstantStepSize"):
-        rb.simulate_batch(rb.RigidBody(J), y0s, TS, dt0=0.1,
-                          stepsize_controller=diffrax.ConstantStepSize(),
-                          batching=rb.Kernel())
+        rb.simulate_batch(
+            rb.RigidBody(J),
+            y0s,
+            TS,
+            dt0=0.1,
+            stepsize_controller=diffrax.ConstantStepSize(),
+            batching=rb.Kernel(),
+        )
     with pytest.raises(ValueError, match="while"):
         rb.simulate_batch(rb.RigidBody(J, _Looped()), y0s, TS, batching=rb.Kernel())
     for bad in (3, 0, True, 2.0):
@@ -241,12 +267,13 @@ def test_the_default_takes_the_kernel_only_on_a_gpu_backend():
     y0s, pid = initial_states(4), rb.integrate.make_controller(rtol=RTOL, atol=RTOL)
 
     def chosen(model, backend, solver=diffrax.Tsit5(), model_axes=None):
-        return type(default_batching(solver, pid, None, model, y0s, model_axes,
-                                     backend=backend))
+        return type(default_batching(solver, pid, None, model, y0s, model_axes, backend=backend))
 
     assert chosen(rb.RigidBody(J), "gpu") is rb.Kernel
-    assert chosen(eqx.filter_vmap(heavy_top)(jnp.linspace(0.5, 2.0, 4)), "gpu",
-                  model_axes=0) is rb.Kernel
+    assert (
+        chosen(eqx.filter_vmap(heavy_top)(jnp.linspace(0.5, 2.0, 4)), "gpu", model_axes=0)
+        is rb.Kernel
+    )
     assert chosen(rb.RigidBody(J), "cpu") is rb.Lanes
     assert chosen(rb.RigidBody(J, _Looped()), "gpu") is rb.Lanes
     assert chosen(rb.RigidBody(J), "gpu", solver=diffrax.Kvaerno5()) is rb.Vmap
@@ -281,14 +308,19 @@ def exported_for_cuda(fn, *args):
     from rbdyn_jax._program import checks
 
     mesh = jax.sharding.AbstractMesh(
-        (1,), ("x",), (jax.sharding.AxisType.Explicit,),
+        (1,),
+        ("x",),
+        (jax.sharding.AxisType.Explicit,),
         abstract_device=jax.sharding.AbstractDevice(
-            device_kind="NVIDIA H100 80GB HBM3", num_cores=132, platform="gpu"))
+            device_kind="NVIDIA H100 80GB HBM3", num_cores=132, platform="gpu"
+        ),
+    )
     with checks.as_nan(), jax.sharding.use_abstract_mesh(mesh):
         return jax.export.export(
-            jax.jit(fn), platforms=["cuda"],
-            disabled_checks=[jax.export.DisabledSafetyCheck.custom_call(
-                "__gpu$xla.gpu.triton")])(*args)
+            jax.jit(fn),
+            platforms=["cuda"],
+            disabled_checks=[jax.export.DisabledSafetyCheck.custom_call("__gpu$xla.gpu.triton")],
+        )(*args)
 
 
 GRAD_TS = jnp.linspace(0.0, 3.0, 3)
@@ -297,8 +329,15 @@ GRAD_RTOL = 1e-11
 
 def _omega_loss(J, omega0, quat0, batching, solver=diffrax.Bosh3()):
     """Per trajectory, Σ sin ω over the saved times: a loss on ω alone."""
-    tr = rb.simulate_batch(rb.RigidBody(J), rb.State(omega0, quat0), GRAD_TS, solver=solver,
-                           rtol=GRAD_RTOL, atol=GRAD_RTOL, batching=batching)
+    tr = rb.simulate_batch(
+        rb.RigidBody(J),
+        rb.State(omega0, quat0),
+        GRAD_TS,
+        solver=solver,
+        rtol=GRAD_RTOL,
+        atol=GRAD_RTOL,
+        batching=batching,
+    )
     return jnp.sum(jnp.sin(tr.ys.omega), axis=(1, 2))
 
 
@@ -318,8 +357,7 @@ def test_gradients_and_jacobians_through_the_kernel():
     def loss(J, omega0, batching):
         return jnp.sum(_omega_loss(J, omega0, y0s.quat, batching))
 
-    grad = jax.jit(jax.grad(loss, argnums=(0, 1)), static_argnums=2,
-                   compiler_options=QUICK)
+    grad = jax.jit(jax.grad(loss, argnums=(0, 1)), static_argnums=2, compiler_options=QUICK)
     traced = grad.trace(J, y0s.omega, rb.Kernel())
     call = cheapest_call(traced.jaxpr)
     carried = {k[1] for k in call.params["keys"][call.params["chosen"]] if k[0] == "S"}
@@ -334,18 +372,20 @@ def test_gradients_and_jacobians_through_the_kernel():
     dJ = rng.normal(size=(3, 3))
     dJ = jnp.asarray(dJ + dJ.T)
     dw = jnp.asarray(rng.normal(size=y0s.omega.shape))
-    f = jax.jit(lambda h: loss(J + h * dJ, y0s.omega + h * dw, rb.Kernel()),
-                compiler_options=QUICK)
+    f = jax.jit(lambda h: loss(J + h * dJ, y0s.omega + h * dw, rb.Kernel()), compiler_options=QUICK)
     h = 1e-5
     fd = (f(h) - f(-h)) / (2 * h)
     exact = jnp.sum(gJ * dJ) + jnp.sum(gw * dw)
     np.testing.assert_allclose(exact, fd, rtol=1e-5)
+
     # `jax.jacfwd` of the per-trajectory losses: the tangents share the one sensitivities'
     # solve; equal to the lane solver's per trajectory, and summed over the trajectories
     # the gradient above (to round-off, as above).
     def jac(batching):
-        return jax.jit(jax.jacfwd(lambda J: _omega_loss(J, y0s.omega, y0s.quat, batching)),
-                       compiler_options=QUICK)(J)
+        return jax.jit(
+            jax.jacfwd(lambda J: _omega_loss(J, y0s.omega, y0s.quat, batching)),
+            compiler_options=QUICK,
+        )(J)
 
     kernel, lanes = jac(rb.Kernel()), jac(rb.Lanes())
     assert kernel.shape == (4, 3, 3)
@@ -365,12 +405,19 @@ def test_gradients_for_per_trajectory_models_whole_states_and_times():
 
     def loss(w, y0s, ts, batching):
         model = eqx.filter_vmap(heavy_top)(w)
-        tr = rb.simulate_batch(model, y0s, ts, model_axes=0, solver=diffrax.Bosh3(),
-                               rtol=GRAD_RTOL, atol=GRAD_RTOL, batching=batching)
+        tr = rb.simulate_batch(
+            model,
+            y0s,
+            ts,
+            model_axes=0,
+            solver=diffrax.Bosh3(),
+            rtol=GRAD_RTOL,
+            atol=GRAD_RTOL,
+            batching=batching,
+        )
         return jnp.sum(tr.ys.quat[..., 1:] ** 2) + jnp.sum(jnp.sin(tr.ys.omega))
 
-    grad = jax.jit(jax.grad(loss, argnums=(0, 1, 2)), static_argnums=3,
-                   compiler_options=QUICK)
+    grad = jax.jit(jax.grad(loss, argnums=(0, 1, 2)), static_argnums=3, compiler_options=QUICK)
     kernel = grad(weights, y0s, GRAD_TS, rb.Kernel())
     lanes = grad(weights, y0s, GRAD_TS, rb.Lanes())
     leaves = jax.tree_util.tree_leaves(lanes)
@@ -393,13 +440,20 @@ def test_the_gradient_kernel_lowers_to_triton_for_a_gpu():
     ts = jnp.asarray(ts)  # a JAX array: closed over, as constants of the program
 
     def loss(theta):
-        tr = rb.simulate_batch(rb.with_log_cholesky(body, theta), y0s, ts,
-                               batching=rb.Kernel(block=16, interpret=False))
-        return jnp.sum(tr.ys.omega ** 2) + jnp.sum(tr.ys.quat[..., 1:] ** 2)
+        tr = rb.simulate_batch(
+            rb.with_log_cholesky(body, theta),
+            y0s,
+            ts,
+            batching=rb.Kernel(block=16, interpret=False),
+        )
+        return jnp.sum(tr.ys.omega**2) + jnp.sum(tr.ys.quat[..., 1:] ** 2)
 
     text = exported_for_cuda(jax.grad(loss), rb.inertia.to_log_cholesky(J)).mlir_module()
-    calls = [line for line in text.splitlines()
-             if "custom_call" in line and "__gpu$xla.gpu.triton" in line]
+    calls = [
+        line
+        for line in text.splitlines()
+        if "custom_call" in line and "__gpu$xla.gpu.triton" in line
+    ]
     assert len(calls) == 1 and "mosaic" not in text.lower()
     assert calls[0].count("tensor<8x16xf64>") == 7 + 7 * 6  # rows: 7 output times, padded
 
@@ -422,9 +476,13 @@ def test_euler_angle_and_poisson_forms():
     omega = jnp.asarray(rng.normal(size=(6, 3)))
     angles = jnp.asarray(rng.uniform([0.0, 0.5, 0.0], [6.0, 2.5, 6.0], size=(6, 3)))
     gamma = jnp.asarray(rng.normal(size=(6, 3)))
-    cases = [(rb.EulerAngleRigidBody(J, rb.RestoringMoment(1.0)), rb.EulerState(omega, angles)),
-             (rb.PoissonRigidBody(J, rb.GravityGradient(0.3)),
-              rb.PoissonState(omega, gamma / jnp.linalg.norm(gamma, axis=1, keepdims=True)))]
+    cases = [
+        (rb.EulerAngleRigidBody(J, rb.RestoringMoment(1.0)), rb.EulerState(omega, angles)),
+        (
+            rb.PoissonRigidBody(J, rb.GravityGradient(0.3)),
+            rb.PoissonState(omega, gamma / jnp.linalg.norm(gamma, axis=1, keepdims=True)),
+        ),
+    ]
     for model, y0s in cases:
         kw = dict(rtol=RTOL, atol=RTOL)
         kernel = rb.simulate_batch(model, y0s, TS, batching=rb.Kernel(), **kw)
@@ -464,8 +522,7 @@ def test_a_sweep_on_a_gpu_takes_the_kernel(monkeypatch, tmp_path):
         return out
 
     def run(name, chunk):
-        return load_store(sweep.run(sc, SWEEP_N, tmp_path / name, chunk=chunk, seed=3,
-                                    lanes=4))
+        return load_store(sweep.run(sc, SWEEP_N, tmp_path / name, chunk=chunk, seed=3, lanes=4))
 
     monkeypatch.setattr(sweep._chunk, "_batching", recorded)
     lanes = run("lanes.zarr", SWEEP_N)
@@ -484,5 +541,6 @@ def test_a_sweep_on_a_gpu_takes_the_kernel(monkeypatch, tmp_path):
     for k in ("status", "num_steps", "inertia"):
         np.testing.assert_array_equal(one[k], lanes[k], err_msg=k)
     for k in ("omega", "quat", "energy_drift", "max_abs_omega", "first_flip_time"):
-        np.testing.assert_allclose(one[k], lanes[k], rtol=0, atol=ROUND_OFF, equal_nan=True,
-                                   err_msg=k)
+        np.testing.assert_allclose(
+            one[k], lanes[k], rtol=0, atol=ROUND_OFF, equal_nan=True, err_msg=k
+        )

@@ -58,8 +58,10 @@ ROUND_OFF = 1e-12
 def initial_states(n=N, seed=0):
     rng = np.random.default_rng(seed)
     q = rng.normal(size=(n, 4))
-    return rb.State(jnp.asarray(rng.normal(size=(n, 3))),
-                    jnp.asarray(q / np.linalg.norm(q, axis=1, keepdims=True)))
+    return rb.State(
+        jnp.asarray(rng.normal(size=(n, 3))),
+        jnp.asarray(q / np.linalg.norm(q, axis=1, keepdims=True)),
+    )
 
 
 def assert_same_solves(a, b, tol=ROUND_OFF):
@@ -78,12 +80,20 @@ def heavy_top(weight):
 CASES = {
     "torque_free_shared": lambda: (rb.RigidBody(J), None, diffrax.Tsit5()),
     "heavy_top_per_trajectory_dopri5": lambda: (
-        eqx.filter_vmap(heavy_top)(jnp.linspace(0.5, 2.0, N)), 0, diffrax.Dopri5()),
+        eqx.filter_vmap(heavy_top)(jnp.linspace(0.5, 2.0, N)),
+        0,
+        diffrax.Dopri5(),
+    ),
     # weight seen from a turning frame: the torque depends on t through the frame's attitude
     "relative_rotating_frame": lambda: (
-        rb.RelativeRigidBody(J, rb.ConstantRate(jnp.array([0.0, 0.3, 1.0])),
-                             rb.UniformGravity(1.0, jnp.array([0.0, 0.1, 0.5]))), None,
-        diffrax.Tsit5()),
+        rb.RelativeRigidBody(
+            J,
+            rb.ConstantRate(jnp.array([0.0, 0.3, 1.0])),
+            rb.UniformGravity(1.0, jnp.array([0.0, 0.1, 0.5])),
+        ),
+        None,
+        diffrax.Tsit5(),
+    ),
 }
 
 
@@ -117,18 +127,19 @@ def test_results_do_not_depend_on_the_order_of_the_batch_or_the_lane(layout):
     kw = dict(rtol=RTOL, atol=RTOL, batching=rb.Lanes(LANES, layout=layout))
     a = rb.simulate_batch(rb.RigidBody(J), y0s, TS, **kw)
     perm = np.random.default_rng(3).permutation(N)
-    b = rb.simulate_batch(rb.RigidBody(J), jax.tree_util.tree_map(lambda x: x[perm], y0s),
-                          TS, **kw)
-    for x, y in zip(jax.tree_util.tree_leaves((a.ys, a.stats)),
-                    jax.tree_util.tree_leaves((b.ys, b.stats))):
+    b = rb.simulate_batch(rb.RigidBody(J), jax.tree_util.tree_map(lambda x: x[perm], y0s), TS, **kw)
+    for x, y in zip(
+        jax.tree_util.tree_leaves((a.ys, a.stats)), jax.tree_util.tree_leaves((b.ys, b.stats))
+    ):
         np.testing.assert_array_equal(np.asarray(x)[perm], y)
     assert np.argmax(a.stats["num_steps"]) != 5  # it moves up the order: the rest move down
     spinner = rb.State(y0s.omega.at[5].set(jnp.array([0.3, 6.0, 1.0])), y0s.quat)
     c = rb.simulate_batch(rb.RigidBody(J), spinner, TS, **kw)
     assert c.stats["num_steps"][5] > np.max(np.delete(np.asarray(a.stats["num_steps"]), 5))
     keep = np.arange(N) != 5
-    for x, y in zip(jax.tree_util.tree_leaves((a.ys, a.stats)),
-                    jax.tree_util.tree_leaves((c.ys, c.stats))):
+    for x, y in zip(
+        jax.tree_util.tree_leaves((a.ys, a.stats)), jax.tree_util.tree_leaves((c.ys, c.stats))
+    ):
         np.testing.assert_array_equal(np.asarray(x)[keep], np.asarray(y)[keep])
 
 
@@ -162,8 +173,9 @@ def test_vmap_over_the_lane_solver_gives_each_member_its_own_solve():
     y0s = initial_states()
 
     def solve(w):
-        return rb.simulate_batch(heavy_top(w), y0s, TS, rtol=RTOL, atol=RTOL,
-                                 batching=rb.Lanes(LANES))
+        return rb.simulate_batch(
+            heavy_top(w), y0s, TS, rtol=RTOL, atol=RTOL, batching=rb.Lanes(LANES)
+        )
 
     both = jax.vmap(solve)(weights)
     alone = [solve(w) for w in weights]
@@ -180,8 +192,9 @@ def test_failures_stay_in_their_lane(layout):
     omega = y0s.omega.at[2].set(jnp.nan).at[7].set(jnp.array([0.0, 400.0, 1.0]))
     y0s = rb.State(omega, y0s.quat)
     kw = dict(rtol=RTOL, atol=RTOL, max_steps=300)
-    lanes = rb.simulate_batch(rb.RigidBody(J), y0s, TS,
-                              batching=rb.Lanes(LANES, layout=layout), **kw)
+    lanes = rb.simulate_batch(
+        rb.RigidBody(J), y0s, TS, batching=rb.Lanes(LANES, layout=layout), **kw
+    )
     plain = rb.simulate_batch(rb.RigidBody(J), y0s, TS, batching=rb.Vmap(), **kw)
     codes = np.asarray(lanes.result._value)
     assert codes[2] == rb.RESULTS.nonfinite_state._value
@@ -200,11 +213,13 @@ def test_failed_trajectories_leave_the_gradient_of_the_others_alone():
     y0s = rb.State(omega, y0s.quat)
 
     def loss(J, lanes):
-        tr = rb.simulate_batch(rb.RigidBody(J), y0s, TS, rtol=RTOL, atol=RTOL, max_steps=300,
-                               batching=batching(lanes))
+        tr = rb.simulate_batch(
+            rb.RigidBody(J), y0s, TS, rtol=RTOL, atol=RTOL, max_steps=300, batching=batching(lanes)
+        )
         ok = (tr.result == rb.RESULTS.successful)[:, None, None]
-        return (jnp.sum(jnp.sin(jnp.where(ok, tr.ys.omega, 0.0)))
-                + jnp.sum(jnp.where(ok, tr.ys.quat, 0.0)[..., 1:] ** 2))
+        return jnp.sum(jnp.sin(jnp.where(ok, tr.ys.omega, 0.0))) + jnp.sum(
+            jnp.where(ok, tr.ys.quat, 0.0)[..., 1:] ** 2
+        )
 
     lanes = jax.grad(loss)(J, LANES)
     plain = jax.grad(loss)(J, None)
@@ -240,8 +255,7 @@ def test_gradients_in_both_modes_match_reverse_mode_and_finite_differences():
         else:
             model = rb.with_log_cholesky(rb.RigidBody(J), theta)
         tr = rb.simulate_batch(model, y0s, ts, rtol=1e-11, atol=1e-11, batching=batching(lanes))
-        return (jnp.sum((tr.ys.omega - obs.omega) ** 2)
-                + jnp.sum((tr.ys.quat - obs.quat) ** 2))
+        return jnp.sum((tr.ys.omega - obs.omega) ** 2) + jnp.sum((tr.ys.quat - obs.quat) ** 2)
 
     fwd = jax.jit(jax.jacfwd(lambda th: loss(th, LANES)))(theta0)
     grad_lanes = jax.jit(jax.grad(lambda th: loss(th, LANES)))
@@ -257,20 +271,30 @@ def test_gradients_in_both_modes_match_reverse_mode_and_finite_differences():
         np.testing.assert_allclose(g, rev, rtol=1e-9, atol=1e-12 * float(jnp.max(jnp.abs(rev))))
     f = jax.jit(lambda th: loss(th, LANES))
     h = 1e-6
-    fd = np.array([(f(theta0.at[i].add(h)) - f(theta0.at[i].add(-h))) / (2 * h)
-                   for i in range(theta0.shape[0])])
+    fd = np.array(
+        [
+            (f(theta0.at[i].add(h)) - f(theta0.at[i].add(-h))) / (2 * h)
+            for i in range(theta0.shape[0])
+        ]
+    )
     np.testing.assert_allclose(fwd, fd, rtol=1e-4, atol=1e-5 * np.max(np.abs(fd)))
 
 
 COUPLED = {  # model, and the state leaves each leaf's sensitivities need
     "torque_free": (lambda: rb.RigidBody(J), [(0,), (0, 1)]),
-    "body_torque": (lambda: rb.RigidBody(J, rb.BodyTorque(jnp.array([0.1, -0.2, 0.3]))),
-                    [(0,), (0, 1)]),
+    "body_torque": (
+        lambda: rb.RigidBody(J, rb.BodyTorque(jnp.array([0.1, -0.2, 0.3]))),
+        [(0,), (0, 1)],
+    ),
     "heavy_top": (lambda: heavy_top(1.0), [(0, 1), (0, 1)]),
-    "inertial_torque": (lambda: rb.RigidBody(J, rb.InertialTorque(jnp.array([0.1, 0, 0.2]))),
-                        [(0, 1), (0, 1)]),
-    "relative_rotating_frame": (lambda: rb.RelativeRigidBody(
-        J, rb.ConstantRate(jnp.array([0.0, 0.3, 1.0]))), [(0, 1), (0, 1)]),
+    "inertial_torque": (
+        lambda: rb.RigidBody(J, rb.InertialTorque(jnp.array([0.1, 0, 0.2]))),
+        [(0, 1), (0, 1)],
+    ),
+    "relative_rotating_frame": (
+        lambda: rb.RelativeRigidBody(J, rb.ConstantRate(jnp.array([0.0, 0.3, 1.0]))),
+        [(0, 1), (0, 1)],
+    ),
 }
 
 
@@ -322,8 +346,9 @@ def test_a_loss_integrates_the_sensitivities_it_reads(reads):
     assert len(call.params["programs"]) == (1 if heavy else 2)
     rev = jax.jit(jax.grad(lambda th: loss(th, None)))(theta0)
     assert float(jnp.max(jnp.abs(rev))) > 1e-2
-    np.testing.assert_allclose(grad(theta0), rev, rtol=1e-9,
-                               atol=1e-12 * float(jnp.max(jnp.abs(rev))))
+    np.testing.assert_allclose(
+        grad(theta0), rev, rtol=1e-9, atol=1e-12 * float(jnp.max(jnp.abs(rev)))
+    )
 
 
 def test_hessian_forward_over_reverse_through_the_lanes():
@@ -339,15 +364,24 @@ def test_hessian_forward_over_reverse_through_the_lanes():
     theta0 = rb.inertia.to_log_cholesky(J) + 0.05
 
     def loss(theta, lanes, adjoint=diffrax.RecursiveCheckpointAdjoint()):
-        model = rb.RigidBody(rb.inertia.from_log_cholesky(theta),
-                             rb.UniformGravity(1.0, jnp.array([0.0, 0.1, 0.5])))
-        tr = rb.simulate_batch(model, y0s, ts, rtol=RTOL, atol=RTOL, batching=batching(lanes),
-                               **({} if lanes else {"adjoint": adjoint}))
-        return jnp.sum(tr.ys.omega ** 2) + jnp.sum(tr.ys.quat[..., 1:] ** 2)
+        model = rb.RigidBody(
+            rb.inertia.from_log_cholesky(theta), rb.UniformGravity(1.0, jnp.array([0.0, 0.1, 0.5]))
+        )
+        tr = rb.simulate_batch(
+            model,
+            y0s,
+            ts,
+            rtol=RTOL,
+            atol=RTOL,
+            batching=batching(lanes),
+            **({} if lanes else {"adjoint": adjoint}),
+        )
+        return jnp.sum(tr.ys.omega**2) + jnp.sum(tr.ys.quat[..., 1:] ** 2)
 
     H = jax.jit(jax.jacfwd(jax.jacrev(lambda th: loss(th, LANES))))(theta0)
-    H_plain = jax.jit(jax.jacfwd(jax.jacfwd(
-        lambda th: loss(th, None, diffrax.ForwardMode()))))(theta0)
+    H_plain = jax.jit(jax.jacfwd(jax.jacfwd(lambda th: loss(th, None, diffrax.ForwardMode()))))(
+        theta0
+    )
     scale = float(jnp.max(jnp.abs(H_plain)))
     assert scale > 1.0  # a real Hessian, not round-off
     np.testing.assert_allclose(H, H_plain, rtol=0, atol=1e-10 * scale)
@@ -371,8 +405,15 @@ def test_gradients_for_per_trajectory_models_initial_states_and_times():
 
     def loss(w, omega, quat, ts, lanes):
         tops = eqx.filter_vmap(heavy_top)(w)
-        tr = rb.simulate_batch(tops, rb.State(omega, quat), ts, rtol=tol, atol=tol,
-                               model_axes=0, batching=batching(lanes))
+        tr = rb.simulate_batch(
+            tops,
+            rb.State(omega, quat),
+            ts,
+            rtol=tol,
+            atol=tol,
+            model_axes=0,
+            batching=batching(lanes),
+        )
         return jnp.sum(jnp.sin(tr.ys.omega)) + jnp.sum(tr.ys.quat[..., 1:] ** 2)
 
     args = (weights, y0s.omega, q0, ts)
@@ -382,8 +423,9 @@ def test_gradients_for_per_trajectory_models_initial_states_and_times():
         scale = float(jnp.max(jnp.abs(b)))
         assert scale > 1e-2, name
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-10 * scale, err_msg=name)
-    np.testing.assert_allclose(lanes[3], plain[3], rtol=0,
-                               atol=1e-6 * float(jnp.max(jnp.abs(plain[3]))))
+    np.testing.assert_allclose(
+        lanes[3], plain[3], rtol=0, atol=1e-6 * float(jnp.max(jnp.abs(plain[3])))
+    )
     f = jax.jit(lambda t0: loss(*args[:3], ts.at[0].set(t0), LANES))
     h = 1e-5
     fd = (f(ts[0] + h) - f(ts[0] - h)) / (2 * h)
@@ -403,10 +445,14 @@ def test_inertia_gradients_are_taken_on_symmetric_tensors():
     orbit = rb.GravityGradient(1.0)
 
     def loss(J, lanes, axes):
-        body = (eqx.filter_vmap(lambda J: rb.RigidBody(J, orbit))(J) if axes == 0
-                else rb.RigidBody(J, orbit))
-        tr = rb.simulate_batch(body, y0s, TS, rtol=RTOL, atol=RTOL, model_axes=axes,
-                               batching=batching(lanes))
+        body = (
+            eqx.filter_vmap(lambda J: rb.RigidBody(J, orbit))(J)
+            if axes == 0
+            else rb.RigidBody(J, orbit)
+        )
+        tr = rb.simulate_batch(
+            body, y0s, TS, rtol=RTOL, atol=RTOL, model_axes=axes, batching=batching(lanes)
+        )
         return jnp.sum(jnp.sin(tr.ys.omega)) + jnp.sum(tr.ys.quat[..., 1:] ** 2)
 
     for J_, axes in ((J, None), (Js, 0)):
@@ -414,8 +460,7 @@ def test_inertia_gradients_are_taken_on_symmetric_tensors():
         lanes = jax.grad(loss)(J_, LANES, axes)
         sym = 0.5 * (plain + jnp.swapaxes(plain, -1, -2))
         assert float(jnp.max(jnp.abs(plain - sym))) > 1e-2  # plain's halves differ
-        np.testing.assert_allclose(lanes, sym, rtol=0,
-                                   atol=1e-10 * float(jnp.max(jnp.abs(sym))))
+        np.testing.assert_allclose(lanes, sym, rtol=0, atol=1e-10 * float(jnp.max(jnp.abs(sym))))
 
 
 class PrincipalBody(rb.AbstractRigidBody):
@@ -429,8 +474,10 @@ class PrincipalBody(rb.AbstractRigidBody):
         raise NotImplementedError  # no torque reads it
 
     def vector_field(self, t, y, args):
-        return rb.State(rb.dynamics.euler_rhs(jnp.diag(self.inertia), y.omega, jnp.zeros(3)),
-                        rb.rotation.quat_derivative(y.quat, y.omega))
+        return rb.State(
+            rb.dynamics.euler_rhs(jnp.diag(self.inertia), y.omega, jnp.zeros(3)),
+            rb.rotation.quat_derivative(y.quat, y.omega),
+        )
 
 
 def test_an_inertia_that_is_not_a_tensor_takes_ordinary_columns():
@@ -439,20 +486,24 @@ def test_an_inertia_that_is_not_a_tensor_takes_ordinary_columns():
     y0s = initial_states()
 
     def loss(moments, lanes):
-        tr = rb.simulate_batch(PrincipalBody(moments), y0s, TS, rtol=RTOL, atol=RTOL,
-                               batching=batching(lanes))
+        tr = rb.simulate_batch(
+            PrincipalBody(moments), y0s, TS, rtol=RTOL, atol=RTOL, batching=batching(lanes)
+        )
         return jnp.sum(jnp.sin(tr.ys.omega))
 
     moments = jnp.array([2.0, 3.0, 4.0])
     plain = jax.grad(loss)(moments, None)
-    np.testing.assert_allclose(jax.grad(loss)(moments, LANES), plain, rtol=0,
-                               atol=1e-10 * float(jnp.max(jnp.abs(plain))))
+    np.testing.assert_allclose(
+        jax.grad(loss)(moments, LANES), plain, rtol=0, atol=1e-10 * float(jnp.max(jnp.abs(plain)))
+    )
 
 
 _COMPILES = []  # set to a list to record the XLA compilations (a listener stays registered)
 jax.monitoring.register_event_duration_secs_listener(
-    lambda event, secs, **_: _COMPILES.append(event)
-    if event == "/jax/core/compile/backend_compile_duration" else None)
+    lambda event, secs, **_: (
+        _COMPILES.append(event) if event == "/jax/core/compile/backend_compile_duration" else None
+    )
+)
 
 
 def test_eager_gradients_and_vmaps_reuse_their_compiled_solve():
@@ -463,12 +514,17 @@ def test_eager_gradients_and_vmaps_reuse_their_compiled_solve():
     y0s = initial_states()
 
     def loss(J):
-        return jnp.sum(rb.simulate_batch(rb.RigidBody(J), y0s, TS, rtol=RTOL, atol=RTOL,
-                                         batching=rb.Lanes(LANES)).ys.omega ** 2)
+        return jnp.sum(
+            rb.simulate_batch(
+                rb.RigidBody(J), y0s, TS, rtol=RTOL, atol=RTOL, batching=rb.Lanes(LANES)
+            ).ys.omega
+            ** 2
+        )
 
     def omegas(w):
-        return rb.simulate_batch(heavy_top(w), y0s, TS, rtol=RTOL, atol=RTOL,
-                                 batching=rb.Lanes(LANES)).ys.omega
+        return rb.simulate_batch(
+            heavy_top(w), y0s, TS, rtol=RTOL, atol=RTOL, batching=rb.Lanes(LANES)
+        ).ys.omega
 
     for f, x in ((jax.grad(loss), J), (jax.vmap(omegas), jnp.array([0.5, 1.0]))):
         for _ in range(2):
@@ -488,8 +544,9 @@ def test_a_jvp_runs_one_loop_with_the_sensitivities_and_the_same_steps():
     y0s = initial_states()
 
     def solve(J):
-        return rb.simulate_batch(rb.RigidBody(J), y0s, TS, rtol=RTOL, atol=RTOL,
-                                 batching=rb.Lanes(LANES))
+        return rb.simulate_batch(
+            rb.RigidBody(J), y0s, TS, rtol=RTOL, atol=RTOL, batching=rb.Lanes(LANES)
+        )
 
     jaxpr = jax.make_jaxpr(lambda J, dJ: jax.jvp(solve, (J,), (dJ,)))(J, jnp.eye(3))
     # The sensitivities' solves: one program per closed group of the state's leaves, of
@@ -497,12 +554,22 @@ def test_a_jvp_runs_one_loop_with_the_sensitivities_and_the_same_steps():
     call = cheapest_call(jaxpr, eliminate=False)
     assert len(call.params["programs"]) == 2  # ω alone, the whole state
     for program in call.params["programs"]:
-        loops = [e for e in equations(program.jaxpr) if e.primitive.name == "while"
-                 and any(s.primitive.name.startswith("scatter") for s in
-                         equations(e.params["body_jaxpr"].jaxpr))]
+        loops = [
+            e
+            for e in equations(program.jaxpr)
+            if e.primitive.name == "while"
+            and any(
+                s.primitive.name.startswith("scatter")
+                for s in equations(e.params["body_jaxpr"].jaxpr)
+            )
+        ]
         assert len(loops) == 1
-    floats = [e for e in equations(jaxpr.jaxpr) if e.primitive.name.startswith("scatter")
-              and jnp.issubdtype(e.invars[0].aval.dtype, jnp.floating)]
+    floats = [
+        e
+        for e in equations(jaxpr.jaxpr)
+        if e.primitive.name.startswith("scatter")
+        and jnp.issubdtype(e.invars[0].aval.dtype, jnp.floating)
+    ]
     assert floats
     for e in floats:
         assert e.primitive.name == "scatter", e.primitive.name
@@ -515,8 +582,15 @@ def test_a_jvp_runs_one_loop_with_the_sensitivities_and_the_same_steps():
 # Stage sums in another order, with the tableaus' coefficients up to ~20 in size (Dopri8,
 # Tsit5) cancelling: measured ≤ 3e-15 on O(1) states.
 ROUND_OFF_STEP = 2e-14
-ERK_SOLVERS = [diffrax.Tsit5(), diffrax.Dopri5(), diffrax.Dopri8(), diffrax.Bosh3(),
-               diffrax.Ralston(), diffrax.Midpoint(), diffrax.Heun()]
+ERK_SOLVERS = [
+    diffrax.Tsit5(),
+    diffrax.Dopri5(),
+    diffrax.Dopri8(),
+    diffrax.Bosh3(),
+    diffrax.Ralston(),
+    diffrax.Midpoint(),
+    diffrax.Heun(),
+]
 
 
 @pytest.mark.parametrize("solver", ERK_SOLVERS, ids=lambda s: type(s).__name__)
@@ -529,8 +603,11 @@ def test_unrolled_step_is_diffrax_step(solver):
     order, `ROUND_OFF_STEP`)."""
     from rbdyn_jax.integrate._lanes import LaneField, unrolled_step
 
-    model = rb.RelativeRigidBody(J, rb.ConstantRate(jnp.array([0.0, 0.3, 1.0])),
-                                 rb.UniformGravity(1.0, jnp.array([0.0, 0.1, 0.5])))
+    model = rb.RelativeRigidBody(
+        J,
+        rb.ConstantRate(jnp.array([0.0, 0.3, 1.0])),
+        rb.UniformGravity(1.0, jnp.array([0.0, 0.1, 0.5])),
+    )
     y = jax.tree_util.tree_map(lambda x: jnp.moveaxis(x, 0, -1), initial_states(5))
     ok = jnp.ones(5, bool)
     field = LaneField(Plain(model), False, jnp.asarray(0.7), jnp.asarray(2.0))
@@ -539,8 +616,7 @@ def test_unrolled_step_is_diffrax_step(solver):
     fsal = solver.tableau.fsal
     f0 = field(t0, y, ok) if fsal else None
     with jax.numpy_rank_promotion("allow"):
-        want = solver.step(term, t0, t1, y, ok, (jnp.array(False), f0) if fsal else None,
-                           False)
+        want = solver.step(term, t0, t1, y, ok, (jnp.array(False), f0) if fsal else None, False)
         got = unrolled_step(solver, term, t0, t1, y, ok, f0)
     y1, err, dense, state, result = want
     assert result == diffrax.RESULTS.successful
@@ -551,8 +627,7 @@ def test_unrolled_step_is_diffrax_step(solver):
     else:
         assert got[3] is None
     for a, b in pairs:
-        for x, z in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b),
-                        strict=True):
+        for x, z in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b), strict=True):
             np.testing.assert_allclose(x, z, rtol=0, atol=ROUND_OFF_STEP)
     assert float(jnp.max(jnp.abs(err.omega))) > 1e-8  # a real error estimate
 
@@ -565,8 +640,14 @@ def test_the_array_layout_differentiates_as_the_cpu_layout():
     theta0 = rb.inertia.to_log_cholesky(J)
 
     def loss(theta, layout):
-        tr = rb.simulate_batch(rb.with_log_cholesky(rb.RigidBody(J), theta), y0s, TS,
-                               rtol=RTOL, atol=RTOL, batching=rb.Lanes(LANES, layout=layout))
+        tr = rb.simulate_batch(
+            rb.with_log_cholesky(rb.RigidBody(J), theta),
+            y0s,
+            TS,
+            rtol=RTOL,
+            atol=RTOL,
+            batching=rb.Lanes(LANES, layout=layout),
+        )
         return jnp.sum(jnp.sin(tr.ys.omega)) + jnp.sum(tr.ys.quat[..., 1:] ** 2)
 
     ref = jax.grad(loss)(theta0, "cpu")
@@ -600,16 +681,21 @@ def test_layouts_by_platform_and_lanes_by_memory():
     for n in (1, 1000, MIN_LANES_ARRAY):  # a small batch: a lane per trajectory
         assert default_lanes(n, 1, "gpu", per_lane, memory) == n
     assert default_lanes(1000, 2, "gpu", per_lane, memory) == 500
-    assert default_lanes(10**5, 1, "gpu", per_lane, memory) == -(-10**5 // PER_LANE_ARRAY)
+    assert default_lanes(10**5, 1, "gpu", per_lane, memory) == -(-(10**5) // PER_LANE_ARRAY)
     assert default_lanes(4 * MIN_LANES_ARRAY, 1, "gpu", per_lane, memory) == -(
-        -4 * MIN_LANES_ARRAY // PER_LANE_ARRAY)
+        -4 * MIN_LANES_ARRAY // PER_LANE_ARRAY
+    )
     assert default_lanes(2 * MIN_LANES_ARRAY, 1, "gpu", per_lane, memory) == MIN_LANES_ARRAY
     assert default_lanes(10**7, 1, "gpu", per_lane, memory) == MAX_LANES_ARRAY
     big = 10**5  # a large state (sensitivities, say): the memory budget binds
-    assert default_lanes(10**7, 1, "gpu", big, memory) == int(
-        MEMORY_SHARE * memory // (LANE_COPIES * big)) < MAX_LANES_ARRAY
+    assert (
+        default_lanes(10**7, 1, "gpu", big, memory)
+        == int(MEMORY_SHARE * memory // (LANE_COPIES * big))
+        < MAX_LANES_ARRAY
+    )
     assert default_lanes(10**7, 1, "gpu", big, None) < default_lanes(
-        10**7, 1, "gpu", big, memory)  # the fallback budget is smaller
+        10**7, 1, "gpu", big, memory
+    )  # the fallback budget is smaller
     with pytest.raises(ValueError, match="`layout`"):
         rb.Lanes(layout="gpu")
 
@@ -626,22 +712,25 @@ def test_float32_initial_states_start_in_float64():
     plain = rb.simulate_batch(rb.RigidBody(J), y32, TS, batching=rb.Vmap(), **kw)
     assert lanes.ys.omega.dtype == plain.ys.omega.dtype == jnp.float64
     assert_same_solves(lanes, plain)
-    assert_same_solves(plain, rb.simulate_batch(rb.RigidBody(J), y64, TS, batching=rb.Vmap(),
-                                                **kw), tol=0.0)
+    assert_same_solves(
+        plain, rb.simulate_batch(rb.RigidBody(J), y64, TS, batching=rb.Vmap(), **kw), tol=0.0
+    )
 
 
 def test_argument_errors():
     y0s = initial_states()
     for solver in (diffrax.Kvaerno5(), diffrax.Euler(), diffrax.ReversibleHeun()):
-        with pytest.raises(ValueError, match="explicit Runge–Kutta solver.*" +
-                           type(solver).__name__):
+        with pytest.raises(
+            ValueError, match="explicit Runge–Kutta solver.*" + type(solver).__name__
+        ):
             rb.simulate_batch(rb.RigidBody(J), y0s, TS, batching=rb.Lanes(LANES), solver=solver)
     for bad in (0, -3, True, 2.5):
         with pytest.raises(ValueError, match="`lanes`"):
             rb.simulate_batch(rb.RigidBody(J), y0s, TS, batching=rb.Lanes(bad))
     with pytest.raises(ValueError, match="`devices`"):
-        rb.simulate_batch(rb.RigidBody(J), y0s, TS,
-                          batching=rb.Lanes(LANES, devices=len(jax.devices()) + 1))
+        rb.simulate_batch(
+            rb.RigidBody(J), y0s, TS, batching=rb.Lanes(LANES, devices=len(jax.devices()) + 1)
+        )
 
 
 def test_two_devices_and_the_persistent_cache(tmp_path):
@@ -685,8 +774,15 @@ def test_two_devices_and_the_persistent_cache(tmp_path):
     np.testing.assert_array_equal(got["steps"], plain.stats["num_steps"])
     np.testing.assert_allclose(got["omega"], plain.ys.omega, rtol=0, atol=ROUND_OFF)
     # per-trajectory models are padded and dealt to the devices with their trajectories
-    plain2 = rb.simulate_batch(eqx.filter_vmap(heavy_top)(weights), y0s, TS, rtol=RTOL,
-                               atol=RTOL, model_axes=0, batching=rb.Vmap())
+    plain2 = rb.simulate_batch(
+        eqx.filter_vmap(heavy_top)(weights),
+        y0s,
+        TS,
+        rtol=RTOL,
+        atol=RTOL,
+        model_axes=0,
+        batching=rb.Vmap(),
+    )
     np.testing.assert_array_equal(got["steps2"], plain2.stats["num_steps"])
     np.testing.assert_allclose(got["omega2"], plain2.ys.omega, rtol=0, atol=ROUND_OFF)
     assert any(p.is_file() for p in cache.rglob("*")), "nothing entered the cache"
@@ -720,6 +816,7 @@ def test_throw_over_two_devices_raises_instead_of_aborting(tmp_path):
         print("raised twice")
     """)
     env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
-    out = subprocess.run([sys.executable, "-c", code], env=env, timeout=120,
-                         capture_output=True, text=True)
+    out = subprocess.run(
+        [sys.executable, "-c", code], env=env, timeout=120, capture_output=True, text=True
+    )
     assert out.returncode == 0 and "raised twice" in out.stdout, out.stderr[-2000:]

@@ -72,8 +72,11 @@ def package_imports(path: pathlib.Path) -> set[str]:
             level = node.level - (1 if inside else 0)  # levels above the package root
             if node.level and level == 0 and inside:
                 continue  # from ._x import y: the file's own package
-            if node.level and level == 1 or (node.level == 0 and node.module
-                                               and node.module.startswith("rbdyn_jax")):
+            if (
+                node.level
+                and level == 1
+                or (node.level == 0 and node.module and node.module.startswith("rbdyn_jax"))
+            ):
                 parts = (node.module or "").split(".")
                 if node.level == 0:
                     parts = parts[1:]
@@ -99,8 +102,9 @@ def private_names_imported(path: pathlib.Path) -> set[str]:
     for node in ast.walk(ast.parse(path.read_text())):
         if inside and isinstance(node, ast.ImportFrom) and node.level == 1:
             continue  # from ._x import _y: the file's own package
-        if isinstance(node, ast.ImportFrom) and (node.level or (node.module or "").startswith(
-                "rbdyn_jax")):
+        if isinstance(node, ast.ImportFrom) and (
+            node.level or (node.module or "").startswith("rbdyn_jax")
+        ):
             for a in node.names:
                 if a.name.startswith("_") and a.name not in modules | {"__version__"}:
                     found.add(f"{node.module}.{a.name}")
@@ -109,8 +113,9 @@ def private_names_imported(path: pathlib.Path) -> set[str]:
 
 def imports_diffrax(path: pathlib.Path) -> bool:
     for node in ast.walk(ast.parse(path.read_text())):
-        if isinstance(node, ast.Import) and any(a.name.split(".")[0] == "diffrax"
-                                                for a in node.names):
+        if isinstance(node, ast.Import) and any(
+            a.name.split(".")[0] == "diffrax" for a in node.names
+        ):
             return True
         if isinstance(node, ast.ImportFrom) and (node.module or "").split(".")[0] == "diffrax":
             return True
@@ -129,7 +134,8 @@ def test_no_module_imports_a_lower_layer(module):
     for path in module_files()[module]:
         imported = {m for m in package_imports(path) if not m.startswith("_")}
         assert imported <= allowed, (
-            f"{path.relative_to(PACKAGE)} imports lower layer(s) {sorted(imported - allowed)}")
+            f"{path.relative_to(PACKAGE)} imports lower layer(s) {sorted(imported - allowed)}"
+        )
         assert "__init__" not in imported, f"{path.name} imports from rbdyn_jax/__init__.py"
 
 
@@ -145,7 +151,8 @@ def test_no_private_name_crosses_a_module():
     for paths in module_files().values():
         for path in paths:
             assert not private_names_imported(path), (
-                f"{path.relative_to(PACKAGE)} imports {sorted(private_names_imported(path))}")
+                f"{path.relative_to(PACKAGE)} imports {sorted(private_names_imported(path))}"
+            )
 
 
 def test_diffrax_only_where_the_layers_allow_it():
@@ -161,9 +168,11 @@ def test_checker_sees_a_violation(tmp_path):
     """The checkers themselves: an upward import, an import from `__init__`, a private name
     and diffrax must be detected, not silently missed."""
     bad = tmp_path / "rotation.py"
-    bad.write_text("from .integrate import simulate\nimport rbdyn_jax.sweep\n"
-                   "from . import __version__\nfrom .dynamics import _matvec\n"
-                   "from diffrax import Tsit5\n")
+    bad.write_text(
+        "from .integrate import simulate\nimport rbdyn_jax.sweep\n"
+        "from . import __version__\nfrom .dynamics import _matvec\n"
+        "from diffrax import Tsit5\n"
+    )
     assert package_imports(bad) == {"integrate", "sweep", "__init__", "dynamics"}
     assert private_names_imported(bad) == {"dynamics._matvec"}
     assert imports_diffrax(bad)
@@ -179,20 +188,34 @@ def test_checker_allows_private_names_only_between_a_packages_files(tmp_path, mo
     (tmp_path / "pkg" / "__init__.py").write_text("")
     (tmp_path / "pkg" / "_b.py").write_text("_y = None\n")
     bad = tmp_path / "pkg" / "_a.py"
-    bad.write_text("from ._b import _y\nfrom ..dynamics import _matvec\n"
-                   "from rbdyn_jax.torques import _private\nfrom .. import _compat\n")
+    bad.write_text(
+        "from ._b import _y\nfrom ..dynamics import _matvec\n"
+        "from rbdyn_jax.torques import _private\nfrom .. import _compat\n"
+    )
     assert in_subpackage(bad)
     assert private_names_imported(bad) == {"dynamics._matvec", "rbdyn_jax.torques._private"}
     assert package_imports(bad) == {"dynamics", "torques", "_compat"}
 
 
-@pytest.mark.parametrize("init", ["__init__.py", "integrate/__init__.py",
-                                  "analytic/__init__.py", "scenario/__init__.py",
-                                  "sweep/__init__.py", "identify/__init__.py",
-                                  "cli/__init__.py", "_program/__init__.py"])
+@pytest.mark.parametrize(
+    "init",
+    [
+        "__init__.py",
+        "integrate/__init__.py",
+        "analytic/__init__.py",
+        "scenario/__init__.py",
+        "sweep/__init__.py",
+        "identify/__init__.py",
+        "cli/__init__.py",
+        "_program/__init__.py",
+    ],
+)
 def test_reexports_are_grouped_by_module(init):
     """One `from .x import (a as a, b as b)` per module (ruff's combine-as-imports), not a
     statement per name."""
-    sources = [(node.level, node.module) for node in ast.parse((PACKAGE / init).read_text()).body
-               if isinstance(node, ast.ImportFrom)]
+    sources = [
+        (node.level, node.module)
+        for node in ast.parse((PACKAGE / init).read_text()).body
+        if isinstance(node, ast.ImportFrom)
+    ]
     assert len(sources) == len(set(sources)), sorted(sources)

@@ -69,8 +69,7 @@ def ts_grid(T, n=N_OUT):
 
 
 def solve(model, y0, T, t0=0.0, **kw):
-    traj = rb.simulate(model, y0, t0 + ts_grid(T, kw.pop("n", N_OUT)), rtol=RTOL, atol=ATOL,
-                       **kw)
+    traj = rb.simulate(model, y0, t0 + ts_grid(T, kw.pop("n", N_OUT)), rtol=RTOL, atol=ATOL, **kw)
     assert traj.result == rb.RESULTS.successful
     return traj
 
@@ -150,8 +149,9 @@ def _absolute_reference(rng, frame_rot_fn, frame_w1_fn, make_rel, t0=0.0):
         Rr0, Re0 = scipy_rot(q_r0), frame_rot_fn(t0)
         w0 = w_r0 + Rr0.inv().apply(frame_w1_fn(t0))
         q_abs0 = xyzw_to_wxyz((Re0 * Rr0).as_quat())
-        traj_a = solve(rb.RigidBody(J, torque), rb.State(jnp.asarray(w0), jnp.asarray(q_abs0)),
-                       REL_T, t0)
+        traj_a = solve(
+            rb.RigidBody(J, torque), rb.State(jnp.asarray(w0), jnp.asarray(q_abs0)), REL_T, t0
+        )
         w_err = q_err = 0.0
         for i, t in enumerate(np.asarray(traj_a.ts)):
             Rr = frame_rot_fn(t).inv() * scipy_rot(traj_a.ys.quat[i])
@@ -160,8 +160,9 @@ def _absolute_reference(rng, frame_rot_fn, frame_w1_fn, make_rel, t0=0.0):
             np.testing.assert_allclose(traj_r.ys.omega[i], w_r, atol=SOLVE_TOL)
             assert_quat_equal(traj_r.ys.quat[i], q_r, atol=SOLVE_TOL)
             w_err = max(w_err, np.max(np.abs(traj_r.ys.omega[i] - w_r)))
-            q_err = max(q_err, np.min([np.max(np.abs(traj_r.ys.quat[i] - s * q_r))
-                                       for s in (1, -1)]))
+            q_err = max(
+                q_err, np.min([np.max(np.abs(traj_r.ys.quat[i] - s * q_r)) for s in (1, -1)])
+            )
         results[label] = (w_err, q_err)
         # the frame really matters: ω_r differs from ω by O(1)
         assert np.max(np.abs(np.asarray(traj_r.ys.omega) - np.asarray(traj_a.ys.omega))) > 0.1
@@ -175,8 +176,11 @@ def test_relative_under_euler_angle_frame_reproduces_absolute_motion(rng):
     to 1e-8 (~100 × rtol)."""
     frame = rb.EulerAngleFrame(PolyAngles(jnp.asarray(FRAME_C)), seq="ZXZ")
     errs = _absolute_reference(
-        rng, lambda t: frame_rot(FRAME_C, "ZXZ", t), lambda t: frame_omega1(FRAME_C, "ZXZ", t),
-        lambda J, torque: rb.RelativeRigidBody(J, frame, torque))
+        rng,
+        lambda t: frame_rot(FRAME_C, "ZXZ", t),
+        lambda t: frame_omega1(FRAME_C, "ZXZ", t),
+        lambda J, torque: rb.RelativeRigidBody(J, frame, torque),
+    )
     print("relative vs absolute, EulerAngleFrame ZXZ (max |Δω_r|, max |Δq_r|):", errs)
 
 
@@ -189,8 +193,12 @@ def test_relative_motion_from_a_later_start_time(rng):
     fails, checked)."""
     frame = rb.EulerAngleFrame(PolyAngles(jnp.asarray(FRAME_C)), seq="ZXZ")
     errs = _absolute_reference(
-        rng, lambda t: frame_rot(FRAME_C, "ZXZ", t), lambda t: frame_omega1(FRAME_C, "ZXZ", t),
-        lambda J, torque: rb.RelativeRigidBody(J, frame, torque), t0=1.3)
+        rng,
+        lambda t: frame_rot(FRAME_C, "ZXZ", t),
+        lambda t: frame_omega1(FRAME_C, "ZXZ", t),
+        lambda J, torque: rb.RelativeRigidBody(J, frame, torque),
+        t0=1.3,
+    )
     print("relative vs absolute from t0 = 1.3 (max |Δω_r|, max |Δq_r|):", errs)
 
 
@@ -199,8 +207,11 @@ def test_relative_under_constant_rate_frame_reproduces_absolute_motion(rng):
     q0 = random_quat(rng)
     frame = rb.ConstantRate(w_e, quat0=q0)
     errs = _absolute_reference(
-        rng, lambda t: scipy_rot(q0) * Rotation.from_rotvec(w_e * t), lambda t: w_e,
-        lambda J, torque: rb.RelativeRigidBody(J, frame, torque))
+        rng,
+        lambda t: scipy_rot(q0) * Rotation.from_rotvec(w_e * t),
+        lambda t: w_e,
+        lambda J, torque: rb.RelativeRigidBody(J, frame, torque),
+    )
     print("relative vs absolute, ConstantRate (max |Δω_r|, max |Δq_r|):", errs)
 
 
@@ -224,14 +235,19 @@ def test_balanced_transport_conserves_relative_kinetic_energy(rng):
     frame = rb.EulerAngleFrame(PolyAngles(jnp.asarray(FRAME_C_LONG)), seq="ZXZ")
     model = rb.RelativeRigidBody(J, frame, rb.BalancingTransport())
     w_r0 = np.array([0.6, -0.9, 0.5])
-    traj = rb.simulate(model, rb.State(jnp.asarray(w_r0), jnp.asarray(random_quat(rng))),
-                       jnp.linspace(0.0, 200.0, 401), rtol=RTOL, atol=ATOL, max_steps=65_536)
+    traj = rb.simulate(
+        model,
+        rb.State(jnp.asarray(w_r0), jnp.asarray(random_quat(rng))),
+        jnp.linspace(0.0, 200.0, 401),
+        rtol=RTOL,
+        atol=ATOL,
+        max_steps=65_536,
+    )
     assert traj.result == rb.RESULTS.successful
     Tr = np.asarray(invariant("relative_kinetic_energy", model, traj))
     drift = rel_drift(Tr)
     steps = int(traj.stats["num_accepted_steps"])
-    print(f"balanced transport: T_r relative drift {drift:.2e} over t ∈ [0, 200], "
-          f"{steps} steps")
+    print(f"balanced transport: T_r relative drift {drift:.2e} over t ∈ [0, 200], {steps} steps")
     assert drift <= steps * RTOL
     np.testing.assert_allclose(Tr[0], 0.5 * w_r0 @ J @ w_r0, rtol=TIGHT)
     speed = np.linalg.norm(np.asarray(traj.ys.omega), axis=-1)
@@ -263,8 +279,9 @@ def test_heavy_top_first_integrals_and_precession(rng):
     A, C, mg, l, r0 = 1.0, 1.6, 1.0, 0.5, 3.0
     model = rb.RigidBody(jnp.diag(jnp.array([A, A, C])), gravity(weight=mg, com=(0.0, 0.0, l)))
     q0 = Rotation.from_euler("ZXZ", [0.2, 0.5, -0.3])
-    traj = solve(model, rb.State(jnp.array([0.0, 0.0, r0]),
-                                 jnp.asarray(xyzw_to_wxyz(q0.as_quat()))), 20.0)
+    traj = solve(
+        model, rb.State(jnp.array([0.0, 0.0, r0]), jnp.asarray(xyzw_to_wxyz(q0.as_quat()))), 20.0
+    )
     E = invariant("energy", model, traj)
     Lz = invariant("area_integral", model, traj)
     r = traj.ys.omega[:, 2]
@@ -272,8 +289,10 @@ def test_heavy_top_first_integrals_and_precession(rng):
     print("heavy top drifts (E, L_z, r):", drifts, traj.stats["num_accepted_steps"], "steps")
     assert max(drifts) <= SOLVE_TOL
     # L_z computed independently: z0 component of R(q) J ω
-    Lz_ref = [(scipy_rot(q).apply(np.diag([A, A, C]) @ np.asarray(w)))[2]
-              for q, w in zip(np.asarray(traj.ys.quat), np.asarray(traj.ys.omega))]
+    Lz_ref = [
+        (scipy_rot(q).apply(np.diag([A, A, C]) @ np.asarray(w)))[2]
+        for q, w in zip(np.asarray(traj.ys.quat), np.asarray(traj.ys.omega))
+    ]
     np.testing.assert_allclose(Lz, Lz_ref, atol=TIGHT)
     psi = np.unwrap(zxz(traj.ys.quat)[:, 0])
     rate = (psi[-1] - psi[0]) / 20.0
@@ -300,11 +319,17 @@ def test_gravity_gradient_first_integrals_poisson_form(rng):
     J = general_inertia(rng, [1.1, 1.8, 2.5])
     model = rb.PoissonRigidBody(J, gravity(eps=2.0))
     traj = solve(model, _poisson_state(rng.normal(size=3), random_quat(rng)), GG_T)
-    drifts = [rel_drift(invariant("energy", model, traj)),
-              rel_drift(invariant("area_integral", model, traj)),
-              float(traj.stats["norm_drift"])]
-    print("Poisson gravity gradient drifts (E, area, |γ|):", drifts,
-          traj.stats["num_accepted_steps"], "steps")
+    drifts = [
+        rel_drift(invariant("energy", model, traj)),
+        rel_drift(invariant("area_integral", model, traj)),
+        float(traj.stats["norm_drift"]),
+    ]
+    print(
+        "Poisson gravity gradient drifts (E, area, |γ|):",
+        drifts,
+        traj.stats["num_accepted_steps"],
+        "steps",
+    )
     assert max(drifts) <= SOLVE_TOL  # ~100 × rtol, as for the heavy top
     # the torque is doing something: the kinetic energy alone is not conserved
     assert rel_drift(invariant("kinetic_energy", model, traj)) > 1e-2
@@ -320,12 +345,17 @@ def test_gravity_gradient_integrable_case(rng):
     # independent recomputation of C1, C2 from the state (n = (1 − m)/m, m = A/C)
     n = (1 - A / C) / (A / C)
     w, g = np.asarray(traj.ys.omega), np.asarray(traj.ys.gamma)
-    np.testing.assert_allclose(C1, w[:, 0]**2 + w[:, 1]**2 + 1.5 * n * g[:, 2]**2, atol=TIGHT)
-    np.testing.assert_allclose(C2, g[:, 0] * w[:, 0] + g[:, 1] * w[:, 1]
-                               + w[:, 2] * (n + 1) * g[:, 2], atol=TIGHT)
+    np.testing.assert_allclose(C1, w[:, 0] ** 2 + w[:, 1] ** 2 + 1.5 * n * g[:, 2] ** 2, atol=TIGHT)
+    np.testing.assert_allclose(
+        C2, g[:, 0] * w[:, 0] + g[:, 1] * w[:, 1] + w[:, 2] * (n + 1) * g[:, 2], atol=TIGHT
+    )
     drifts = [rel_drift(x) for x in (r, C1, C2)] + [float(traj.stats["norm_drift"])]
-    print("integrable case drifts (r, C1, C2, |γ|):", drifts,
-          traj.stats["num_accepted_steps"], "steps")
+    print(
+        "integrable case drifts (r, C1, C2, |γ|):",
+        drifts,
+        traj.stats["num_accepted_steps"],
+        "steps",
+    )
     assert max(drifts) <= SOLVE_TOL
     assert np.ptp(g[:, 2]) > 0.05  # the axis nutates: C1, C2 are not trivially constant
 
@@ -335,16 +365,20 @@ def test_euler_and_poisson_forms_match_quaternion_form(case, rng):
     """The same torque and initial condition in the three state forms give the same ω(t),
     attitude and γ(t) (θ kept away from the ZXZ singularity)."""
     J = general_inertia(rng, [1.2, 1.7, 2.4])
-    eps, weight = {"gravity_gradient": (2.0, 0.0), "uniform_gravity": (0.0, 1.5),
-                   "both": (2.0, 1.5)}[case]
+    eps, weight = {
+        "gravity_gradient": (2.0, 0.0),
+        "uniform_gravity": (0.0, 1.5),
+        "both": (2.0, 1.5),
+    }[case]
     torque = gravity(eps=eps, weight=weight, com=(0.1, -0.2, 0.5))
     angles0 = np.array([0.3, 1.3, -0.8])
     q0 = xyzw_to_wxyz(Rotation.from_euler("ZXZ", angles0).as_quat())
     w0 = np.array([0.75, -0.45, 1.2])
     T = 10.0
     quat = solve(rb.RigidBody(J, torque), rb.State(jnp.asarray(w0), jnp.asarray(q0)), T)
-    euler = solve(rb.EulerAngleRigidBody(J, torque),
-                  rb.EulerState(jnp.asarray(w0), jnp.asarray(angles0)), T)
+    euler = solve(
+        rb.EulerAngleRigidBody(J, torque), rb.EulerState(jnp.asarray(w0), jnp.asarray(angles0)), T
+    )
     poisson = solve(rb.PoissonRigidBody(J, torque), _poisson_state(w0, q0), T)
     theta = np.asarray(euler.ys.angles[:, 1])
     assert np.min(np.abs(np.sin(theta))) > 0.2  # away from gimbal lock
@@ -354,8 +388,11 @@ def test_euler_and_poisson_forms_match_quaternion_form(case, rng):
         errs[name] = float(np.max(np.abs(np.asarray(traj.ys.omega) - np.asarray(quat.ys.omega))))
     gamma_q = scipy_rot(quat.ys.quat).inv().apply(E_Z)
     np.testing.assert_allclose(poisson.ys.gamma, gamma_q, atol=SOLVE_TOL)
-    assert_quat_equal(xyzw_to_wxyz(Rotation.from_euler("ZXZ", np.asarray(euler.ys.angles))
-                                   .as_quat()), quat.ys.quat, atol=SOLVE_TOL)
+    assert_quat_equal(
+        xyzw_to_wxyz(Rotation.from_euler("ZXZ", np.asarray(euler.ys.angles)).as_quat()),
+        quat.ys.quat,
+        atol=SOLVE_TOL,
+    )
     print(f"state forms vs quaternion form ({case}): max |Δω|", errs)
     # the torque matters: ω changes by O(1)
     assert np.max(np.abs(np.asarray(quat.ys.omega) - w0)) > 0.1
@@ -371,8 +408,11 @@ ORBIT_N = 0.7
 def _pitch_run(Ix, Iy, Iz, pitch0, T):
     """RelativeRigidBody in the LVLH frame under the gravity gradient, started at rest in the
     frame with a rotation `pitch0` about y1. Returns (ts, pitch angle from the quaternion)."""
-    model = rb.RelativeRigidBody(jnp.diag(jnp.array([Ix, Iy, Iz])), rb.CircularOrbit(ORBIT_N),
-                                 rb.GravityGradient.from_orbit_rate(ORBIT_N))
+    model = rb.RelativeRigidBody(
+        jnp.diag(jnp.array([Ix, Iy, Iz])),
+        rb.CircularOrbit(ORBIT_N),
+        rb.GravityGradient.from_orbit_rate(ORBIT_N),
+    )
     q0 = jnp.array([np.cos(pitch0 / 2), 0.0, np.sin(pitch0 / 2), 0.0])
     traj = solve(model, rb.State(jnp.zeros(3), q0), T, n=801)
     q = np.asarray(traj.ys.quat)
@@ -418,8 +458,10 @@ def test_pitch_libration_period(pitch0):
     period, count = _period_from_zero_crossings(ts, pitch)
     assert count >= 14
     T_exact = 4 * ellipk(np.sin(pitch0) ** 2) / w0
-    print(f"pitch θ0 = {pitch0}: period {period:.8f}, linear {T_lin:.8f}, exact {T_exact:.8f}, "
-          f"rel. err vs exact {abs(period / T_exact - 1):.1e}")
+    print(
+        f"pitch θ0 = {pitch0}: period {period:.8f}, linear {T_lin:.8f}, exact {T_exact:.8f}, "
+        f"rel. err vs exact {abs(period / T_exact - 1):.1e}"
+    )
     np.testing.assert_allclose(period, T_exact, rtol=1e-6)
     if pitch0 == 0.01:
         np.testing.assert_allclose(period, T_lin, rtol=1e-4)
@@ -437,10 +479,12 @@ def test_pitch_unstable_when_ix_below_iz():
     T_ref = 2 * np.pi / lam
     ts, pitch = _pitch_run(Ix, Iy, Iz, pitch0, 8 * T_ref)
     small = np.abs(pitch) <= 0.03
-    small[np.argmax(~small):] = False  # the initial small-angle stretch only
+    small[np.argmax(~small) :] = False  # the initial small-angle stretch only
     err = np.max(np.abs(pitch[small] / (pitch0 * np.cosh(lam * ts[small])) - 1))
-    print(f"unstable pitch: max rel. deviation from θ0 cosh(λt) while |θ| ≤ 0.03: {err:.1e}, "
-          f"max |θ| {np.max(np.abs(pitch)):.2f}")
+    print(
+        f"unstable pitch: max rel. deviation from θ0 cosh(λt) while |θ| ≤ 0.03: {err:.1e}, "
+        f"max |θ| {np.max(np.abs(pitch)):.2f}"
+    )
     assert err <= 1e-3 and lam * ts[small][-1] > 1.5  # compared over real growth (×2.3+)
     assert np.max(np.abs(pitch)) > 1.0
 
@@ -458,17 +502,26 @@ def test_circular_orbit_jacobi_integral(rng):
     J = general_inertia(rng, [1.0, 1.5, 2.1])
     n = ORBIT_N
     model = rb.RelativeRigidBody(J, rb.CircularOrbit(n), rb.GravityGradient.from_orbit_rate(n))
-    traj = solve(model, rb.State(jnp.asarray(0.5 * n * rng.normal(size=3)),
-                                 jnp.asarray(random_quat(rng))), 40.0, n=801)
+    traj = solve(
+        model,
+        rb.State(jnp.asarray(0.5 * n * rng.normal(size=3)), jnp.asarray(random_quat(rng))),
+        40.0,
+        n=801,
+    )
     Rr_inv = scipy_rot(traj.ys.quat).inv()
     w_r = np.asarray(traj.ys.omega)
     w_e, g = Rr_inv.apply([0.0, -n, 0.0]), Rr_inv.apply(E_Z)
     Tr = 0.5 * np.einsum("ni,ij,nj->n", w_r, J, w_r)
-    H = Tr - 0.5 * np.einsum("ni,ij,nj->n", w_e, J, w_e) + 1.5 * n**2 * np.einsum(
-        "ni,ij,nj->n", g, J, g)
+    H = (
+        Tr
+        - 0.5 * np.einsum("ni,ij,nj->n", w_e, J, w_e)
+        + 1.5 * n**2 * np.einsum("ni,ij,nj->n", g, J, g)
+    )
     drift = rel_drift(H)
-    print(f"circular orbit Jacobi integral drift {drift:.1e} "
-          f"({traj.stats['num_accepted_steps']} steps)")
+    print(
+        f"circular orbit Jacobi integral drift {drift:.1e} "
+        f"({traj.stats['num_accepted_steps']} steps)"
+    )
     assert drift <= SOLVE_TOL
     assert np.ptp(Tr) > 1e-2 * np.max(Tr)  # the relative motion is far from uniform
 
@@ -482,8 +535,10 @@ MODEL_CLASSES = [rb.RigidBody, rb.RelativeRigidBody, rb.EulerAngleRigidBody, rb.
 
 @pytest.mark.parametrize("cls", MODEL_CLASSES)
 def test_non_physical_or_asymmetric_inertia_is_an_error(cls):
-    with pytest.raises(eqx.EquinoxRuntimeError,
-                       match="`inertia` is not physical.*docs/physics\\.md#physical-consistency"):
+    with pytest.raises(
+        eqx.EquinoxRuntimeError,
+        match="`inertia` is not physical.*docs/physics\\.md#physical-consistency",
+    ):
         cls(jnp.diag(jnp.array([1.0, 1.0, 3.0])))  # 1 + 1 < 3
     with pytest.raises(eqx.EquinoxRuntimeError, match="`inertia` is not symmetric"):
         cls(jnp.array([[2.0, 0.3, 0.0], [0.0, 2.0, 0.0], [0.0, 0.0, 2.0]]))
@@ -557,8 +612,9 @@ def test_eager_inertia_check_decides_as_the_traced_check():
         "NaN": np.diag([1.0, np.nan, 2.5]),
     }
     traced = eqx.filter_jit(lambda J: cls(J).inertia)  # one compilation for every case
-    outcomes = {name: _builds(lambda J: cls(J).inertia, jnp.asarray(J))
-                for name, J in cases.items()}
+    outcomes = {
+        name: _builds(lambda J: cls(J).inertia, jnp.asarray(J)) for name, J in cases.items()
+    }
     for name, J in cases.items():
         assert outcomes[name] == _builds(traced, jnp.asarray(J)), name
     assert outcomes["valid"] is True and outcomes["nearly symmetric"] is True
@@ -585,9 +641,10 @@ def _fit_case(cls):
         model = cls(J0, rb.ConstantRate(jnp.array([0.0, 0.3, 1.0])), torque)
     else:
         model = cls(J0, torque)
-    y = {rb.EulerAngleRigidBody: rb.EulerState(jnp.asarray(w), jnp.asarray(angles)),
-         rb.PoissonRigidBody: _poisson_state(w, q)}.get(cls, rb.State(jnp.asarray(w),
-                                                                       jnp.asarray(q)))
+    y = {
+        rb.EulerAngleRigidBody: rb.EulerState(jnp.asarray(w), jnp.asarray(angles)),
+        rb.PoissonRigidBody: _poisson_state(w, q),
+    }.get(cls, rb.State(jnp.asarray(w), jnp.asarray(q)))
     return model, y
 
 
@@ -628,8 +685,7 @@ def test_with_log_cholesky_is_the_constructed_model_without_host_callbacks(cls):
     assert float(jnp.max(jnp.abs(g))) > 1e-3  # the field depends on the inertia
     # the same arithmetic, fused differently by XLA around the checks: round-off of the
     # largest component (seen 4e-16 on 0.04)
-    np.testing.assert_allclose(g, ctor(thetas[0]), rtol=0,
-                               atol=1e-13 * float(jnp.max(jnp.abs(g))))
+    np.testing.assert_allclose(g, ctor(thetas[0]), rtol=0, atol=1e-13 * float(jnp.max(jnp.abs(g))))
 
 
 def test_with_log_cholesky_refuses_a_concrete_non_finite_theta_and_reports_a_traced_one():
@@ -644,8 +700,7 @@ def test_with_log_cholesky_refuses_a_concrete_non_finite_theta_and_reports_a_tra
     bad = eqx.filter_jit(rb.with_log_cholesky)(model, theta)
     assert np.any(np.isnan(bad.inertia))
     y0 = rb.State(jnp.array([0.1, 0.2, 0.3]), jnp.array([1.0, 0.0, 0.0, 0.0]))
-    traj = rb.simulate(bad, y0, jnp.linspace(0.0, 1.0, N_OUT), rtol=RTOL, atol=ATOL,
-                       throw=False)
+    traj = rb.simulate(bad, y0, jnp.linspace(0.0, 1.0, N_OUT), rtol=RTOL, atol=ATOL, throw=False)
     assert traj.result == rb.RESULTS.nonfinite_state
 
 
@@ -675,14 +730,17 @@ def test_invariants_of_a_batched_trajectory_equal_per_trajectory():
     for i in range(2):
         one = rb.simulate(model, rb.State(jnp.asarray(w[i]), jnp.asarray(q[i])), ts)
         np.testing.assert_allclose(E[i], rb.invariants.energy(model, one), atol=1e-12)
-        np.testing.assert_allclose(L[i], rb.invariants.angular_momentum_inertial(model, one),
-                                   atol=1e-12)
+        np.testing.assert_allclose(
+            L[i], rb.invariants.angular_momentum_inertial(model, one), atol=1e-12
+        )
 
 
 def test_energy_of_a_relative_model_in_a_moving_frame_is_refused():
-    model = rb.RelativeRigidBody(np.diag([1.0, 2.0, 2.5]), rb.CircularOrbit(0.1),
-                                 rb.GravityGradient.from_orbit_rate(0.1))
-    traj = rb.simulate(model, rb.State(jnp.zeros(3), jnp.array([1.0, 0, 0, 0])),
-                       np.linspace(0.0, 1.0, 3))
+    model = rb.RelativeRigidBody(
+        np.diag([1.0, 2.0, 2.5]), rb.CircularOrbit(0.1), rb.GravityGradient.from_orbit_rate(0.1)
+    )
+    traj = rb.simulate(
+        model, rb.State(jnp.zeros(3), jnp.array([1.0, 0, 0, 0])), np.linspace(0.0, 1.0, 3)
+    )
     with pytest.raises(ValueError, match="moving frame"):
         rb.invariants.energy(model, traj)

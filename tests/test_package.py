@@ -22,27 +22,30 @@ def test_version_is_the_installed_distributions():
 
 
 def _fresh(code: str) -> str:
-    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                         timeout=300)
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert run.returncode == 0, run.stderr[-3000:]
     return run.stdout
 
 
 def test_importing_the_package_imports_no_jax():
-    out = _fresh("import sys, rbdyn_jax\n"
-                 "print(sorted(m for m in sys.modules if m.split('.')[0] in "
-                 "('jax', 'jaxlib', 'equinox', 'diffrax', 'numpy')))")
+    out = _fresh(
+        "import sys, rbdyn_jax\n"
+        "print(sorted(m for m in sys.modules if m.split('.')[0] in "
+        "('jax', 'jaxlib', 'equinox', 'diffrax', 'numpy')))"
+    )
     assert out.strip() == "[]"
 
 
 def test_lazy_names_resolve_to_the_submodules_objects():
-    _fresh("import rbdyn_jax as rb\n"
-           "assert rb.simulate_batch is rb.integrate.simulate_batch\n"
-           "from rbdyn_jax import RigidBody, State, configure_xla\n"
-           "from rbdyn_jax.models import RigidBody as R\n"
-           "assert RigidBody is R and State is rb.state.State\n"
-           "assert configure_xla is rb.integrate.configure_xla\n"
-           "assert rb.sweep.__name__ == 'rbdyn_jax.sweep'\n")
+    _fresh(
+        "import rbdyn_jax as rb\n"
+        "assert rb.simulate_batch is rb.integrate.simulate_batch\n"
+        "from rbdyn_jax import RigidBody, State, configure_xla\n"
+        "from rbdyn_jax.models import RigidBody as R\n"
+        "assert RigidBody is R and State is rb.state.State\n"
+        "assert configure_xla is rb.integrate.configure_xla\n"
+        "assert rb.sweep.__name__ == 'rbdyn_jax.sweep'\n"
+    )
     for name in rb.__all__:
         module = importlib.import_module(f"rbdyn_jax.{rb._ORIGIN[name]}")
         assert getattr(rb, name) is getattr(module, name), name
@@ -67,8 +70,11 @@ def test_dir_lists_every_public_name_and_submodule():
 def _type_checking_imports() -> tuple[set[str], dict[str, set[str]]]:
     """The submodules and `{module: names}` that `__init__.py` imports for type checkers."""
     tree = ast.parse(pathlib.Path(rb.__file__).read_text())
-    block = next(node for node in tree.body if isinstance(node, ast.If)
-                 and ast.unparse(node.test) == "TYPE_CHECKING")
+    block = next(
+        node
+        for node in tree.body
+        if isinstance(node, ast.If) and ast.unparse(node.test) == "TYPE_CHECKING"
+    )
     modules, names = set(), {}
     for node in block.body:
         assert isinstance(node, ast.ImportFrom) and node.level == 1, ast.unparse(node)

@@ -43,11 +43,18 @@ CF = {
     "max_abs_omega": ("rad/s", "max_abs_omega"),
 }
 TORQUE_FREE = {"kind": "rigid_body", "torques": []}
-RESTORING = {"kind": "rigid_body", "torques": [
-    {"kind": "restoring_moment", "coeffs": [1.0, 0.5], "eps": 0.02},
-    {"kind": "body", "moment": [2e-4, -1.2e-4, 4e-4]}]}
-BALANCED = {"kind": "relative_rigid_body", "frame": {"kind": "euler_angles", "seq": "ZXZ"},
-            "torques": [{"kind": "balancing_transport"}]}
+RESTORING = {
+    "kind": "rigid_body",
+    "torques": [
+        {"kind": "restoring_moment", "coeffs": [1.0, 0.5], "eps": 0.02},
+        {"kind": "body", "moment": [2e-4, -1.2e-4, 4e-4]},
+    ],
+}
+BALANCED = {
+    "kind": "relative_rigid_body",
+    "frame": {"kind": "euler_angles", "seq": "ZXZ"},
+    "torques": [{"kind": "balancing_transport"}],
+}
 J_DIAG = np.diag([1.0, 2.0, 3.0])
 # A rotated body: principal moments (1, 2, 3) with products of inertia.
 R_TILT = Rotation.from_rotvec([0.3, -0.2, 0.5]).as_matrix()
@@ -128,8 +135,13 @@ def write_store(path, status, *, model=TORQUE_FREE, summaries=True, keep="all"):
         a[...] = data
         if name in CF:
             units, long_name = CF[name]
-            a.attrs.update({"units": units, "long_name": long_name,
-                            "description": f"the {long_name.replace('_', ' ')}"})
+            a.attrs.update(
+                {
+                    "units": units,
+                    "long_name": long_name,
+                    "description": f"the {long_name.replace('_', ' ')}",
+                }
+            )
 
     N = len(status)
     put("trajectory", np.arange(N, dtype=np.int64), ["trajectory"])
@@ -143,8 +155,12 @@ def write_store(path, status, *, model=TORQUE_FREE, summaries=True, keep="all"):
         put("quat", quat[::keep], ["sampled_trajectory", "time", "quat_component"])
     put("inertia", inertia, ["trajectory", "row", "col"])
     put("status", status, ["trajectory"])
-    g["status"].attrs.update({"flag_values": [int(c) for c in STATUS_CODES],
-                              "flag_meanings": " ".join(STATUS_CODES.values())})
+    g["status"].attrs.update(
+        {
+            "flag_values": [int(c) for c in STATUS_CODES],
+            "flag_meanings": " ".join(STATUS_CODES.values()),
+        }
+    )
     put("num_steps", np.full(N, 100, dtype=np.int64), ["trajectory"])
     for name, v in values.items():
         put(name, v, ["trajectory"])
@@ -273,9 +289,14 @@ def plotted(tmp_path_factory):
 def test_axis_labels_carry_the_store_units(plotted):
     """Labels come from the CF `long_name` and `units` of the store, histograms count on y,
     angles are in rad."""
-    assert sorted(plotted) == sorted([
-        "summaries of 3 successful trajectories", "3 of 3 successful trajectories",
-        "polhode on the energy ellipsoid", "status of 4 trajectories"])
+    assert sorted(plotted) == sorted(
+        [
+            "summaries of 3 successful trajectories",
+            "3 of 3 successful trajectories",
+            "polhode on the energy ellipsoid",
+            "status of 4 trajectories",
+        ]
+    )
     histograms = plotted["summaries of 3 successful trajectories"].axes
     assert {ax.get_xlabel(): ax.get_ylabel() for ax in histograms} == {
         "max_nutation [rad]": "count",
@@ -293,7 +314,8 @@ def test_axis_labels_carry_the_store_units(plotted):
     assert history[-1].get_xlabel() == "elapsed time [min]"
     for ax in plotted["polhode on the energy ellipsoid"].axes:
         assert [ax.get_xlabel(), ax.get_ylabel(), ax.get_zlabel()] == [
-            rf"$\omega_{{{c}}}$ [deg/s]" for c in "xyz"]
+            rf"$\omega_{{{c}}}$ [deg/s]" for c in "xyz"
+        ]
     assert plotted["status of 4 trajectories"].axes[0].get_xlabel() == "number of trajectories"
 
 
@@ -308,7 +330,10 @@ def test_polhodes_are_drawn_to_scale(plotted):
     and z, so the energy ellipsoid (drawn, and named in the legend) has its true shape."""
     fig = plotted["polhode on the energy ellipsoid"]
     assert [t.get_text() for t in fig.legends[0].texts] == [
-        r"ellipsoid $\omega^T J \omega = 2T(0)$", r"$\omega$(t)", r"$\omega$(0)"]
+        r"ellipsoid $\omega^T J \omega = 2T(0)$",
+        r"$\omega$(t)",
+        r"$\omega$(0)",
+    ]
     assert [ax.get_title() for ax in fig.axes] == [f"trajectory {i}" for i in (0, 1, 3)]
     for ax in fig.axes:
         assert ax.name == "3d"
@@ -322,8 +347,12 @@ def test_a_polhode_near_the_separatrix_is_not_seen_edge_on():
     the view chosen sees both planes obliquely, where the default view (elevation 30°, azimuth
     −60°) looks almost along the first and draws that half as a chord."""
     s = np.linspace(0.0, np.pi, 60)
-    curve = np.concatenate([np.stack([np.sin(s), 1.5 * np.cos(s), 0.9 * np.sin(s)], 1),
-                            np.stack([np.sin(s), -1.5 * np.cos(s), -0.9 * np.sin(s)], 1)])
+    curve = np.concatenate(
+        [
+            np.stack([np.sin(s), 1.5 * np.cos(s), 0.9 * np.sin(s)], 1),
+            np.stack([np.sin(s), -1.5 * np.cos(s), -0.9 * np.sin(s)], 1),
+        ]
+    )
     normals = np.array([[-0.9, 0.0, 1.0], [0.9, 0.0, 1.0]]) / np.hypot(0.9, 1.0)
 
     def facing(elev, azim):
@@ -346,11 +375,21 @@ def test_a_polhode_near_the_separatrix_is_not_seen_edge_on():
         (RESTORING, False),
         ({"kind": "rigid_body", "torques": [{"kind": "gravity_gradient", "eps": 3.0}]}, False),
         ({"kind": "relative_rigid_body", "frame": {"kind": "constant_rate"}}, False),
-        ({"kind": "relative_rigid_body", "frame": {"kind": "circular_orbit", "n": 1e-3},
-          "torques": [{"kind": "gravity_gradient", "orbit_rate": 1e-3}]}, False),
-        ({"kind": "relative_rigid_body", "torques": [{"kind": "balancing_transport"},
-                                                     {"kind": "body", "moment": [0, 0, 1]}]},
-         False),
+        (
+            {
+                "kind": "relative_rigid_body",
+                "frame": {"kind": "circular_orbit", "n": 1e-3},
+                "torques": [{"kind": "gravity_gradient", "orbit_rate": 1e-3}],
+            },
+            False,
+        ),
+        (
+            {
+                "kind": "relative_rigid_body",
+                "torques": [{"kind": "balancing_transport"}, {"kind": "body", "moment": [0, 0, 1]}],
+            },
+            False,
+        ),
     ],
 )
 def test_polhodes_only_where_the_ellipsoid_is_invariant(model, invariant):
@@ -373,7 +412,9 @@ def test_a_torqued_model_gets_no_polhodes(tmp_path, figures):
         assert not any("ellipsoid" in t or "2T" in t for t in texts)
     history = figures["2 of 2 successful trajectories"].axes
     assert [ax.get_ylabel() for ax in history[3:]] == [
-        r"|$\omega$| [rad/s]", r"nutation $\theta$ [rad]"]
+        r"|$\omega$| [rad/s]",
+        r"nutation $\theta$ [rad]",
+    ]
 
 
 def test_failed_trajectories_are_excluded(tmp_path):
@@ -419,8 +460,13 @@ def test_a_store_of_sampled_states_draws_them(tmp_path, suptitles, monkeypatch):
     """Every 2nd trajectory's states: the successful sampled ones (0 and 4; 2 failed) are
     drawn, labelled with their trajectory index, each with its own inertia."""
     drawn = {}
-    monkeypatch.setattr(_plots, "_draw_polhodes", lambda fig, omega, inertia, labels, *a:
-                        drawn.update(omega=omega, inertia=inertia, labels=labels))
+    monkeypatch.setattr(
+        _plots,
+        "_draw_polhodes",
+        lambda fig, omega, inertia, labels, *a: drawn.update(
+            omega=omega, inertia=inertia, labels=labels
+        ),
+    )
     store = write_store(tmp_path / "s.zarr", [0, 0, 1, 0, 0, -1], keep=2)
     written = _plots.plot_sweep(store, tmp_path / "out")
     assert [p.name for p in written] == FOUR
@@ -434,7 +480,9 @@ def test_a_store_of_sampled_states_draws_them(tmp_path, suptitles, monkeypatch):
     # no sampled trajectory succeeded: no states to draw
     store = write_store(tmp_path / "f.zarr", [1, 0, 1, 0], keep=2)
     assert [p.name for p in _plots.plot_sweep(store, tmp_path / "f")] == [
-        "summaries.png", "status.png"]
+        "summaries.png",
+        "status.png",
+    ]
 
 
 def test_energy_ellipsoid_with_products_of_inertia():
@@ -467,10 +515,11 @@ def test_nutation_matches_scipy(rng):
 
 
 def test_status_names_from_cf_flags():
-    attrs = {"flag_values": np.array([-1, 0, 1], np.int32),
-             "flag_meanings": "not_run successful max_steps_reached"}
-    assert _plots._status_names(attrs) == {-1: "not_run", 0: "successful",
-                                           1: "max_steps_reached"}
+    attrs = {
+        "flag_values": np.array([-1, 0, 1], np.int32),
+        "flag_meanings": "not_run successful max_steps_reached",
+    }
+    assert _plots._status_names(attrs) == {-1: "not_run", 0: "successful", 1: "max_steps_reached"}
     assert _plots._status_names({}) == {}
 
 

@@ -69,8 +69,13 @@ def test_torque_free_symmetric_attitude():
     omega0 = jnp.array([0.3, -0.4, 1.5])
     q0 = jnp.asarray(Rotation.from_rotvec([0.2, 0.5, -0.1]).as_quat(scalar_first=True))
     ts = jnp.linspace(0.0, 60.0, 601)
-    traj = rb.simulate(rb.RigidBody(jnp.diag(jnp.array([A, A, Cm]))),
-                       rb.State(omega0, q0), ts, rtol=RTOL, atol=ATOL)
+    traj = rb.simulate(
+        rb.RigidBody(jnp.diag(jnp.array([A, A, Cm]))),
+        rb.State(omega0, q0),
+        ts,
+        rtol=RTOL,
+        atol=ATOL,
+    )
     w_ref, q_ref = analytic.torque_free_symmetric(A, Cm, omega0, ts, q0)
     np.testing.assert_allclose(traj.ys.omega, w_ref, atol=1e-7)  # 60 s, ~1000 steps at 1e-10
     sign = np.sign(np.sum(np.asarray(traj.ys.quat) * np.asarray(q_ref), -1, keepdims=True))
@@ -96,25 +101,36 @@ def K_of_tau(s):
 def top_errors(eps, form):
     M3 = eps**2  # constant perturbing moment M3 = ε² M3*, M3* = 1 (their eq. (3))
     torque = rb.RestoringMoment(rb.PolynomialSinPsi(jnp.array(K_COEFFS), eps)) + rb.BodyTorque(
-        jnp.array([0.0, 0.0, M3]))
+        jnp.array([0.0, 0.0, M3])
+    )
     J = jnp.diag(jnp.array([TOP["A"], TOP["A"], TOP["C"]]))
     angles0 = jnp.array([TOP["psi0"], TOP["theta0"], 0.3])
     omega0 = jnp.array([0.0, 0.0, TOP["r0"]])
     ts = jnp.linspace(0.0, 1.0 / eps, 1001)
     if form == "euler":
-        traj = rb.simulate(rb.EulerAngleRigidBody(J, torque), rb.EulerState(omega0, angles0),
-                           ts, rtol=RTOL, atol=ATOL)
+        traj = rb.simulate(
+            rb.EulerAngleRigidBody(J, torque),
+            rb.EulerState(omega0, angles0),
+            ts,
+            rtol=RTOL,
+            atol=ATOL,
+        )
         angles = np.asarray(traj.ys.angles)
     else:
-        traj = rb.simulate(rb.RigidBody(J, torque),
-                           rb.State(omega0, rb.rotation.euler_to_quat(angles0, "ZXZ")),
-                           ts, rtol=RTOL, atol=ATOL)
+        traj = rb.simulate(
+            rb.RigidBody(J, torque),
+            rb.State(omega0, rb.rotation.euler_to_quat(angles0, "ZXZ")),
+            ts,
+            rtol=RTOL,
+            atol=ATOL,
+        )
         angles = np.unwrap(np.asarray(rb.rotation.quat_to_euler(traj.ys.quat, "ZXZ")), axis=0)
-    psi, theta, r = analytic.lagrange_top_first_approximation(ts, **TOP, eps=eps, K=K_of_tau,
-                                                                M3=M3)
+    psi, theta, r = analytic.lagrange_top_first_approximation(ts, **TOP, eps=eps, K=K_of_tau, M3=M3)
     np.testing.assert_allclose(traj.ys.omega[:, 2], r, atol=1e-9)  # C r' = M3 exactly
-    return (float(np.max(np.abs(angles[:, 0] - np.asarray(psi)))),
-            float(np.max(np.abs(angles[:, 1] - np.asarray(theta)))))
+    return (
+        float(np.max(np.abs(angles[:, 0] - np.asarray(psi)))),
+        float(np.max(np.abs(angles[:, 1] - np.asarray(theta)))),
+    )
 
 
 @pytest.mark.parametrize("form", ["euler", "quaternion"])
@@ -150,8 +166,9 @@ def test_gg_nutation_half_period_matches_quadrature(omega0, gamma0):
     half = analytic.gg_nutation_half_period(A, Cm, eps, omega0, gamma0)
     ts = jnp.linspace(0.0, 8.0 * half, 4001)
     model = rb.PoissonRigidBody(jnp.diag(jnp.array([A, A, Cm])), rb.GravityGradient(eps))
-    traj = rb.simulate(model, rb.PoissonState(jnp.asarray(omega0), jnp.asarray(gamma0)), ts,
-                       rtol=RTOL, atol=ATOL)
+    traj = rb.simulate(
+        model, rb.PoissonState(jnp.asarray(omega0), jnp.asarray(gamma0)), ts, rtol=RTOL, atol=ATOL
+    )
     # Turning points of γ'' are the zeros of dγ''/dt = q γ − p γ' (Poisson,
     # docs/physics.md#poisson-equations),
     # located by linear interpolation between output times (spacing h = 8 half / 4000: the
@@ -173,9 +190,17 @@ def test_reference_is_not_trivially_matched():
     gives an O(1e-2) departure from the elliptic solution within a few periods."""
     moments, omega0 = np.array([1.0, 2.0, 3.0]), np.array([0.3, 0.4, 1.2])
     ts = jnp.linspace(0.0, 5 * float(analytic.torque_free_elliptic_period(moments, omega0)), 201)
-    traj = rb.simulate(rb.RigidBody(jnp.diag(jnp.asarray(moments * [1.0, 1.01, 1.0]))),
-                       rb.State(jnp.asarray(omega0), jnp.array([1.0, 0, 0, 0])), ts,
-                       rtol=RTOL, atol=ATOL)
-    err = np.max(np.abs(np.asarray(traj.ys.omega)
-                        - np.asarray(analytic.torque_free_elliptic(moments, omega0, ts))))
+    traj = rb.simulate(
+        rb.RigidBody(jnp.diag(jnp.asarray(moments * [1.0, 1.01, 1.0]))),
+        rb.State(jnp.asarray(omega0), jnp.array([1.0, 0, 0, 0])),
+        ts,
+        rtol=RTOL,
+        atol=ATOL,
+    )
+    err = np.max(
+        np.abs(
+            np.asarray(traj.ys.omega)
+            - np.asarray(analytic.torque_free_elliptic(moments, omega0, ts))
+        )
+    )
     assert err > 1e-3

@@ -87,8 +87,8 @@ def angles_for(draw, seq, n=6):
 def _per_sequence(test):
     """Every sequence, each with its own hypothesis search over angles."""
     return pytest.mark.parametrize("seq", SEQS)(
-        settings(max_examples=12, deadline=None)(
-            given(data=st.data())(test)))
+        settings(max_examples=12, deadline=None)(given(data=st.data())(test))
+    )
 
 
 @_per_sequence
@@ -112,8 +112,9 @@ def test_gimbal_lock_error_bound_is_reached_at_the_threshold(seq):
     rng = np.random.default_rng(0)
     a, c = rng.uniform(-np.pi, np.pi, (2, 64))
     c[:2] = np.pi, -np.pi
-    angles = np.concatenate([np.stack([a, np.full(64, lo + d), c], 1),
-                             np.stack([a, np.full(64, hi - d), c], 1)])
+    angles = np.concatenate(
+        [np.stack([a, np.full(64, lo + d), c], 1), np.stack([a, np.full(64, hi - d), c], 1)]
+    )
     r = scipy_euler(seq, angles)
     ours, locked = rot.quat_to_euler(r.as_quat(scalar_first=True), seq, return_gimbal_lock=True)
     assert np.all(np.asarray(locked))
@@ -152,8 +153,9 @@ def test_quat_to_euler_matches_scipy_including_gimbal_lock(seq, data):
 def test_quat_to_euler_exact_half_turns_match_scipy(seq):
     """Half turns about each axis and pairs of axes: angles exactly ±π keep scipy's sign and
     the documented ranges (second angle in [0, π] proper, [−π/2, π/2] Tait–Bryan)."""
-    q = np.array([[0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1], [0, 1, 1, 0], [0, 0, 1, 1],
-                  [1, 0, 0, 0]], float)
+    q = np.array(
+        [[0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1], [0, 1, 1, 0], [0, 0, 1, 1], [1, 0, 0, 0]], float
+    )
     q /= np.linalg.norm(q, axis=1, keepdims=True)
     ours = np.array(rot.quat_to_euler(q, seq))
     theirs = scipy_as_euler(Rotation.from_quat(q, scalar_first=True), seq)
@@ -200,8 +202,9 @@ def test_classical_zxz_matrix():
         return np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
 
     expected = Rz(psi) @ Rx(theta) @ Rz(phi)
-    np.testing.assert_allclose(rot.euler_to_dcm(jnp.array([psi, theta, phi]), "ZXZ"), expected,
-                               atol=TIGHT)
+    np.testing.assert_allclose(
+        rot.euler_to_dcm(jnp.array([psi, theta, phi]), "ZXZ"), expected, atol=TIGHT
+    )
 
 
 # ------------------------------------------------------------------------------------------
@@ -227,8 +230,9 @@ def test_quat_dcm_against_scipy(rng):
     assert_quat_equal(rot.dcm_to_quat(rot.quat_to_dcm(q)), q, atol=TIGHT)
     np.testing.assert_allclose(rot.quat_to_dcm(3.0 * q), r.as_matrix(), atol=TIGHT)
     R = np.array(rot.quat_to_dcm(q))
-    np.testing.assert_allclose(R @ np.swapaxes(R, -1, -2), np.broadcast_to(np.eye(3), R.shape),
-                               atol=TIGHT)
+    np.testing.assert_allclose(
+        R @ np.swapaxes(R, -1, -2), np.broadcast_to(np.eye(3), R.shape), atol=TIGHT
+    )
     np.testing.assert_allclose(np.linalg.det(R), 1.0, atol=TIGHT)
 
 
@@ -236,10 +240,10 @@ def test_multiply_rotate_conjugate_against_scipy(rng):
     r1 = Rotation.random(100, random_state=rng)
     r2 = Rotation.random(100, random_state=rng)
     q1, q2 = r1.as_quat(scalar_first=True), r2.as_quat(scalar_first=True)
-    assert_quat_equal(rot.quat_multiply(q1, q2), (r1 * r2).as_quat(scalar_first=True),
-                      atol=TIGHT)
-    np.testing.assert_allclose(rot.quat_to_dcm(rot.quat_multiply(q1, q2)),
-                               r1.as_matrix() @ r2.as_matrix(), atol=TIGHT)
+    assert_quat_equal(rot.quat_multiply(q1, q2), (r1 * r2).as_quat(scalar_first=True), atol=TIGHT)
+    np.testing.assert_allclose(
+        rot.quat_to_dcm(rot.quat_multiply(q1, q2)), r1.as_matrix() @ r2.as_matrix(), atol=TIGHT
+    )
     v = rng.normal(size=(100, 3))
     np.testing.assert_allclose(rot.quat_rotate(q1, v), r1.apply(v), atol=TIGHT)
     assert_quat_equal(rot.quat_conjugate(q1), r1.inv().as_quat(scalar_first=True), atol=TIGHT)
@@ -263,8 +267,7 @@ def test_rotvec_against_scipy(rng):
     q = r.as_quat(scalar_first=True)
     ours = np.array(rot.quat_to_rotvec(q))
     # At angle exactly π, v and −v are the same rotation; compare as rotations there.
-    np.testing.assert_allclose(Rotation.from_rotvec(ours).as_matrix(), r.as_matrix(),
-                               atol=TIGHT)
+    np.testing.assert_allclose(Rotation.from_rotvec(ours).as_matrix(), r.as_matrix(), atol=TIGHT)
     regular = np.linalg.norm(rv, axis=-1) < np.pi - 1e-6
     np.testing.assert_allclose(ours[regular], rv[regular], atol=TIGHT)
     assert np.all(np.linalg.norm(ours, axis=-1) <= np.pi + TIGHT)
@@ -291,9 +294,10 @@ def test_slerp_against_scipy(rng):
     assert_quat_equal(ours, ref, atol=TIGHT)
     # Shorter arc whatever the sign of q1; constant angular speed.
     assert_quat_equal(rot.slerp(q0, -q1, t), ref, atol=TIGHT)
-    steps = Rotation.from_quat(np.asarray(ours)[1:], scalar_first=True) * Rotation.from_quat(
-        np.asarray(ours)[:-1], scalar_first=True
-    ).inv()
+    steps = (
+        Rotation.from_quat(np.asarray(ours)[1:], scalar_first=True)
+        * Rotation.from_quat(np.asarray(ours)[:-1], scalar_first=True).inv()
+    )
     np.testing.assert_allclose(steps.magnitude(), steps.magnitude()[0], atol=TIGHT)
 
 
@@ -347,8 +351,7 @@ def test_euler_rates_match_rotation_path(seq, rng):
         qm = scipy_euler(seq, path_angles(t - H, c, seq)[0]).as_quat(scalar_first=True)
         qp *= np.sign(qp @ q)
         qm *= np.sign(qm @ q)
-        np.testing.assert_allclose(rot.quat_derivative(q, omega), (qp - qm) / (2 * H),
-                                   atol=FD_TOL)
+        np.testing.assert_allclose(rot.quat_derivative(q, omega), (qp - qm) / (2 * H), atol=FD_TOL)
 
         # Poisson: γ = body components of a parent-fixed unit vector, γ' = γ × ω
         e = np.array([0.0, 0.0, 1.0])
@@ -367,8 +370,7 @@ def test_zxz_literal_formulas(rng):
     psi, theta, phi = rng.uniform(-3, 3, 20), rng.uniform(0.05, 3.0, 20), rng.uniform(-3, 3, 20)
     dpsi, dtheta, dphi = rng.normal(size=(3, 20))
     angles = np.stack([psi, theta, phi], -1)
-    omega = np.array(rot.euler_rates_to_omega(angles, np.stack([dpsi, dtheta, dphi], -1),
-                                                "ZXZ"))
+    omega = np.array(rot.euler_rates_to_omega(angles, np.stack([dpsi, dtheta, dphi], -1), "ZXZ"))
     p = dpsi * np.sin(theta) * np.sin(phi) + dtheta * np.cos(phi)
     q = dpsi * np.sin(theta) * np.cos(phi) - dtheta * np.sin(phi)
     r = dpsi * np.cos(theta) + dphi
@@ -376,8 +378,9 @@ def test_zxz_literal_formulas(rng):
 
     rates = np.array(rot.omega_to_euler_rates(angles, omega, "ZXZ"))
     s = p * np.sin(phi) + q * np.cos(phi)
-    expected = np.stack([s / np.sin(theta), p * np.cos(phi) - q * np.sin(phi),
-                         r - s / np.tan(theta)], -1)
+    expected = np.stack(
+        [s / np.sin(theta), p * np.cos(phi) - q * np.sin(phi), r - s / np.tan(theta)], -1
+    )
     # 1/sinθ ≤ 20 amplifies rounding: 1e-11.
     np.testing.assert_allclose(rates, expected, atol=1e-11)
 
@@ -385,18 +388,22 @@ def test_zxz_literal_formulas(rng):
     # ψ' = (pγ + qγ')/(1 − γ''²)
     gamma = np.einsum("nji,j->ni", np.array(rot.euler_to_dcm(angles, "ZXZ")), [0, 0, 1.0])
     np.testing.assert_allclose(
-        gamma, np.stack([np.sin(theta) * np.sin(phi), np.sin(theta) * np.cos(phi),
-                         np.cos(theta)], -1), atol=TIGHT)
-    np.testing.assert_allclose((p * gamma[:, 0] + q * gamma[:, 1]) / (1 - gamma[:, 2] ** 2),
-                               dpsi, atol=1e-10)
+        gamma,
+        np.stack([np.sin(theta) * np.sin(phi), np.sin(theta) * np.cos(phi), np.cos(theta)], -1),
+        atol=TIGHT,
+    )
+    np.testing.assert_allclose(
+        (p * gamma[:, 0] + q * gamma[:, 1]) / (1 - gamma[:, 2] ** 2), dpsi, atol=1e-10
+    )
 
 
 def test_zyz_pars_formula(rng):
     """Pars (7.16.1), angles (φ, θ, ψ) in intrinsic ZYZ."""
     phi, theta, psi = rng.uniform(-3, 3, (3, 20))
     dphi, dtheta, dpsi = rng.normal(size=(3, 20))
-    omega = rot.euler_rates_to_omega(np.stack([phi, theta, psi], -1),
-                                     np.stack([dphi, dtheta, dpsi], -1), "ZYZ")
+    omega = rot.euler_rates_to_omega(
+        np.stack([phi, theta, psi], -1), np.stack([dphi, dtheta, dpsi], -1), "ZYZ"
+    )
     w1 = dtheta * np.sin(psi) - dphi * np.sin(theta) * np.cos(psi)
     w2 = dtheta * np.cos(psi) + dphi * np.sin(theta) * np.sin(psi)
     w3 = dphi * np.cos(theta) + dpsi
@@ -419,16 +426,18 @@ def test_gimbal_lock_distance_is_the_singularity_of_the_rate_map(seq, rng):
 def test_singular_rate_map_non_finite_only_at_singular_set():
     omega = jnp.array([0.1, 0.2, 0.3])
     # exactly singular: θ = 0 for ZXZ (sinθ = 0 is exact in floating point)
-    assert not np.all(np.isfinite(rot.omega_to_euler_rates(jnp.array([0.3, 0.0, 0.2]), omega,
-                                                           "ZXZ")))
+    assert not np.all(
+        np.isfinite(rot.omega_to_euler_rates(jnp.array([0.3, 0.0, 0.2]), omega, "ZXZ"))
+    )
     dist = np.array([1e-9, 1e-6, 1e-3, 0.5])
     for seq in SEQS:
         beta = dist if is_proper(seq) else np.pi / 2 - dist
         a = np.stack([np.full(4, 0.3), beta, np.full(4, -0.4)], -1)
         w = np.broadcast_to(omega, a.shape)
         assert np.all(np.isfinite(rot.omega_to_euler_rates(a, w, seq)))
-        jac = jax.vmap(jax.jacobian(lambda x, y, s=seq: rot.omega_to_euler_rates(x, y, s),
-                                    argnums=(0, 1)))
+        jac = jax.vmap(
+            jax.jacobian(lambda x, y, s=seq: rot.omega_to_euler_rates(x, y, s), argnums=(0, 1))
+        )
         assert all(np.all(np.isfinite(x)) for x in jac(a, w))
 
 
@@ -438,8 +447,11 @@ def test_singular_rate_map_non_finite_only_at_singular_set():
 
 
 def _q(rng, *shape):
-    return Rotation.random(int(np.prod(shape)), random_state=rng).as_quat(
-        scalar_first=True).reshape(*shape, 4)
+    return (
+        Rotation.random(int(np.prod(shape)), random_state=rng)
+        .as_quat(scalar_first=True)
+        .reshape(*shape, 4)
+    )
 
 
 def public_calls(rng):
@@ -480,9 +492,14 @@ def test_jit_and_vmap_equal_eager_loop(rng):
         fj = jax.jit(f)
         np.testing.assert_allclose(fj(*args), eager, atol=1e-14, err_msg=name)
         vm = jax.vmap(jax.vmap(f))(*args)
-        loop = np.stack([np.stack([np.asarray(fj(*(a[i, j] for a in args)))
-                                   for j in range(args[0].shape[1])])
-                         for i in range(args[0].shape[0])])
+        loop = np.stack(
+            [
+                np.stack(
+                    [np.asarray(fj(*(a[i, j] for a in args))) for j in range(args[0].shape[1])]
+                )
+                for i in range(args[0].shape[0])
+            ]
+        )
         np.testing.assert_allclose(vm, loop, atol=1e-14, err_msg=name)
         np.testing.assert_allclose(eager, loop, atol=1e-14, err_msg=name)
 
@@ -505,11 +522,17 @@ def test_grads_at_singular_points():
     """Rotation angle 0 and π, θ at and near 0: gradients finite (double `where` and Taylor
     series in the singular branches)."""
     # exp map at 0: dq/dv = [0; ½ I]
-    np.testing.assert_allclose(jax.jacobian(rot.quat_from_rotvec)(jnp.zeros(3)),
-                               np.vstack([np.zeros(3), 0.5 * np.eye(3)]), atol=TIGHT)
+    np.testing.assert_allclose(
+        jax.jacobian(rot.quat_from_rotvec)(jnp.zeros(3)),
+        np.vstack([np.zeros(3), 0.5 * np.eye(3)]),
+        atol=TIGHT,
+    )
     # log map at identity: dv/d(x, y, z) = 2 I
-    np.testing.assert_allclose(jax.jacobian(rot.quat_to_rotvec)(jnp.array([1.0, 0, 0, 0]))[:, 1:],
-                               2 * np.eye(3), atol=TIGHT)
+    np.testing.assert_allclose(
+        jax.jacobian(rot.quat_to_rotvec)(jnp.array([1.0, 0, 0, 0]))[:, 1:],
+        2 * np.eye(3),
+        atol=TIGHT,
+    )
     for x in [
         [0.0, 1.0, 0.0, 0.0],  # angle π
         [1e-9, 0.6, 0.8, 0.0],  # just below π
@@ -524,8 +547,9 @@ def test_grads_at_singular_points():
             q = scipy_euler(seq, [0.3, base + off, 0.2]).as_quat(scalar_first=True)
             assert _finite_grad(lambda x, s=seq: rot.quat_to_euler(x, s), q)
     assert _finite_grad(lambda q: rot.slerp(q, q, 0.5), [1.0, 0.0, 0.0, 0.0])
-    assert _finite_grad(lambda t: rot.slerp(jnp.array([1.0, 0, 0, 0]),
-                                            jnp.array([0.0, 1, 0, 0]), t), 0.5)
+    assert _finite_grad(
+        lambda t: rot.slerp(jnp.array([1.0, 0, 0, 0]), jnp.array([0.0, 1, 0, 0]), t), 0.5
+    )
 
 
 # ------------------------------------------------------------------------------------------
@@ -559,11 +583,16 @@ def test_wrong_shapes_name_the_argument():
 
 
 def test_zero_quaternion_is_a_runtime_error():
-    for f in (rot.quat_normalize, rot.quat_to_rotvec, lambda q: rot.quat_to_euler(q, "ZXZ"),
-              jax.jit(rot.quat_normalize)):
+    for f in (
+        rot.quat_normalize,
+        rot.quat_to_rotvec,
+        lambda q: rot.quat_to_euler(q, "ZXZ"),
+        jax.jit(rot.quat_normalize),
+    ):
         # eqx.EquinoxRuntimeError eagerly; under a bare jax.jit, JAX's runtime error.
-        with pytest.raises((eqx.EquinoxRuntimeError, jax.errors.JaxRuntimeError),
-                           match="zero quaternion"):
+        with pytest.raises(
+            (eqx.EquinoxRuntimeError, jax.errors.JaxRuntimeError), match="zero quaternion"
+        ):
             jax.block_until_ready(f(jnp.zeros((2, 4))))
 
 

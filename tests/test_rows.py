@@ -45,8 +45,11 @@ def check(fn, *args):
 @pytest.fixture
 def data():
     rng = np.random.default_rng(0)
-    return (jnp.asarray(rng.normal(size=(B, 3, 3))), jnp.asarray(rng.normal(size=(B, 3))),
-            jnp.asarray(rng.normal(size=(B, 4, 3))))
+    return (
+        jnp.asarray(rng.normal(size=(B, 3, 3))),
+        jnp.asarray(rng.normal(size=(B, 3))),
+        jnp.asarray(rng.normal(size=(B, 4, 3))),
+    )
 
 
 def test_contractions_reductions_and_structure(data):
@@ -86,7 +89,7 @@ def test_cond_selects_per_lane_and_calls_are_followed(data):
 
     @jax.jit
     def inner(x):
-        return x ** 2 - 1.0
+        return x**2 - 1.0
 
     def fn(v):
         picked = jax.lax.cond(v[0] > 0, lambda x: inner(x), lambda x: soft(x), v)
@@ -120,9 +123,16 @@ def test_mixed_dtypes_empty_reductions_signed_zero_sums_and_unsigned_constants(d
         w = jax.lax.dot(m.astype(jnp.float32), v, preferred_element_type=jnp.float64)
         none = v[:0]
         zeros = jnp.zeros((3, 3)) @ -jnp.abs(v)
-        return (w, jnp.sum(none), jnp.max(none, initial=-1.0), jnp.prod(none),
-                1.0 / zeros, 1.0 / jnp.sum(0.0 * -jnp.abs(v)), jnp.arctan2(0.0, zeros),
-                -jnp.asarray(3, jnp.uint32) + jnp.abs(v).astype(jnp.uint32))
+        return (
+            w,
+            jnp.sum(none),
+            jnp.max(none, initial=-1.0),
+            jnp.prod(none),
+            1.0 / zeros,
+            1.0 / jnp.sum(0.0 * -jnp.abs(v)),
+            jnp.arctan2(0.0, zeros),
+            -jnp.asarray(3, jnp.uint32) + jnp.abs(v).astype(jnp.uint32),
+        )
 
     check(fn, m, v)
 

@@ -38,9 +38,12 @@ from rbdyn_jax.scenario import (
 
 def minimal(kind: str = "rigid_body", torques=(), frame=None) -> dict:
     """The smallest scenario of `kind` with these torque tables and frame table."""
-    d = {"model": {"kind": kind, "inertia": {"principal": [1.0, 2.0, 2.5]}},
-         "initial": {"omega": [0.1, 1.0, 0.1]}, "time": {"t1": 1.0, "n": 3},
-         "outputs": {"summaries": ["max_abs_omega"]}}
+    d = {
+        "model": {"kind": kind, "inertia": {"principal": [1.0, 2.0, 2.5]}},
+        "initial": {"omega": [0.1, 1.0, 0.1]},
+        "time": {"t1": 1.0, "n": 3},
+        "outputs": {"summaries": ["max_abs_omega"]},
+    }
     if torques:
         d["model"]["torques"] = list(torques)
     if frame is not None:
@@ -58,40 +61,70 @@ def minimal(kind: str = "rigid_body", torques=(), frame=None) -> dict:
     [
         (lambda d: d["model"].update(colour="red"), "model.colour", "unknown key"),
         (lambda d: d.update(extra=1), "extra", "unknown key"),
-        (lambda d: d["model"]["inertia"].update(principal="heavy"), "model.inertia.principal",
-         "list of shape [3]"),
-        (lambda d: d["model"]["inertia"].update(principal=[1.0, 1.0, 3.0]),
-         "model.inertia.principal", "A + B ≥ C, docs/physics.md#physical-consistency"),
-        (lambda d: d["model"]["inertia"].update(principal=[1.0, 2.0]),
-         "model.inertia.principal", "shape [3]"),
+        (
+            lambda d: d["model"]["inertia"].update(principal="heavy"),
+            "model.inertia.principal",
+            "list of shape [3]",
+        ),
+        (
+            lambda d: d["model"]["inertia"].update(principal=[1.0, 1.0, 3.0]),
+            "model.inertia.principal",
+            "A + B ≥ C, docs/physics.md#physical-consistency",
+        ),
+        (
+            lambda d: d["model"]["inertia"].update(principal=[1.0, 2.0]),
+            "model.inertia.principal",
+            "shape [3]",
+        ),
         (lambda d: d["solver"].update(rtol=-1e-8), "solver.rtol", "positive"),
         (lambda d: d["solver"].update(max_steps=10.5), "solver.max_steps", "integer"),
         (lambda d: d["time"].update(n=1), "time.n", "≥ 2"),
         (lambda d: d["time"].update(t1=-1.0), "time.t1", "after t0"),
-        (lambda d: d["initial"].update(omega={"dist": "gaussian"}), "initial.omega.dist",
-         "one of"),
-        (lambda d: d["initial"].update(omega={"dist": "normal", "mean": [0, 1, 0]}),
-         "initial.omega.std", "missing"),
-        (lambda d: d["initial"].update(omega={"dist": "normal", "mean": 0, "std": -1}),
-         "initial.omega.std", "≥ 0"),
-        (lambda d: d["initial"].update(attitude={"quat": [1.0, 1.0, 0.0, 0.0]}),
-         "initial.attitude.quat", "unit quaternion"),
-        (lambda d: d["outputs"].update(summaries=["max_fun"]), "outputs.summaries",
-         "names from"),
-        (lambda d: d["model"].update(torques=[{"kind": "magnet"}]), "model.torques[0].kind",
-         "one of"),
-        (lambda d: d["model"].update(torques=[{"kind": "body"}]), "model.torques[0].moment",
-         "missing"),
+        (lambda d: d["initial"].update(omega={"dist": "gaussian"}), "initial.omega.dist", "one of"),
+        (
+            lambda d: d["initial"].update(omega={"dist": "normal", "mean": [0, 1, 0]}),
+            "initial.omega.std",
+            "missing",
+        ),
+        (
+            lambda d: d["initial"].update(omega={"dist": "normal", "mean": 0, "std": -1}),
+            "initial.omega.std",
+            "≥ 0",
+        ),
+        (
+            lambda d: d["initial"].update(attitude={"quat": [1.0, 1.0, 0.0, 0.0]}),
+            "initial.attitude.quat",
+            "unit quaternion",
+        ),
+        (lambda d: d["outputs"].update(summaries=["max_fun"]), "outputs.summaries", "names from"),
+        (
+            lambda d: d["model"].update(torques=[{"kind": "magnet"}]),
+            "model.torques[0].kind",
+            "one of",
+        ),
+        (
+            lambda d: d["model"].update(torques=[{"kind": "body"}]),
+            "model.torques[0].moment",
+            "missing",
+        ),
         (lambda d: d["model"].update(frame={"kind": "inertial"}), "model.frame", "no frame"),
-        (lambda d: d["outputs"].update(trajectories=0), "outputs.trajectories",
-         "positive integer K"),
-        (lambda d: d["outputs"].update(trajectories="some"), "outputs.trajectories",
-         '"all", "none" or'),
+        (
+            lambda d: d["outputs"].update(trajectories=0),
+            "outputs.trajectories",
+            "positive integer K",
+        ),
+        (
+            lambda d: d["outputs"].update(trajectories="some"),
+            "outputs.trajectories",
+            '"all", "none" or',
+        ),
         (lambda d: d["outputs"].update(trajectories=True), "outputs.trajectories", "got True"),
-        (lambda d: d["solver"].update(dtype="float16"), "solver.dtype",
-         '"float64" or "float32"'),
-        (lambda d: d["solver"].update(dtype="float32"), "solver.rtol",
-         '≥ 9.5e-07 with dtype = "float32"'),  # rtol 1e-9: below float32's rounding
+        (lambda d: d["solver"].update(dtype="float16"), "solver.dtype", '"float64" or "float32"'),
+        (
+            lambda d: d["solver"].update(dtype="float32"),
+            "solver.rtol",
+            '≥ 9.5e-07 with dtype = "float32"',
+        ),  # rtol 1e-9: below float32's rounding
     ],
 )
 def test_bad_scenarios_name_the_key(edit, key, words):
@@ -105,8 +138,10 @@ def test_bad_scenarios_name_the_key(edit, key, words):
 
 def test_bad_toml_file_names_the_key(tmp_path):
     f = tmp_path / "bad.toml"
-    f.write_text('[model]\nkind = "rigid_body"\n[model.inertia]\nprincipal = [1, 2, 2.5]\n'
-                 'wobble = 3\n[initial]\nomega = [0, 1, 0]\n[time]\nt1 = 1\nn = 3\n')
+    f.write_text(
+        '[model]\nkind = "rigid_body"\n[model.inertia]\nprincipal = [1, 2, 2.5]\n'
+        "wobble = 3\n[initial]\nomega = [0, 1, 0]\n[time]\nt1 = 1\nn = 3\n"
+    )
     with pytest.raises(ScenarioError, match=r"`model\.inertia\.wobble`: unknown key"):
         Scenario.from_toml(f)
     f.write_text("[model\n")
@@ -145,11 +180,20 @@ TORQUE_TABLES = {
 }
 FRAME_TABLES = {
     "inertial": [{}],
-    "constant_rate": [{"omega_e": [0.0, 0.0, 0.5]},
-                      {"omega_e": [0.0, 0.0, 0.5], "quat0": [0.0, 1.0, 0.0, 0.0]}],
+    "constant_rate": [
+        {"omega_e": [0.0, 0.0, 0.5]},
+        {"omega_e": [0.0, 0.0, 0.5], "quat0": [0.0, 1.0, 0.0, 0.0]},
+    ],
     "circular_orbit": [{"n": 0.1}],
-    "euler_angles": [{}, {"seq": "ZYX", "rate": [0.1, 0.0, 0.0], "amplitude": 0.1,
-                          "frequency": {"dist": "uniform", "low": 0.5, "high": 1.0}}],
+    "euler_angles": [
+        {},
+        {
+            "seq": "ZYX",
+            "rate": [0.1, 0.0, 0.0],
+            "amplitude": 0.1,
+            "frequency": {"dist": "uniform", "low": 0.5, "high": 1.0},
+        },
+    ],
 }
 
 
@@ -176,9 +220,17 @@ def test_every_frame_kind_builds_its_class(kind):
 
 
 def test_built_torques_carry_the_drawn_values():
-    sc = Scenario.from_dict(minimal(torques=[
-        {"kind": "body", "moment": {"dist": "normal", "mean": [0.0, 0.0, 1e-3], "std": 1e-4}},
-        {"kind": "gravity_gradient", "orbit_rate": 0.1}]))
+    sc = Scenario.from_dict(
+        minimal(
+            torques=[
+                {
+                    "kind": "body",
+                    "moment": {"dist": "normal", "mean": [0.0, 0.0, 1e-3], "std": 1e-4},
+                },
+                {"kind": "gravity_gradient", "orbit_rate": 0.1},
+            ]
+        )
+    )
     values = sc.sample(sc.dists, jax.random.key(0), 3)
     model, _ = sc.build(values)
     body, gg = model.torque.torques
@@ -194,17 +246,28 @@ def test_built_torques_carry_the_drawn_values():
         ({"torques": [{"moment": [0, 0, 1]}]}, "model.torques[0].kind", "(missing)"),
         ({"frame": {"kind": "wobbly"}}, "model.frame.kind", str(sorted(FRAMES))),
         ({"frame": {"kind": "inertial", "n": 1.0}}, "model.frame.n", "unknown key"),
-        ({"frame": {"kind": "euler_angles", "seq": "ABC"}}, "model.frame.seq",
-         "Euler sequence"),
+        ({"frame": {"kind": "euler_angles", "seq": "ABC"}}, "model.frame.seq", "Euler sequence"),
         ({"frame": {"kind": "circular_orbit"}}, "model.frame.n", "missing"),
-        ({"torques": [{"kind": "restoring_moment", "k": 1.0, "coeffs": [1.0]}]},
-         "model.torques[0]", "exactly one of `k` (constant) or `coeffs`"),
-        ({"torques": [{"kind": "restoring_moment", "coeffs": []}]},
-         "model.torques[0].coeffs", "non-empty list"),
-        ({"torques": [{"kind": "gravity_gradient"}]}, "model.torques[0]",
-         "exactly one of `eps` (3μ/R³) or `orbit_rate`"),
-        ({"torques": [{"kind": "gravity_gradient", "orbit_rate": 0.0}]},
-         "model.torques[0].orbit_rate", "positive"),
+        (
+            {"torques": [{"kind": "restoring_moment", "k": 1.0, "coeffs": [1.0]}]},
+            "model.torques[0]",
+            "exactly one of `k` (constant) or `coeffs`",
+        ),
+        (
+            {"torques": [{"kind": "restoring_moment", "coeffs": []}]},
+            "model.torques[0].coeffs",
+            "non-empty list",
+        ),
+        (
+            {"torques": [{"kind": "gravity_gradient"}]},
+            "model.torques[0]",
+            "exactly one of `eps` (3μ/R³) or `orbit_rate`",
+        ),
+        (
+            {"torques": [{"kind": "gravity_gradient", "orbit_rate": 0.0}]},
+            "model.torques[0].orbit_rate",
+            "positive",
+        ),
     ],
 )
 def test_the_schema_refuses_bad_kinds(model, key, words):
@@ -217,8 +280,11 @@ def test_the_schema_refuses_bad_kinds(model, key, words):
 
 
 def test_a_relative_only_torque_is_refused_on_a_rigid_body():
-    with pytest.raises(ScenarioError, match='`model.torques`: expected balancing_transport '
-                                            'only with kind = "relative_rigid_body"'):
+    with pytest.raises(
+        ScenarioError,
+        match="`model.torques`: expected balancing_transport "
+        'only with kind = "relative_rigid_body"',
+    ):
         Scenario.from_dict(minimal(torques=[{"kind": "balancing_transport"}]))
 
 
@@ -284,8 +350,10 @@ def test_uniform_so3_matches_scipy_random_rotations():
 
 def test_dispersed_inertia_is_physical_with_the_asked_spread():
     d = small()
-    d["model"]["inertia"] = {"matrix": [[2.0, 0.1, 0.0], [0.1, 3.0, -0.2], [0.0, -0.2, 4.0]],
-                             "log_cholesky_sigma": 0.05}
+    d["model"]["inertia"] = {
+        "matrix": [[2.0, 0.1, 0.0], [0.1, 3.0, -0.2], [0.0, -0.2, 4.0]],
+        "log_cholesky_sigma": 0.05,
+    }
     J = np.asarray(draws(Scenario.from_dict(d), 2000)["model.inertia"])
     assert bool(np.all(rb.inertia.is_physical(jnp.asarray(J))))
     assert np.all(np.linalg.eigvalsh(J) > 0) and np.allclose(J, np.swapaxes(J, -1, -2))
@@ -298,8 +366,9 @@ def test_dispersed_inertia_is_physical_with_the_asked_spread():
 def test_normal_uniform_lognormal_moments_and_independent_keys():
     d = small()
     d["initial"]["omega"] = {"dist": "lognormal", "median": [1.0, 2.0, 3.0], "sigma": 0.1}
-    d["model"]["torques"] = [{"kind": "body", "moment": {"dist": "uniform", "low": -1.0,
-                                                          "high": [1.0, 2.0, 3.0]}}]
+    d["model"]["torques"] = [
+        {"kind": "body", "moment": {"dist": "uniform", "low": -1.0, "high": [1.0, 2.0, 3.0]}}
+    ]
     d["outputs"]["summaries"] = ["max_abs_omega"]  # a body torque has no potential energy
     x = draws(Scenario.from_dict(d), 4000)
     w, m = np.asarray(x["initial.omega"]), np.asarray(x["model.torques[0].moment"])
@@ -312,7 +381,6 @@ def test_normal_uniform_lognormal_moments_and_independent_keys():
     after = draws(Scenario.from_dict(d), 50)
     assert np.array_equal(before["model.inertia"], after["model.inertia"])
     assert np.array_equal(before["initial.attitude"], after["initial.attitude"])
-
 
 
 # --------------------------------------------------------------------------------------
@@ -380,8 +448,10 @@ def test_with_settings_sets_the_dtype_and_the_states_kept():
     assert sc.with_settings() is sc and sc.with_settings(trajectories="all") is sc
     sampled = sc.with_settings(trajectories=5)
     assert (sampled.trajectories, sampled.name) == (5, "torque_free_flip")
-    assert sampled.source["outputs"]["trajectories"] == 5 and "trajectories" not in sc.source[
-        "outputs"]  # the source holds what the scenario runs with
+    assert (
+        sampled.source["outputs"]["trajectories"] == 5
+        and "trajectories" not in sc.source["outputs"]
+    )  # the source holds what the scenario runs with
     with pytest.raises(ScenarioError) as e:  # the shipped rtol, 1e-8, is finer than float32
         sc.with_settings(dtype="float32")
     assert "`solver.rtol`" in str(e.value) and "9.5e-07" in str(e.value)

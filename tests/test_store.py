@@ -23,8 +23,7 @@ N, CHUNK, LANES, SEED = 20, 8, 16, 3  # chunks of trajectories 0..7, 8..15, 16..
 
 
 def _run(out, **kw):
-    return sweep.run(Scenario.from_dict(small()), N, out, chunk=CHUNK, seed=SEED, lanes=LANES,
-                     **kw)
+    return sweep.run(Scenario.from_dict(small()), N, out, chunk=CHUNK, seed=SEED, lanes=LANES, **kw)
 
 
 @pytest.fixture(scope="module")
@@ -99,8 +98,7 @@ def test_readers_refuse_a_damaged_store(copy, tmp_path):
     """A missing chunk is refused before anything is read; a changed byte when its chunk is
     read (its checksum fails). The message names `rbdyn verify` and `--resume`."""
     os.remove(_chunk(copy, "omega", 1))
-    for read in (sweep.summarize, lambda s: sweep.to_netcdf(s, tmp_path / "x.nc"),
-                 sweep.check):
+    for read in (sweep.summarize, lambda s: sweep.to_netcdf(s, tmp_path / "x.nc"), sweep.check):
         with pytest.raises(sweep.StoreDamagedError, match=r"rbdyn verify .*--resume"):
             read(copy)
     assert not (tmp_path / "x.nc").exists()
@@ -125,7 +123,8 @@ def test_a_store_partly_solved_reads_as_not_solved_and_warns(tmp_path):
     found = sweep.verify(out)
     assert [d.variable for d in found.missing] == ["status"]
     _filled = zarr.open_group(str(out), mode="r+")["status"].with_config(
-        {"write_empty_chunks": True})
+        {"write_empty_chunks": True}
+    )
     _filled[16:] = -1  # as a store made and not yet solved there
     found = sweep.verify(out)
     assert found.whole and not found.complete and found.not_run == 4

@@ -41,11 +41,13 @@ def reference_run(tmp_path_factory):
 
 @pytest.mark.parametrize("chunk", [1, 7])
 def test_same_seed_same_bits_for_any_chunk(reference_run, tmp_path, chunk):
-    out = sweep.run(Scenario.from_dict(small()), N, tmp_path / "s.zarr", chunk=chunk, seed=3,
-                    lanes=16)
+    out = sweep.run(
+        Scenario.from_dict(small()), N, tmp_path / "s.zarr", chunk=chunk, seed=3, lanes=16
+    )
     assert_same(load(reference_run), load(out))
-    other = sweep.run(Scenario.from_dict(small()), N, tmp_path / "o.zarr", chunk=chunk,
-                      seed=4, lanes=16)
+    other = sweep.run(
+        Scenario.from_dict(small()), N, tmp_path / "o.zarr", chunk=chunk, seed=4, lanes=16
+    )
     assert not np.array_equal(load(other)["omega"], load(out)["omega"])
 
 
@@ -68,8 +70,14 @@ def test_dataset_opens_with_xarray_and_equals_simulate(reference_run):
     ds = xr.open_zarr(reference_run)
     assert ds.omega.dims == ("trajectory", "time", "axis")
     assert ds.quat.dims == ("trajectory", "time", "quat_component")
-    assert ds.sizes == {"trajectory": N, "time": 9, "axis": 3, "quat_component": 4,
-                        "row": 3, "col": 3}
+    assert ds.sizes == {
+        "trajectory": N,
+        "time": 9,
+        "axis": 3,
+        "quat_component": 4,
+        "row": 3,
+        "col": 3,
+    }
     assert ds.attrs["seed"] == 3 and ds.attrs["complete"]
     assert ds.attrs["rbdyn_jax_version"] == rb.__version__
     assert "[w, x, y, z]" in ds.attrs["rbdyn_jax_conventions"]
@@ -79,18 +87,21 @@ def test_dataset_opens_with_xarray_and_equals_simulate(reference_run):
     assert np.allclose(ts, np.linspace(0, 4, 9))
     for i in range(N):
         body = rb.RigidBody(jnp.asarray(ds.inertia.values[i]))
-        y0 = rb.State(omega=jnp.asarray(ds.omega.values[i, 0]),
-                      quat=jnp.asarray(ds.quat.values[i, 0]))
+        y0 = rb.State(
+            omega=jnp.asarray(ds.omega.values[i, 0]), quat=jnp.asarray(ds.quat.values[i, 0])
+        )
         traj = rb.simulate(body, y0, jnp.asarray(ts), rtol=1e-9, atol=1e-9)
         # the same solver and tolerances, another compiled program: agreement to a few
         # rounding-amplified steps of rtol 1e-9, far below the solution's own error
         np.testing.assert_allclose(ds.omega.values[i], traj.ys.omega, rtol=0, atol=1e-10)
         np.testing.assert_allclose(ds.quat.values[i], traj.ys.quat, rtol=0, atol=1e-10)
         E = np.asarray(rb.invariants.energy(body, traj))
-        assert ds.energy_drift.values[i] == pytest.approx(np.max(np.abs(E - E[0])) / E[0],
-                                                          rel=1e-3, abs=1e-15)
+        assert ds.energy_drift.values[i] == pytest.approx(
+            np.max(np.abs(E - E[0])) / E[0], rel=1e-3, abs=1e-15
+        )
         assert ds.max_abs_omega.values[i] == pytest.approx(
-            np.linalg.norm(traj.ys.omega, axis=-1).max(), rel=1e-10)
+            np.linalg.norm(traj.ys.omega, axis=-1).max(), rel=1e-10
+        )
         assert ds.num_steps.values[i] > 0
     stats = sweep.summarize(reference_run)
     assert stats["status"] == {"successful": N}
@@ -102,14 +113,19 @@ def test_dataset_opens_with_xarray_and_equals_simulate(reference_run):
 def test_nan_and_max_steps_are_isolated(tmp_path):
     """Lognormal rates with a huge spread: some overflow to inf (non-finite state), some are
     so fast the solver runs out of steps; the others equal `simulate` run directly."""
-    d = small(initial={"omega": {"dist": "lognormal", "median": [0.3, 1.0, 0.2],
-                                 "sigma": [0.0, 300.0, 0.0]}})
+    d = small(
+        initial={
+            "omega": {"dist": "lognormal", "median": [0.3, 1.0, 0.2], "sigma": [0.0, 300.0, 0.0]}
+        }
+    )
     d["solver"]["max_steps"] = 400
     out = sweep.run(Scenario.from_dict(d), 40, tmp_path / "f.zarr", chunk=16, seed=0, lanes=16)
     ds = xr.open_zarr(out)
     status = ds.status.values
-    nonfinite, maxed = (int(rb.RESULTS.nonfinite_state._value),
-                        int(rb.RESULTS.max_steps_reached._value))
+    nonfinite, maxed = (
+        int(rb.RESULTS.nonfinite_state._value),
+        int(rb.RESULTS.max_steps_reached._value),
+    )
     assert np.sum(status == nonfinite) >= 1 and np.sum(status == maxed) >= 1
     assert np.sum(status == 0) >= 10
     assert set(np.unique(status)) <= {0, nonfinite, maxed}
@@ -124,8 +140,9 @@ def test_nan_and_max_steps_are_isolated(tmp_path):
         y0 = rb.State(jnp.asarray(ds.omega.values[i, 0]), jnp.asarray(ds.quat.values[i, 0]))
         traj = rb.simulate(body, y0, ts, rtol=1e-9, atol=1e-9, max_steps=400)
         scale = np.abs(ds.omega.values[i]).max()
-        np.testing.assert_allclose(ds.omega.values[i], traj.ys.omega, rtol=0,
-                                   atol=1e-9 * max(scale, 1.0))
+        np.testing.assert_allclose(
+            ds.omega.values[i], traj.ys.omega, rtol=0, atol=1e-9 * max(scale, 1.0)
+        )
 
 
 def test_resume_after_kill_equals_uninterrupted(tmp_path):
@@ -134,15 +151,30 @@ def test_resume_after_kill_equals_uninterrupted(tmp_path):
     scenario = tmp_path / "slow.toml"
     scenario.write_text(
         'name = "slow"\n[model]\nkind = "rigid_body"\n[model.inertia]\n'
-        'principal = [1.0, 2.0, 2.5]\nlog_cholesky_sigma = 0.05\n'
+        "principal = [1.0, 2.0, 2.5]\nlog_cholesky_sigma = 0.05\n"
         '[initial]\nomega = { dist = "normal", mean = [0.1, 1.0, 0.1], std = 0.3 }\n'
-        '[time]\nt1 = 150.0\nn = 5\n[solver]\nrtol = 1e-8\natol = 1e-8\n'
+        "[time]\nt1 = 150.0\nn = 5\n[solver]\nrtol = 1e-8\natol = 1e-8\n"
         '[outputs]\nsummaries = ["energy_drift"]\n'
     )
     n, chunk = 64, 8
     out = tmp_path / "killed.zarr"
-    cmd = [sys.executable, "-m", "rbdyn_jax.cli", "sweep", str(scenario), "--n", str(n),
-           "--out", str(out), "--chunk", str(chunk), "--lanes", "16", "--seed", "5"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "rbdyn_jax.cli",
+        "sweep",
+        str(scenario),
+        "--n",
+        str(n),
+        "--out",
+        str(out),
+        "--chunk",
+        str(chunk),
+        "--lanes",
+        "16",
+        "--seed",
+        "5",
+    ]
     env = dict(os.environ, RBDYN_JAX_CACHE_DIR="")  # no compilation cache: a cold start
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
     done = 0
@@ -163,12 +195,21 @@ def test_resume_after_kill_equals_uninterrupted(tmp_path):
     assert 0 < np.sum(status >= 0) < n, "the kill did not land mid-run"
     assert not zarr.open_group(str(out), mode="r").attrs["complete"]
     seen = []
-    sweep.run(Scenario.from_toml(scenario), n, out, chunk=chunk, seed=5, lanes=16, resume=True,
-              progress=lambda p: seen.append(p.solved_now))
+    sweep.run(
+        Scenario.from_toml(scenario),
+        n,
+        out,
+        chunk=chunk,
+        seed=5,
+        lanes=16,
+        resume=True,
+        progress=lambda p: seen.append(p.solved_now),
+    )
     assert sum(seen) == np.sum(status < 0)  # only the missing ones were solved
     assert np.all(zarr.open_group(str(out), mode="r")["status"][:] == 0)
-    ref = sweep.run(Scenario.from_toml(scenario), n, tmp_path / "ref.zarr", chunk=chunk,
-                    seed=5, lanes=16)
+    ref = sweep.run(
+        Scenario.from_toml(scenario), n, tmp_path / "ref.zarr", chunk=chunk, seed=5, lanes=16
+    )
     names = ("omega", "quat", "inertia", "status", "energy_drift")
     assert_same(load(out, names), load(ref, names))
     assert zarr.open_group(str(out), mode="r").attrs["complete"]
@@ -176,8 +217,9 @@ def test_resume_after_kill_equals_uninterrupted(tmp_path):
 
 def test_resume_refuses_a_different_run(reference_run, tmp_path):
     with pytest.raises(ValueError, match="cannot resume"):
-        sweep.run(Scenario.from_dict(small()), N, reference_run, chunk=N, seed=4, lanes=16,
-                  resume=True)
+        sweep.run(
+            Scenario.from_dict(small()), N, reference_run, chunk=N, seed=4, lanes=16, resume=True
+        )
     (tmp_path / "x").mkdir()
     (tmp_path / "x" / "file").write_text("data")
     with pytest.raises(ValueError, match="not a sweep store"):
@@ -238,8 +280,16 @@ def test_resume_fills_scattered_gaps(reference_run, tmp_path):
     omega[gaps] = np.nan
     g["omega"][:] = omega
     seen = []
-    sweep.run(Scenario.from_dict(small()), N, out, chunk=N, seed=3, lanes=16, resume=True,
-              progress=lambda p: seen.append(p.solved_now))
+    sweep.run(
+        Scenario.from_dict(small()),
+        N,
+        out,
+        chunk=N,
+        seed=3,
+        lanes=16,
+        resume=True,
+        progress=lambda p: seen.append(p.solved_now),
+    )
     assert seen == [len(gaps)]
     assert_same(load(reference_run), load(out))
 
@@ -254,8 +304,7 @@ def snapshot(path) -> dict:
     return {p.relative_to(path): p.read_bytes() for p in sorted(path.rglob("*")) if p.is_file()}
 
 
-def test_existing_store_is_refused_untouched_and_replaced_only_when_asked(reference_run,
-                                                                          tmp_path):
+def test_existing_store_is_refused_untouched_and_replaced_only_when_asked(reference_run, tmp_path):
     import shutil
 
     out = tmp_path / "x.zarr"
@@ -285,19 +334,38 @@ def test_store_carries_cf_metadata(reference_run):
         assert v.attrs.get("long_name") and v.attrs.get("description"), name
         if v.dtype.kind not in "UOT":  # the labels (strings) have no units
             assert "units" in v.attrs, name
-    units = {k: ds[k].attrs["units"] for k in ("omega", "quat", "inertia", "time",
-                                                "energy_drift", "max_abs_omega",
-                                                "first_flip_time", "status", "num_steps")}
-    assert units == {"omega": "rad/s", "quat": "1", "inertia": "kg m2", "time": "s",
-                     "energy_drift": "1", "max_abs_omega": "rad/s", "first_flip_time": "s",
-                     "status": "1", "num_steps": "1"}
+    units = {
+        k: ds[k].attrs["units"]
+        for k in (
+            "omega",
+            "quat",
+            "inertia",
+            "time",
+            "energy_drift",
+            "max_abs_omega",
+            "first_flip_time",
+            "status",
+            "num_steps",
+        )
+    }
+    assert units == {
+        "omega": "rad/s",
+        "quat": "1",
+        "inertia": "kg m2",
+        "time": "s",
+        "energy_drift": "1",
+        "max_abs_omega": "rad/s",
+        "first_flip_time": "s",
+        "status": "1",
+        "num_steps": "1",
+    }
     assert list(ds.axis.values) == ["x", "y", "z"]
     assert list(ds.quat_component.values) == ["w", "x", "y", "z"]
     np.testing.assert_array_equal(ds.omega.sel(axis="y").values, ds.omega.values[..., 1])
-    np.testing.assert_array_equal(ds.quat.sel(quat_component="w").values,
-                                  ds.quat.values[..., 0])
-    np.testing.assert_array_equal(ds.inertia.sel(row="x", col="y").values,
-                                  ds.inertia.values[:, 0, 1])
+    np.testing.assert_array_equal(ds.quat.sel(quat_component="w").values, ds.quat.values[..., 0])
+    np.testing.assert_array_equal(
+        ds.inertia.sel(row="x", col="y").values, ds.inertia.values[:, 0, 1]
+    )
     flags = dict(zip(ds.status.attrs["flag_values"], ds.status.attrs["flag_meanings"].split()))
     assert flags == sweep.status_meanings()
     assert flags[-1] == "not_run" and flags[0] == "successful"
@@ -326,8 +394,11 @@ def test_netcdf_export_reads_back_equal(reference_run, tmp_path):
 @pytest.fixture(scope="module")
 def failing_run(tmp_path_factory):
     """40 trajectories of which some fail (non-finite or out of steps), in chunks of 8."""
-    d = small(initial={"omega": {"dist": "lognormal", "median": [0.3, 1.0, 0.2],
-                                 "sigma": [0.0, 300.0, 0.0]}})
+    d = small(
+        initial={
+            "omega": {"dist": "lognormal", "median": [0.3, 1.0, 0.2], "sigma": [0.0, 300.0, 0.0]}
+        }
+    )
     d["solver"]["max_steps"] = 400
     out = tmp_path_factory.mktemp("failing") / "f.zarr"
     return sweep.run(Scenario.from_dict(d), 40, out, chunk=8, seed=0, lanes=16)
@@ -340,8 +411,9 @@ def test_summarize_through_dask_equals_numpy(failing_run, rows):
     stats = sweep.summarize(failing_run, rows=rows)
     assert stats["n"] == 40 and stats["complete"] and stats["scenario"] == "small"
     names = sweep.status_meanings()
-    assert stats["status"] == {names[c]: int(k) for c, k in zip(*np.unique(status,
-                                                                          return_counts=True))}
+    assert stats["status"] == {
+        names[c]: int(k) for c, k in zip(*np.unique(status, return_counts=True))
+    }
     for name in ("energy_drift", "max_abs_omega", "first_flip_time"):
         x = g[name][:][status == 0]
         x = x[np.isfinite(x)]
@@ -373,8 +445,14 @@ def test_summarize_approximates_quantiles_of_a_large_store(failing_run, monkeypa
 # Stores keeping the states of every trajectory, of every K-th, or of none
 # --------------------------------------------------------------------------------------
 
-PER_TRAJECTORY = ("status", "num_steps", "inertia", "energy_drift", "max_abs_omega",
-                  "first_flip_time")
+PER_TRAJECTORY = (
+    "status",
+    "num_steps",
+    "inertia",
+    "energy_drift",
+    "max_abs_omega",
+    "first_flip_time",
+)
 
 
 @pytest.mark.parametrize("keep", ["none", 3])
@@ -382,8 +460,15 @@ def test_stores_keeping_some_states_hold_the_full_stores_bits(reference_run, tmp
     """A store keeping no states, or every 3rd trajectory's, holds bitwise the per-trajectory
     variables of the full store of the same sweep, and its rows 0, 3, 6, … of the states;
     xarray opens it, `summarize` and `to_netcdf` read it."""
-    out = sweep.run(Scenario.from_dict(small()), N, tmp_path / "k.zarr", chunk=7, seed=3,
-                    lanes=16, trajectories=keep)
+    out = sweep.run(
+        Scenario.from_dict(small()),
+        N,
+        tmp_path / "k.zarr",
+        chunk=7,
+        seed=3,
+        lanes=16,
+        trajectories=keep,
+    )
     ref, got = load(reference_run), load(out)
     assert_same({k: ref[k] for k in PER_TRAJECTORY}, {k: got[k] for k in PER_TRAJECTORY})
     ds = xr.open_zarr(out)
@@ -397,13 +482,13 @@ def test_stores_keeping_some_states_hold_the_full_stores_bits(reference_run, tmp
         assert ds.quat.dims == ("sampled_trajectory", "time", "quat_component")
         assert list(ds.sampled_trajectory.values) == [0, 3, 6, 9, 12]
         coord = ds.sampled_trajectory.attrs
-        assert coord["units"] == "1" and coord["long_name"] and "every K-th" in coord[
-            "description"]
+        assert coord["units"] == "1" and coord["long_name"] and "every K-th" in coord["description"]
         assert "one trajectory in 3: trajectories 0, 3, 6" in ds.omega.attrs["description"]
         # the chunk, rounded down to a multiple of K, holds whole zarr chunks of states
         assert ds.attrs["chunk"] == 6 and ds.omega.encoding["chunks"][0] == 2
         np.testing.assert_array_equal(  # selected by trajectory index
-            ds.status.sel(trajectory=ds.sampled_trajectory).values, ref["status"][::3])
+            ds.status.sel(trajectory=ds.sampled_trajectory).values, ref["status"][::3]
+        )
     assert sweep.summarize(out) == sweep.summarize(reference_run)
     nc = sweep.to_netcdf(out, tmp_path / "k.nc")
     xr.testing.assert_identical(xr.open_dataset(nc, engine="netcdf4").load(), ds.load())
@@ -420,17 +505,30 @@ def test_resume_a_store_of_sampled_states(reference_run, tmp_path):
             raise KeyboardInterrupt
 
     with pytest.raises(KeyboardInterrupt):
-        sweep.run(Scenario.from_dict(small()), N, out, chunk=6, seed=3, lanes=16,
-                  trajectories=3, progress=stop)
+        sweep.run(
+            Scenario.from_dict(small()),
+            N,
+            out,
+            chunk=6,
+            seed=3,
+            lanes=16,
+            trajectories=3,
+            progress=stop,
+        )
     assert np.sum(zarr.open_group(str(out), mode="r")["status"][:] >= 0) == 6
     with pytest.raises(ValueError, match="its trajectories is 3, this run's is 'none'"):
-        sweep.run(Scenario.from_dict(small()), N, out, seed=3, lanes=16, trajectories="none",
-                  resume=True)
+        sweep.run(
+            Scenario.from_dict(small()), N, out, seed=3, lanes=16, trajectories="none", resume=True
+        )
     with pytest.raises(ValueError, match="its lanes is 16, this run's is 8"):
-        sweep.run(Scenario.from_dict(small()), N, out, seed=3, lanes=8, trajectories=3,
-                  resume=True)
-    sweep.run(Scenario.from_dict(small(outputs={**small()["outputs"], "trajectories": 3})),
-              N, out, seed=3, resume=True)  # the scenario's own setting, the store's lanes
+        sweep.run(Scenario.from_dict(small()), N, out, seed=3, lanes=8, trajectories=3, resume=True)
+    sweep.run(
+        Scenario.from_dict(small(outputs={**small()["outputs"], "trajectories": 3})),
+        N,
+        out,
+        seed=3,
+        resume=True,
+    )  # the scenario's own setting, the store's lanes
     ref, got = load(reference_run), load(out)
     assert_same({k: ref[k] for k in PER_TRAJECTORY}, {k: got[k] for k in PER_TRAJECTORY})
     for k in ("omega", "quat"):
@@ -445,8 +543,15 @@ def test_a_summaries_only_store_costs_under_200_bytes_a_trajectory(tmp_path):
     24 kB, are 6 bytes a trajectory at n = 4096. Measured: 92 bytes a trajectory (bound
     200: what the store holds for every trajectory, not a state among it)."""
     n = 4096
-    out = sweep.run(Scenario.from_dict(small()), n, tmp_path / "s.zarr", chunk=256, seed=0,
-                    lanes=16, trajectories="none")
+    out = sweep.run(
+        Scenario.from_dict(small()),
+        n,
+        tmp_path / "s.zarr",
+        chunk=256,
+        seed=0,
+        lanes=16,
+        trajectories="none",
+    )
     size = sum(p.stat().st_size for p in out.rglob("*") if p.is_file())
     assert 80 < size / n < 200, size / n
 
@@ -469,29 +574,36 @@ def test_float32_sweep_agrees_with_float64_solves_of_its_draws(tmp_path):
     sc, n = Scenario.from_dict(d), 16
     out = sweep.run(sc, n, tmp_path / "f32.zarr", chunk=n, lanes=16, seed=1, dtype="float32")
     with jax.enable_x64(False):
-        off = sweep.run(sc, n, tmp_path / "off.zarr", chunk=n, lanes=16, seed=1,
-                        dtype="float32")
+        off = sweep.run(sc, n, tmp_path / "off.zarr", chunk=n, lanes=16, seed=1, dtype="float32")
     names = ("omega", "quat", "inertia", "status", "num_steps", *sc.summaries)
     assert_same(load(out, names), load(off, names))
     ds = xr.open_zarr(out).load()
     assert ds.attrs["dtype"] == "float32" and ds.time.dtype == np.float32
     assert {ds[k].dtype for k in ("omega", "quat", "inertia", *sc.summaries)} == {
-        np.dtype(np.float32)}
+        np.dtype(np.float32)
+    }
     assert (ds.status.dtype, ds.num_steps.dtype) == (np.int32, np.int64)
     assert np.all(ds.status.values == 0)
     # the float64 reference: the scenario's models built on the stored draws
     values = {k: jnp.broadcast_to(v, (n, *v.shape)) for k, v in sc.nominal().items()}
-    values.update({"model.inertia": ds.inertia.values.astype(np.float64),
-                   "initial.omega": ds.omega.values[:, 0].astype(np.float64),
-                   "initial.attitude": ds.quat.values[:, 0].astype(np.float64)})
+    values.update(
+        {
+            "model.inertia": ds.inertia.values.astype(np.float64),
+            "initial.omega": ds.omega.values[:, 0].astype(np.float64),
+            "initial.attitude": ds.quat.values[:, 0].astype(np.float64),
+        }
+    )
     models, y0s = jax.vmap(sc.build)({k: jnp.asarray(v) for k, v in values.items()})
     ts = sc.ts.astype(np.float64)
     exact = rb.simulate_batch(models, y0s, ts, model_axes=0, rtol=1e-12, atol=1e-12)
     w, w32 = np.asarray(exact.ys.omega), ds.omega.values.astype(np.float64)
     err = np.linalg.norm(w32 - w, axis=-1) / np.linalg.norm(w, axis=-1)
     assert err[:, -1].max() < 5e-4 and err.max() < 5e-4, err.max()
-    for name, bound in (("max_nutation", 4e-5), ("min_abs_omega", 4e-5),
-                        ("max_abs_omega", 3e-5)):  # measured 1.3e-5, 1.1e-5, 8.8e-6
+    for name, bound in (
+        ("max_nutation", 4e-5),
+        ("min_abs_omega", 4e-5),
+        ("max_abs_omega", 3e-5),
+    ):  # measured 1.3e-5, 1.1e-5, 8.8e-6
         ref = np.asarray(jax.vmap(SUMMARIES[name].fn)(models, exact))
         assert np.max(np.abs(ds[name].values - ref)) < bound, name
     # the energy drift at rtol 1e-6 (the exact one is ~1e-12): measured 3e-6
@@ -509,12 +621,11 @@ def test_a_float32_program_takes_its_matrix_products_in_full_float32():
     d["solver"].update(rtol=1e-6, atol=1e-6, dtype="float32")
     sc = Scenario.from_dict(d)
     runner = sweep._chunk._runner(sc, 16, tuple(jax.devices()), 16)
-    jaxpr = jax.make_jaxpr(lambda i, sc, key: sweep._chunk._chunk_program(
-        sc, runner.lanes, runner.mesh, i, key))(
-        jnp.arange(runner.size), runner.solved, jax.random.key(0))
+    jaxpr = jax.make_jaxpr(
+        lambda i, sc, key: sweep._chunk._chunk_program(sc, runner.lanes, runner.mesh, i, key)
+    )(jnp.arange(runner.size), runner.solved, jax.random.key(0))
     dots = [e for e in equations(jaxpr) if e.primitive.name == "dot_general"]
-    assert dots and all(e.params["precision"] == (jax.lax.Precision.HIGHEST,) * 2
-                        for e in dots)
+    assert dots and all(e.params["precision"] == (jax.lax.Precision.HIGHEST,) * 2 for e in dots)
 
 
 def test_chunking_on_a_cpu_and_on_a_gpu():
@@ -525,34 +636,43 @@ def test_chunking_on_a_cpu_and_on_a_gpu():
     tb = (25_000, 2_592)  # bytes a trajectory: on the device, in the largest stored chunk
     chunking = sweep.chunking
     assert chunking(10**6, platform="cpu", devices=2, memory=None, trajectory_bytes=tb) == (
-        1024, 64)
-    assert chunking(10**6, platform="cpu", devices=2, memory=None, trajectory_bytes=tb,
-                    chunk=300) == (300, 64)
+        1024,
+        64,
+    )
+    assert chunking(
+        10**6, platform="cpu", devices=2, memory=None, trajectory_bytes=tb, chunk=300
+    ) == (300, 64)
     gpu = {"platform": "gpu", "devices": 1, "memory": 60 * 10**9}
     # 1.2 M fit the memory, but a 2²⁰ chunk of quat (2592 bytes each) is 2.7 GB: 2¹⁸
     assert chunking(10**8, **gpu, trajectory_bytes=tb) == (1 << 18, -(-(1 << 18) // 3))
     # no states stored: the cap of 2²⁰; a smaller device: its memory (0.5 × 16e9 / 25e3)
     assert chunking(10**8, **gpu, trajectory_bytes=(25_000, 72)) == (1 << 20, 1 << 17)
-    assert chunking(10**8, **{**gpu, "memory": 16 * 10**9},
-                    trajectory_bytes=(25_000, 72)) == (1 << 18, -(-(1 << 18) // 3))
+    assert chunking(10**8, **{**gpu, "memory": 16 * 10**9}, trajectory_bytes=(25_000, 72)) == (
+        1 << 18,
+        -(-(1 << 18) // 3),
+    )
     # memory not known: 8 GiB; two devices: a share each
     assert chunking(10**8, **{**gpu, "memory": None}, trajectory_bytes=(25_000, 72)) == (
-        1 << 17, -(-(1 << 17) // 3))
+        1 << 17,
+        -(-(1 << 17) // 3),
+    )
     assert chunking(10**8, **{**gpu, "devices": 2}, trajectory_bytes=(25_000, 72)) == (
-        1 << 21, 1 << 17)
+        1 << 21,
+        1 << 17,
+    )
     # no more than n needs; a small share (a chunk given, say): a lane per trajectory
     assert chunking(1000, **gpu, trajectory_bytes=tb) == (1024, 1024)
     assert chunking(1000, **{**gpu, "devices": 2}, trajectory_bytes=tb) == (1024, 512)
-    assert chunking(10**8, **{**gpu, "devices": 2}, trajectory_bytes=tb, chunk=5001) == (
-        5001, 2501)
+    assert chunking(10**8, **{**gpu, "devices": 2}, trajectory_bytes=tb, chunk=5001) == (5001, 2501)
     assert chunking(10**8, **gpu, trajectory_bytes=(10**12, 72)) == (1, 1)  # at least one
     # every K-th trajectory's states: the chunk a multiple of K, when K is smaller
-    assert chunking(10**6, platform="cpu", devices=2, memory=None, trajectory_bytes=tb,
-                    every=10) == (1020, 64)
-    assert chunking(10**6, platform="cpu", devices=2, memory=None, trajectory_bytes=tb,
-                    every=3000) == (1024, 64)
-    assert chunking(10**8, **gpu, trajectory_bytes=(25_000, 72), every=1000) == (
-        1048000, 1 << 17)
+    assert chunking(
+        10**6, platform="cpu", devices=2, memory=None, trajectory_bytes=tb, every=10
+    ) == (1020, 64)
+    assert chunking(
+        10**6, platform="cpu", devices=2, memory=None, trajectory_bytes=tb, every=3000
+    ) == (1024, 64)
+    assert chunking(10**8, **gpu, trajectory_bytes=(25_000, 72), every=1000) == (1048000, 1 << 17)
 
 
 def test_trajectory_bytes_of_the_default_scenario():

@@ -23,6 +23,7 @@ distributed = pytest.importorskip("distributed")
 
 pytestmark = pytest.mark.xdist_group("dask")  # one cluster for the module (--dist loadgroup)
 
+
 @pytest.fixture(autouse=True)
 def no_cache(monkeypatch):
     """`rbdyn sweep` run in this process turns on JAX's persistent compilation cache for
@@ -32,9 +33,13 @@ def no_cache(monkeypatch):
 
 @pytest.fixture(scope="module")
 def client():
-    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
-                                  dashboard_address=":0",
-                                  env={"JAX_ENABLE_X64": "1"}) as cluster:
+    with distributed.LocalCluster(
+        n_workers=2,
+        threads_per_worker=1,
+        processes=True,
+        dashboard_address=":0",
+        env={"JAX_ENABLE_X64": "1"},
+    ) as cluster:
         with distributed.Client(cluster) as c:
             yield c
 
@@ -51,8 +56,16 @@ def reference(tmp_path_factory):
 @pytest.mark.parametrize("chunk", [16, 40])
 def test_workers_give_the_in_process_bits(client, reference, tmp_path, chunk):
     seen = []
-    out = sweep.run(Scenario.from_dict(small()), N, tmp_path / "d.zarr", chunk=chunk, seed=3,
-                    lanes=16, client=client, progress=seen.append)
+    out = sweep.run(
+        Scenario.from_dict(small()),
+        N,
+        tmp_path / "d.zarr",
+        chunk=chunk,
+        seed=3,
+        lanes=16,
+        client=client,
+        progress=seen.append,
+    )
     assert_same(load(reference), load(out))
     assert sum(p.solved_now for p in seen) == N and max(p.done for p in seen) == N
     assert len(seen) == -(-N // chunk)  # one report per task
@@ -70,13 +83,21 @@ def test_resume_on_the_cluster_after_an_interrupted_run(client, reference, tmp_p
             raise KeyboardInterrupt
 
     with pytest.raises(KeyboardInterrupt):
-        sweep.run(Scenario.from_dict(small()), N, out, chunk=16, seed=3, lanes=16,
-                  progress=stop)
+        sweep.run(Scenario.from_dict(small()), N, out, chunk=16, seed=3, lanes=16, progress=stop)
     assert np.sum(zarr.open_group(str(out), mode="r")["status"][:] >= 0) == 32
     seen = []
     # another --chunk: the tasks keep the store's chunks (no two write one zarr chunk)
-    sweep.run(Scenario.from_dict(small()), N, out, chunk=40, seed=3, lanes=16, resume=True,
-              client=client, progress=seen.append)
+    sweep.run(
+        Scenario.from_dict(small()),
+        N,
+        out,
+        chunk=40,
+        seed=3,
+        lanes=16,
+        resume=True,
+        client=client,
+        progress=seen.append,
+    )
     assert sorted(p.solved_now for p in seen) == [4, 16, 16, 16, 16]  # any order
     assert_same(load(reference), load(out))
 
@@ -85,8 +106,24 @@ def test_cli_on_a_running_scheduler(client, reference, tmp_path, capsys):
     toml = tmp_path / "small.toml"
     toml.write_text(_toml(small()))
     out = tmp_path / "cli.zarr"
-    code = cli.main(["sweep", str(toml), "--n", str(N), "--out", str(out), "--chunk", "32",
-                     "--seed", "3", "--lanes", "16", "--scheduler", client.scheduler.address])
+    code = cli.main(
+        [
+            "sweep",
+            str(toml),
+            "--n",
+            str(N),
+            "--out",
+            str(out),
+            "--chunk",
+            "32",
+            "--seed",
+            "3",
+            "--lanes",
+            "16",
+            "--scheduler",
+            client.scheduler.address,
+        ]
+    )
     assert code == 0
     assert "as Dask tasks on 2 worker(s)" in capsys.readouterr().out
     assert_same(load(reference), load(out))
@@ -98,8 +135,16 @@ def test_workers_keep_the_states_asked_for(client, reference, tmp_path, keep):
     its CPU), or of every 8th trajectory's (two rows of states a task, in zarr chunks of
     their own): the in-process full store's bits."""
     chunk = None if keep == "none" else 16
-    out = sweep.run(Scenario.from_dict(small()), N, tmp_path / "k.zarr", chunk=chunk, seed=3,
-                    lanes=16, trajectories=keep, client=client)
+    out = sweep.run(
+        Scenario.from_dict(small()),
+        N,
+        tmp_path / "k.zarr",
+        chunk=chunk,
+        seed=3,
+        lanes=16,
+        trajectories=keep,
+        client=client,
+    )
     assert zarr.open_group(str(out), mode="r").attrs["chunk"] == (chunk or 1024)
     ref, got = load(reference), load(out)
     names = [k for k in ref if k not in ("omega", "quat")]
@@ -137,8 +182,13 @@ def test_worker_killed_mid_chunk_loses_nothing(client, tmp_path):
     n, chunk = 384, 32
     out = tmp_path / "killed.zarr"
     seen, result = [], {}
-    run = threading.Thread(target=lambda: result.update(path=sweep.run(
-        sc, n, out, chunk=chunk, seed=5, lanes=16, client=client, progress=seen.append)))
+    run = threading.Thread(
+        target=lambda: result.update(
+            path=sweep.run(
+                sc, n, out, chunk=chunk, seed=5, lanes=16, client=client, progress=seen.append
+            )
+        )
+    )
     pids = client.run(os.getpid)
     run.start()
     killed = None
@@ -171,8 +221,24 @@ def test_cli_local_cluster(tmp_path, reference, capsys):
     toml = tmp_path / "small.toml"
     toml.write_text(_toml(small()))
     out = tmp_path / "w.zarr"
-    code = cli.main(["sweep", str(toml), "--n", str(N), "--out", str(out), "--chunk", "50",
-                     "--seed", "3", "--lanes", "16", "--workers", "2"])
+    code = cli.main(
+        [
+            "sweep",
+            str(toml),
+            "--n",
+            str(N),
+            "--out",
+            str(out),
+            "--chunk",
+            "50",
+            "--seed",
+            "3",
+            "--lanes",
+            "16",
+            "--workers",
+            "2",
+        ]
+    )
     assert code == 0
     assert "as Dask tasks on 2 worker(s)" in capsys.readouterr().out
     assert_same(load(reference), load(out))
@@ -180,6 +246,7 @@ def test_cli_local_cluster(tmp_path, reference, capsys):
 
 def _toml(d: dict) -> str:
     """The small scenario as TOML (its values are numbers, strings and lists)."""
+
     def value(v):
         if isinstance(v, str):
             return f'"{v}"'
@@ -207,8 +274,7 @@ def test_store_by_url_through_fsspec(client, reference, tmp_path):
     code path of `s3://` or `gs://`), by the workers too: the same bits, the same refusal
     of an existing store, and every reader takes the URL."""
     url = (tmp_path / "u.zarr").as_uri()
-    out = sweep.run(Scenario.from_dict(small()), N, url, chunk=32, seed=3, lanes=16,
-                    client=client)
+    out = sweep.run(Scenario.from_dict(small()), N, url, chunk=32, seed=3, lanes=16, client=client)
     assert out == url
     assert_same(load(reference), load(tmp_path / "u.zarr"))
     with pytest.raises(FileExistsError, match="--overwrite"):
@@ -226,15 +292,28 @@ def test_workers_without_64_bit_types_are_refused_before_any_task(tmp_path):
     the setting and the workers; the task itself refuses too, and changes no setting."""
     import jax
 
-    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
-                                  dashboard_address=":0",
-                                  env={"JAX_ENABLE_X64": "0"}) as cluster:
+    with distributed.LocalCluster(
+        n_workers=1,
+        threads_per_worker=1,
+        processes=True,
+        dashboard_address=":0",
+        env={"JAX_ENABLE_X64": "0"},
+    ) as cluster:
         with distributed.Client(cluster) as c:
             assert list(c.run(lambda: jax.config.jax_enable_x64).values()) == [False]
             with pytest.raises(ValueError, match=r"1 of 1 lack them.*JAX_ENABLE_X64=1"):
                 sweep.run(Scenario.from_dict(small()), N, tmp_path / "d.zarr", client=c)
             assert not (tmp_path / "d.zarr").exists()
             with pytest.raises(ValueError, match="float64 sweep needs 64-bit types"):
-                c.submit(sweep.solve_chunk, str(tmp_path / "d.zarr"), small(), "small", 0, N,
-                         seed=3, lanes=16, chunk=N).result()
+                c.submit(
+                    sweep.solve_chunk,
+                    str(tmp_path / "d.zarr"),
+                    small(),
+                    "small",
+                    0,
+                    N,
+                    seed=3,
+                    lanes=16,
+                    chunk=N,
+                ).result()
             assert list(c.run(lambda: jax.config.jax_enable_x64).values()) == [False]

@@ -52,8 +52,7 @@ def test_body_and_inertial_torques(rel_setup, rng):
     M = rng.normal(size=3)
     np.testing.assert_allclose(rb.BodyTorque(M)(kin, J), M, atol=TIGHT)
     # A moment fixed in O0: body components R(q_abs)ᵀ M0, q_abs = q_e ⊗ q_r (scipy).
-    np.testing.assert_allclose(rb.InertialTorque(M)(kin, J), ref["Ra"].inv().apply(M),
-                               atol=TIGHT)
+    np.testing.assert_allclose(rb.InertialTorque(M)(kin, J), ref["Ra"].inv().apply(M), atol=TIGHT)
     np.testing.assert_allclose(rb.NoTorque()(kin, J), 0.0, atol=0)
 
 
@@ -62,20 +61,23 @@ def test_uniform_gravity(rel_setup, rng):
     J = jnp.asarray(ref["J"])
     mg, r_c = 2.3, rng.normal(size=3)
     # M = r_c × (−mg γ₀) with γ₀ the inertial z0-axis in body components (scipy).
-    np.testing.assert_allclose(rb.UniformGravity(mg, r_c)(kin, J),
-                               np.cross(r_c, -mg * ref["gamma0"]), atol=TIGHT)
+    np.testing.assert_allclose(
+        rb.UniformGravity(mg, r_c)(kin, J), np.cross(r_c, -mg * ref["gamma0"]), atol=TIGHT
+    )
 
 
 def test_uniform_gravity_is_the_lagrange_top_moment(rng):
     """docs/physics.md#equations-of-motion: com = (0, 0, l) ⇒ M = k sinθ (cos φ, −sin φ, 0), k =
     m g l, with (ψ, θ, φ) the ZXZ angles of the body from scipy."""
     mg, l = 1.7, 0.4
-    model = rb.RigidBody(jnp.diag(jnp.array([1.0, 1.0, 1.5])),
-                         rb.UniformGravity(mg, jnp.array([0.0, 0.0, l])))
+    model = rb.RigidBody(
+        jnp.diag(jnp.array([1.0, 1.0, 1.5])), rb.UniformGravity(mg, jnp.array([0.0, 0.0, l]))
+    )
     for _ in range(5):
         q = random_quat(rng)
-        kin = model.kinematics(jnp.asarray(0.0), rb.State(jnp.asarray(rng.normal(size=3)),
-                                                          jnp.asarray(q)))
+        kin = model.kinematics(
+            jnp.asarray(0.0), rb.State(jnp.asarray(rng.normal(size=3)), jnp.asarray(q))
+        )
         _, th, ph = zxz(q)
         ref = mg * l * np.sin(th) * np.array([np.cos(ph), -np.sin(ph), 0.0])
         np.testing.assert_allclose(model.torque(kin, model.inertia), ref, atol=TIGHT)
@@ -104,11 +106,11 @@ def test_gravity_gradient(rel_setup):
     model, kin, ref = rel_setup
     J = ref["J"]
     g = ref["gamma"]
-    np.testing.assert_allclose(rb.GravityGradient(1.7)(kin, jnp.asarray(J)),
-                               1.7 * np.cross(g, J @ g), atol=TIGHT)
+    np.testing.assert_allclose(
+        rb.GravityGradient(1.7)(kin, jnp.asarray(J)), 1.7 * np.cross(g, J @ g), atol=TIGHT
+    )
     n = 0.37
-    np.testing.assert_allclose(rb.GravityGradient.from_orbit_rate(n).eps, 3 * n * n,
-                               rtol=TIGHT)
+    np.testing.assert_allclose(rb.GravityGradient.from_orbit_rate(n).eps, 3 * n * n, rtol=TIGHT)
 
 
 def test_balancing_transport(rel_setup):
@@ -116,8 +118,11 @@ def test_balancing_transport(rel_setup):
     of the frame (hand formula)."""
     model, kin, ref = rel_setup
     J, w_e, e_e = ref["J"], ref["w_e"], ref["e_e"]
-    np.testing.assert_allclose(rb.BalancingTransport()(kin, jnp.asarray(J)),
-                               J @ e_e - np.cross(J @ w_e, w_e), atol=10 * FD_TOL)
+    np.testing.assert_allclose(
+        rb.BalancingTransport()(kin, jnp.asarray(J)),
+        J @ e_e - np.cross(J @ w_e, w_e),
+        atol=10 * FD_TOL,
+    )
 
 
 def test_sum_torque_adds_and_flattens(rel_setup, rng):
@@ -149,13 +154,13 @@ def _fd_gradient_check(torque, kin, J, c, h=1e-6):
     assert len(leaves) == len(g_leaves) and len(leaves) > 0
     for i, leaf in enumerate(leaves):
         for idx in np.ndindex(leaf.shape):
+
             def at(d, i=i, idx=idx):
                 new = list(leaves)
                 new[i] = leaves[i].at[idx].add(d)
                 return float(f(jax.tree_util.tree_unflatten(treedef, new), J))
 
-            np.testing.assert_allclose(g_leaves[i][idx], (at(h) - at(-h)) / (2 * h),
-                                       atol=1e-7)
+            np.testing.assert_allclose(g_leaves[i][idx], (at(h) - at(-h)) / (2 * h), atol=1e-7)
     for idx in np.ndindex(3, 3):
         fd = (float(f(params, J.at[idx].add(h))) - float(f(params, J.at[idx].add(-h)))) / (2 * h)
         np.testing.assert_allclose(g_J[idx], fd, atol=1e-7)
@@ -180,12 +185,10 @@ def test_torque_parameter_gradients_match_finite_differences(rel_setup, rng):
     g = jax.grad(lambda J: jnp.dot(c, rb.BalancingTransport()(kin, J)))(J)
     w_e, e_e = np.asarray(kin.omega_e), np.asarray(kin.eps_e)
     # ∂/∂J_ij of cᵀ(J e − (J w) × w) = c_i e_j − (w × c)_i w_j
-    np.testing.assert_allclose(g, np.outer(c, e_e) - np.outer(np.cross(w_e, c), w_e),
-                               atol=TIGHT)
+    np.testing.assert_allclose(g, np.outer(c, e_e) - np.outer(np.cross(w_e, c), w_e), atol=TIGHT)
 
 
-@pytest.mark.parametrize("name", ["uniform_gravity", "restoring_moment", "gravity_gradient",
-                                  "sum"])
+@pytest.mark.parametrize("name", ["uniform_gravity", "restoring_moment", "gravity_gradient", "sum"])
 def test_potential_rate_is_minus_power(name, rng):
     """−dV/dt = ω·M for a conservative torque along any motion, and for a sum of them.
 
@@ -193,11 +196,15 @@ def test_potential_rate_is_minus_power(name, rng):
     (b) `jax.jvp` of V along the hand kinematics q' = ½ q ⊗ (0, ω), exact to rounding.
     """
     J = general_inertia(rng, [1.0, 1.5, 2.2])
-    torque = {"uniform_gravity": rb.UniformGravity(1.4, rng.normal(size=3)),
-              "restoring_moment": rb.RestoringMoment(0.9),
-              "gravity_gradient": rb.GravityGradient(2.1),
-              "sum": rb.UniformGravity(1.4, rng.normal(size=3)) + rb.GravityGradient(2.1)
-              + rb.RestoringMoment(0.9) + rb.NoTorque()}[name]
+    torque = {
+        "uniform_gravity": rb.UniformGravity(1.4, rng.normal(size=3)),
+        "restoring_moment": rb.RestoringMoment(0.9),
+        "gravity_gradient": rb.GravityGradient(2.1),
+        "sum": rb.UniformGravity(1.4, rng.normal(size=3))
+        + rb.GravityGradient(2.1)
+        + rb.RestoringMoment(0.9)
+        + rb.NoTorque(),
+    }[name]
     model = rb.RigidBody(J, torque)
     Jj = model.inertia
     t = jnp.asarray(0.0)
@@ -208,11 +215,15 @@ def test_potential_rate_is_minus_power(name, rng):
             return model.torque.potential(model.kinematics(t, rb.State(jnp.asarray(w), q)), Jj)
 
         def q_path(s, w=w, q0=q0):
-            return jnp.asarray(xyzw_to_wxyz((scipy_rot(q0) * Rotation.from_rotvec(w * s))
-                                            .as_quat()))
+            return jnp.asarray(
+                xyzw_to_wxyz((scipy_rot(q0) * Rotation.from_rotvec(w * s)).as_quat())
+            )
 
-        power = float(np.dot(w, model.torque(model.kinematics(
-            t, rb.State(jnp.asarray(w), jnp.asarray(q0))), Jj)))
+        power = float(
+            np.dot(
+                w, model.torque(model.kinematics(t, rb.State(jnp.asarray(w), jnp.asarray(q0))), Jj)
+            )
+        )
         dV_fd = (float(V(q_path(FD_H))) - float(V(q_path(-FD_H)))) / (2 * FD_H)
         np.testing.assert_allclose(dV_fd, -power, atol=FD_TOL)
         # q' = ½ q ⊗ (0, ω) by hand (Hamilton product with a pure quaternion)
@@ -227,10 +238,18 @@ def test_conservative_torques_are_abstract_conservative_torques(rng):
     """The torques with a potential are `AbstractConservativeTorque`s (abstract: `potential`
     must be implemented); the others are not, and a sum has a potential exactly when each
     of its terms has one, the refusal naming the term that has none."""
-    conservative = [rb.NoTorque(), rb.UniformGravity(1.4, rng.normal(size=3)),
-                    rb.GravityGradient(2.1), rb.RestoringMoment(0.9)]
-    other = [rb.BodyTorque(rng.normal(size=3)), rb.InertialTorque(rng.normal(size=3)),
-             rb.BalancingTransport(), conservative[1] + conservative[2]]
+    conservative = [
+        rb.NoTorque(),
+        rb.UniformGravity(1.4, rng.normal(size=3)),
+        rb.GravityGradient(2.1),
+        rb.RestoringMoment(0.9),
+    ]
+    other = [
+        rb.BodyTorque(rng.normal(size=3)),
+        rb.InertialTorque(rng.normal(size=3)),
+        rb.BalancingTransport(),
+        conservative[1] + conservative[2],
+    ]
     for torque in conservative:
         assert isinstance(torque, rb.AbstractConservativeTorque), type(torque).__name__
     for torque in other:
@@ -246,14 +265,15 @@ def test_conservative_torques_are_abstract_conservative_torques(rng):
         NoPotential()
 
     model = rb.RigidBody(general_inertia(rng, [1.0, 1.5, 2.2]))
-    kin = model.kinematics(jnp.asarray(0.3), rb.State(jnp.asarray(rng.normal(size=3)),
-                                                      jnp.asarray(random_quat(rng))))
+    kin = model.kinematics(
+        jnp.asarray(0.3), rb.State(jnp.asarray(rng.normal(size=3)), jnp.asarray(random_quat(rng)))
+    )
     J = model.inertia
     assert float(rb.NoTorque().potential(kin, J)) == 0.0
     total = sum(conservative[1:], conservative[0])
-    np.testing.assert_allclose(total.potential(kin, J),
-                               sum(float(t.potential(kin, J)) for t in conservative),
-                               rtol=TIGHT)
+    np.testing.assert_allclose(
+        total.potential(kin, J), sum(float(t.potential(kin, J)) for t in conservative), rtol=TIGHT
+    )
     with pytest.raises(ValueError, match="BodyTorque has no potential energy.*GravityGradient"):
         (rb.GravityGradient(2.1) + other[0]).potential(kin, J)
     k = rb.RestoringMoment(rb.PolynomialSinPsi(jnp.array([0.7, -0.4]), 0.3))
@@ -267,11 +287,17 @@ def test_conservative_torques_are_abstract_conservative_torques(rng):
 def test_energy_refuses_a_torque_with_no_potential(name):
     """`invariants.energy` names the torque with no potential, alone or in a sum (at trace
     time: shapes only)."""
-    torque = (rb.BodyTorque(jnp.ones(3)) if name == "BodyTorque"
-              else rb.NoTorque() + rb.InertialTorque(jnp.ones(3)))
+    torque = (
+        rb.BodyTorque(jnp.ones(3))
+        if name == "BodyTorque"
+        else rb.NoTorque() + rb.InertialTorque(jnp.ones(3))
+    )
     model = rb.RigidBody(jnp.diag(jnp.array([1.0, 1.5, 2.2])), torque)
-    traj = rb.Trajectory(ts=jnp.zeros(2), ys=rb.State(jnp.zeros((2, 3)),
-                                                      jnp.tile(jnp.eye(4)[0], (2, 1))),
-                         stats={}, result=rb.RESULTS.successful)
+    traj = rb.Trajectory(
+        ts=jnp.zeros(2),
+        ys=rb.State(jnp.zeros((2, 3)), jnp.tile(jnp.eye(4)[0], (2, 1))),
+        stats={},
+        result=rb.RESULTS.successful,
+    )
     with pytest.raises(ValueError, match=f"{name} has no potential energy"):
         jax.eval_shape(rb.invariants.energy, model, traj)

@@ -29,8 +29,16 @@ def solve_args(model=None, y0=None, ts=TS, solver=None, max_steps=4096, rtol=1e-
     model = rb.RigidBody(J) if model is None else model
     y0 = rb.State(jnp.array([0.3, -1.0, 0.5]), jnp.array([1.0, 0, 0, 0])) if y0 is None else y0
     ts, controller, max_steps = _simulate._prepare(model, y0, ts, None, rtol, 1e-8, max_steps)
-    return (model, y0, ts, diffrax.Tsit5() if solver is None else solver, controller,
-            diffrax.RecursiveCheckpointAdjoint(), max_steps, None)
+    return (
+        model,
+        y0,
+        ts,
+        diffrax.Tsit5() if solver is None else solver,
+        controller,
+        diffrax.RecursiveCheckpointAdjoint(),
+        max_steps,
+        None,
+    )
 
 
 def test_key_is_the_same_for_new_values_and_differs_for_a_new_program():
@@ -46,8 +54,9 @@ def test_key_is_the_same_for_new_values_and_differs_for_a_new_program():
         solve_args(solver=diffrax.Dopri5()),  # another solver class
         solve_args(ts=np.linspace(0.0, 5.0, 12)),  # a shape
         solve_args(model=rb.RigidBody(J, rb.UniformGravity(1.0, jnp.array([0.0, 0, 0.5])))),
-        solve_args(y0=rb.State(jnp.array([0.3, -1.0, 0.5], jnp.float32),
-                               jnp.array([1.0, 0, 0, 0]))),  # a dtype
+        solve_args(
+            y0=rb.State(jnp.array([0.3, -1.0, 0.5], jnp.float32), jnp.array([1.0, 0, 0, 0]))
+        ),  # a dtype
     ]
     keys = [_traces.key("solve", a) for a in other]
     assert None not in keys
@@ -72,8 +81,18 @@ def test_key_refuses_what_it_cannot_describe():
     assert _traces.key("f", (lambda x: scale * x,)) is None  # a test module's function
     assert _traces.key("f", (object(),)) is None  # an object known only by its address
     # the libraries' own classes and functions are described by name
-    assert _traces.key("f", (diffrax.PIDController, jnp.float64, rb.inertia.principal_axes,
-                             diffrax.RESULTS.successful)) is not None
+    assert (
+        _traces.key(
+            "f",
+            (
+                diffrax.PIDController,
+                jnp.float64,
+                rb.inertia.principal_axes,
+                diffrax.RESULTS.successful,
+            ),
+        )
+        is not None
+    )
     # a numpy array is an input (its values are not in the key); a static one (an
     # equinox static field) is described by its content
     assert _traces.key("f", (np.arange(3.0),)) == _traces.key("f", (np.arange(3.0) + 1,))
@@ -127,8 +146,13 @@ def _run(cache, tmp_path, script=SCRIPT, **env):
     # gradients.py sets two on import, `import rbdyn_jax` one per core unless
     # RBDYN_JAX_CONFIGURE_XLA=0), and the device count is in every key.
     base = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=1")
-    proc = subprocess.run([sys.executable, str(script), str(cache), str(out)],
-                          capture_output=True, text=True, timeout=300, env=dict(base, **env))
+    proc = subprocess.run(
+        [sys.executable, str(script), str(cache), str(out)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env=dict(base, **env),
+    )
     assert proc.returncode == 0, proc.stderr
     return json.loads(proc.stdout.strip().splitlines()[-1]), dict(np.load(out))
 
@@ -142,7 +166,8 @@ def _stored_then_loaded(tmp_path, script, stores, hits):
     assert [stats for stats, _ in runs] == [
         {"hits": 0, "stores": 0, "uncacheable": 0},
         {"hits": 0, "stores": stores, "uncacheable": 0},
-        {"hits": hits, "stores": 0, "uncacheable": 0}]
+        {"hits": hits, "stores": 0, "uncacheable": 0},
+    ]
     ref = runs[0][1]
     for _, out in runs[1:]:
         assert_same(out, ref)
@@ -281,8 +306,12 @@ def test_a_callers_gradient_holds_the_stored_loops_and_gets_the_same_results(tmp
     assert cold_stats == {"hits": 0, "stores": 3, "uncacheable": 0, "loops": 3}
     assert warm_stats == {"hits": 3, "stores": 0, "uncacheable": 0, "loops": 0}
     for out in (cold, warm):
-        np.testing.assert_allclose(out.pop("hessian"), ref["hessian"], rtol=1e-13,
-                                   atol=1e-13 * np.abs(ref["hessian"]).max())
+        np.testing.assert_allclose(
+            out.pop("hessian"),
+            ref["hessian"],
+            rtol=1e-13,
+            atol=1e-13 * np.abs(ref["hessian"]).max(),
+        )
     assert_same(cold, {k: v for k, v in ref.items() if k != "hessian"})
     assert_same(warm, cold)
     assert np.all(np.isfinite(ref["hessian"]))
@@ -361,8 +390,9 @@ def test_key_holds_the_compiler_options():
 
 def test_memo_tells_signed_zeros_apart():
     """0.0 == -0.0 in Python, but a trace may hold either: the memo keys floats by repr."""
-    keys = [_traces._memo_key("f", *reversed(jax.tree_util.tree_flatten((z,))))
-            for z in (0.0, -0.0)]
+    keys = [
+        _traces._memo_key("f", *reversed(jax.tree_util.tree_flatten((z,)))) for z in (0.0, -0.0)
+    ]
     assert keys[0] != keys[1]
     assert keys == [_traces.key("f", (0.0,)), _traces.key("f", (-0.0,))]
 
@@ -377,8 +407,9 @@ def test_numpy_inputs_inside_a_callers_trace_are_checked_now_not_at_run_time():
     def omegas(w, Jm=np.asarray(J)):
         # One device: a check that fails in a program over several devices aborts the
         # process (`rb.Lanes`).
-        traj = rb.simulate_batch(rb.RigidBody(Jm), rb.State(w, q), TS,
-                                 batching=rb.Lanes(2, devices=1))
+        traj = rb.simulate_batch(
+            rb.RigidBody(Jm), rb.State(w, q), TS, batching=rb.Lanes(2, devices=1)
+        )
         return traj.ys.omega
 
     w = jnp.ones((3, 3))
@@ -389,5 +420,8 @@ def test_numpy_inputs_inside_a_callers_trace_are_checked_now_not_at_run_time():
         jax.block_until_ready(jax.jit(lambda w: omegas(w, bad))(w))
     ts_bad = TS[::-1]
     with pytest.raises(ValueError, match="increasing"):
-        jax.make_jaxpr(lambda w: rb.simulate_batch(rb.RigidBody(J), rb.State(w, q),
-                                                    ts_bad, batching=rb.Lanes(2)))(w)
+        jax.make_jaxpr(
+            lambda w: rb.simulate_batch(
+                rb.RigidBody(J), rb.State(w, q), ts_bad, batching=rb.Lanes(2)
+            )
+        )(w)

@@ -23,10 +23,15 @@ def test_written_out_products_match_numpy(rng):
     written-out arithmetic shows at round-off level."""
     M = rng.normal(size=(5, 3, 3))
     a, b = rng.normal(size=(2, 5, 3))
-    np.testing.assert_allclose(_vector.matvec(jnp.asarray(M), jnp.asarray(a)),
-                               np.einsum("nij,nj->ni", M, a), rtol=1e-14, atol=1e-14)
-    np.testing.assert_allclose(_vector.cross(jnp.asarray(a), jnp.asarray(b)),
-                               np.cross(a, b), rtol=1e-14, atol=1e-14)
+    np.testing.assert_allclose(
+        _vector.matvec(jnp.asarray(M), jnp.asarray(a)),
+        np.einsum("nij,nj->ni", M, a),
+        rtol=1e-14,
+        atol=1e-14,
+    )
+    np.testing.assert_allclose(
+        _vector.cross(jnp.asarray(a), jnp.asarray(b)), np.cross(a, b), rtol=1e-14, atol=1e-14
+    )
 
 
 def test_parts_are_the_components_of_the_products(rng):
@@ -42,10 +47,12 @@ def test_parts_are_the_components_of_the_products(rng):
     np.testing.assert_allclose(np.stack(Jv), J @ a, rtol=1e-14, atol=1e-14)
     axb = _vector.cross_parts(_vector.split(jnp.asarray(a)), _vector.split(jnp.asarray(b)))
     np.testing.assert_allclose(np.stack(axb), np.cross(a, b), rtol=1e-14, atol=1e-14)
-    np.testing.assert_allclose(_vector.matvec(jnp.asarray(J), jnp.asarray(a)), J @ a,
-                               rtol=1e-14, atol=1e-14)
-    np.testing.assert_allclose(_vector.cross(jnp.asarray(a), jnp.asarray(b)), np.cross(a, b),
-                               rtol=1e-14, atol=1e-14)
+    np.testing.assert_allclose(
+        _vector.matvec(jnp.asarray(J), jnp.asarray(a)), J @ a, rtol=1e-14, atol=1e-14
+    )
+    np.testing.assert_allclose(
+        _vector.cross(jnp.asarray(a), jnp.asarray(b)), np.cross(a, b), rtol=1e-14, atol=1e-14
+    )
 
 
 def test_products_stay_elementwise():
@@ -62,8 +69,9 @@ def test_products_stay_elementwise():
 def test_parse_seq_accepts_scipy_sequences(extrinsic):
     """The 12 sequences scipy accepts (no axis repeated consecutively), upper case intrinsic
     and lower case extrinsic, with their axis indices."""
-    valid = ["".join(s) for s in itertools.product("xyz", repeat=3)
-             if s[0] != s[1] and s[1] != s[2]]
+    valid = [
+        "".join(s) for s in itertools.product("xyz", repeat=3) if s[0] != s[1] and s[1] != s[2]
+    ]
     assert len(valid) == 12
     for seq in valid:
         seq = seq if extrinsic else seq.upper()

@@ -46,9 +46,11 @@ def test_wrapped_function_runs_alike_at_top_level_and_nested(jitter):
     np.testing.assert_allclose(f(x), want, rtol=1e-15)  # own program, with the options
     np.testing.assert_allclose(jax.jit(f)(x), want, rtol=1e-15)  # nested: a plain jit
     np.testing.assert_allclose(jax.vmap(f)(x), want, rtol=1e-15)
-    np.testing.assert_allclose(jax.grad(lambda x: jnp.sum(f(x)))(x),
-                               np.sin(np.asarray(x)) + np.asarray(x) * np.cos(np.asarray(x)),
-                               rtol=1e-14)
+    np.testing.assert_allclose(
+        jax.grad(lambda x: jnp.sum(f(x)))(x),
+        np.sin(np.asarray(x)) + np.asarray(x) * np.cos(np.asarray(x)),
+        rtol=1e-14,
+    )
 
 
 def test_a_nested_jit_with_options_is_what_jax_0_10_refuses():
@@ -105,15 +107,20 @@ def test_every_program_is_compiled_through_xla():
     """`_program/xla.py` owns how rbdyn_jax compiles: every other module jits through its `jit` and
     `filter_jit`, which pass `COMPILER_OPTIONS` (a jit of its own would compile without
     them, ~1/3 slower on CPU)."""
-    found = {str(p.relative_to(PACKAGE)): direct_jits(p) for p in PACKAGE.rglob("*.py")
-             if p.relative_to(PACKAGE).as_posix() != "_program/xla.py"}
+    found = {
+        str(p.relative_to(PACKAGE)): direct_jits(p)
+        for p in PACKAGE.rglob("*.py")
+        if p.relative_to(PACKAGE).as_posix() != "_program/xla.py"
+    }
     assert not {k: v for k, v in found.items() if v}
 
 
 def test_jit_checker_sees_a_direct_jit(tmp_path):
     bad = tmp_path / "m.py"
-    bad.write_text('"""jax.jit in a docstring"""\nimport jax\nf = jax.jit(g)\n\n'
-                   "@eqx.filter_jit\ndef h(): ...\n")
+    bad.write_text(
+        '"""jax.jit in a docstring"""\nimport jax\nf = jax.jit(g)\n\n'
+        "@eqx.filter_jit\ndef h(): ...\n"
+    )
     assert direct_jits(bad) == [3, 5]
 
 
@@ -145,18 +152,22 @@ def flags(monkeypatch):
 
 def test_configure_xla_adds_its_flags(flags):
     assert flags(None) == f"--xla_backend_extra_options={LOOP}"
-    assert flags("", host_devices=3) == (f"--xla_backend_extra_options={LOOP} "
-                                         "--xla_force_host_platform_device_count=3")
+    assert flags("", host_devices=3) == (
+        f"--xla_backend_extra_options={LOOP} --xla_force_host_platform_device_count=3"
+    )
     again = flags(flags("--xla_dump_to=/tmp/x", host_devices=2), host_devices=2)
-    assert again == (f"--xla_dump_to=/tmp/x --xla_backend_extra_options={LOOP} "
-                     "--xla_force_host_platform_device_count=2")  # idempotent
+    assert again == (
+        f"--xla_dump_to=/tmp/x --xla_backend_extra_options={LOOP} "
+        "--xla_force_host_platform_device_count=2"
+    )  # idempotent
 
 
 def test_configure_xla_keeps_what_xla_flags_already_say(flags):
     # Other backend options stay beside the loop threshold (XLA keeps only the last
     # `--xla_backend_extra_options`, so they must share it).
     assert flags("--xla_backend_extra_options=a=1,b=2") == (
-        f"--xla_backend_extra_options=a=1,b=2,{LOOP}")
+        f"--xla_backend_extra_options=a=1,b=2,{LOOP}"
+    )
     mine = f"--xla_backend_extra_options={_xla_flags.LOOP_OPTION}=0"
     assert flags(mine) == mine  # the caller's threshold wins
     count = "--xla_force_host_platform_device_count=1"
@@ -176,7 +187,8 @@ def test_configure_xla_replaces_only_the_count_the_import_set(flags, monkeypatch
     assert flags(imported, host_devices=1) == f"--xla_backend_extra_options={LOOP} {COUNT}=1"
     assert _xla_flags._count_set_on_import is None  # the caller's count now
     assert flags(f"--xla_backend_extra_options={LOOP} {COUNT}=1", host_devices=3) == (
-        f"--xla_backend_extra_options={LOOP} {COUNT}=1")
+        f"--xla_backend_extra_options={LOOP} {COUNT}=1"
+    )
     monkeypatch.setattr(_xla_flags, "_count_set_on_import", ours)
     users = f"{COUNT}=2 --xla_backend_extra_options={LOOP}"
     assert flags(users, host_devices=1) == users
@@ -223,10 +235,14 @@ print(json.dumps({{"flags": flags, "now": os.environ.get("XLA_FLAGS"),
 def fresh(before="", after="", **env):
     """What a fresh process that imports rbdyn_jax sees: XLA_FLAGS after the import and
     after `after`, and its number of XLA devices."""
-    base = {k: v for k, v in os.environ.items()
-            if k not in ("XLA_FLAGS", _xla_flags.OPT_OUT)}
-    run = subprocess.run([sys.executable, "-c", _REPORT.format(before=before, after=after)],
-                         env=dict(base, **env), capture_output=True, text=True, timeout=300)
+    base = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", _xla_flags.OPT_OUT)}
+    run = subprocess.run(
+        [sys.executable, "-c", _REPORT.format(before=before, after=after)],
+        env=dict(base, **env),
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert run.returncode == 0, run.stderr[-3000:]
     return json.loads(run.stdout.strip().splitlines()[-1])
 
@@ -241,26 +257,32 @@ def test_import_gives_one_device_per_core_and_loops_compiled_whole():
     assert after_jax == got
 
 
-@pytest.mark.skipif(not hasattr(os, "sched_setaffinity") or _xla_flags.usable_cores() < 2,
-                    reason="needs CPU affinity and two cores")
+@pytest.mark.skipif(
+    not hasattr(os, "sched_setaffinity") or _xla_flags.usable_cores() < 2,
+    reason="needs CPU affinity and two cores",
+)
 def test_a_process_limited_to_one_core_gets_one_device():
     got = fresh(before="os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})")
     assert got["flags"] == f"--xla_backend_extra_options={LOOP} {COUNT}=1"
     assert got["devices"] == 1
 
 
-@pytest.mark.parametrize("users, devices", [
-    (f"{COUNT}=1", 1),
-    (f"{COUNT}=1 --xla_cpu_multi_thread_eigen=true", 1),
-    (f"--xla_backend_extra_options={_xla_flags.LOOP_OPTION}=0", None),
-    ("--xla_cpu_multi_thread_eigen=true", None),
-], ids=["count", "count-and-other", "threshold", "other"])
+@pytest.mark.parametrize(
+    "users, devices",
+    [
+        (f"{COUNT}=1", 1),
+        (f"{COUNT}=1 --xla_cpu_multi_thread_eigen=true", 1),
+        (f"--xla_backend_extra_options={_xla_flags.LOOP_OPTION}=0", None),
+        ("--xla_cpu_multi_thread_eigen=true", None),
+    ],
+    ids=["count", "count-and-other", "threshold", "other"],
+)
 def test_import_never_overrides_the_users_flags(users, devices):
     """Each of the user's flags stays as written; only what it leaves out is added."""
     cores = _xla_flags.usable_cores()
     got = fresh(XLA_FLAGS=users)
     assert got["flags"].startswith(users)
-    assert got["flags"].split()[:len(users.split())] == users.split()
+    assert got["flags"].split()[: len(users.split())] == users.split()
     assert got["flags"].count(COUNT) == 1 and got["flags"].count(_xla_flags.LOOP_OPTION) == 1
     assert got["devices"] == (devices or cores)
     if _xla_flags.LOOP_OPTION in users:
@@ -277,9 +299,11 @@ def test_opting_out_leaves_xla_flags_alone():
 def test_import_after_jax_computed_changes_nothing():
     """XLA has read its flags: the import changes none and raises nothing, and the library
     runs on the device JAX started."""
-    got = fresh(before="import jax; jax.numpy.ones(2).block_until_ready()",
-                after="jnp = jax.numpy; rb.simulate(rb.RigidBody(jnp.eye(3)), rb.State("
-                      "jnp.ones(3), jnp.array([1.0, 0, 0, 0])), jnp.array([0.0, 1.0]))")
+    got = fresh(
+        before="import jax; jax.numpy.ones(2).block_until_ready()",
+        after="jnp = jax.numpy; rb.simulate(rb.RigidBody(jnp.eye(3)), rb.State("
+        "jnp.ones(3), jnp.array([1.0, 0, 0, 0])), jnp.array([0.0, 1.0]))",
+    )
     assert got == {"flags": None, "now": None, "devices": 1}
 
 
@@ -332,13 +356,23 @@ def test_configured_xla_compiles_every_loop_whole_with_the_same_results(tmp_path
     script.write_text(_PROGRAM)
     env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
     env[_xla_flags.OPT_OUT] = "0"
-    run = subprocess.run([sys.executable, str(script), "configure", str(tmp_path / "on.npz")],
-                         env=env, capture_output=True, text=True, timeout=600)
+    run = subprocess.run(
+        [sys.executable, str(script), "configure", str(tmp_path / "on.npz")],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert run.returncode == 0, run.stderr[-3000:]
     loops, whole = map(int, run.stdout.split()[-2:])
     assert loops >= 2 and whole == loops  # the lane loop and its stage loop, and more
-    here = subprocess.run([sys.executable, str(script), "default", str(tmp_path / "off.npz")],
-                          env=env, capture_output=True, text=True, timeout=600)
+    here = subprocess.run(
+        [sys.executable, str(script), "default", str(tmp_path / "off.npz")],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert here.returncode == 0, here.stderr[-3000:]
     loops_default, whole_default = map(int, here.stdout.split()[-2:])
     assert loops_default == loops and whole_default < loops  # XLA's own threshold is small

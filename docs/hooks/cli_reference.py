@@ -33,8 +33,7 @@ def cli_parser() -> argparse.ArgumentParser:
     return cli.build_parser()
 
 
-def subcommands(parser: argparse.ArgumentParser) -> dict[str, tuple[argparse.ArgumentParser,
-                                                                     str]]:
+def subcommands(parser: argparse.ArgumentParser) -> dict[str, tuple[argparse.ArgumentParser, str]]:
     """Subcommand name → (its parser, its one-line help), in the parser's order."""
     out = {}
     for action in parser._actions:
@@ -101,8 +100,10 @@ def render(parser: argparse.ArgumentParser, prog: str | None = None) -> str:
 
 
 def _overview(parser: argparse.ArgumentParser) -> str:
-    rows = [f"| [`{name}`](#rbdyn-{name}) | {_cell(help_text)} |"
-            for name, (_, help_text) in subcommands(parser).items()]
+    rows = [
+        f"| [`{name}`](#rbdyn-{name}) | {_cell(help_text)} |"
+        for name, (_, help_text) in subcommands(parser).items()
+    ]
     table = "\n".join(["| subcommand | what it does |", "|---|---|", *rows])
     return f"{render(parser)}\n{table}\n"
 
@@ -119,8 +120,10 @@ def on_page_markdown(markdown: str, page, **kwargs) -> str:
         if cmd is None:
             return _overview(parser)
         if cmd not in commands:
-            log.warning(f"{PAGE}: marker for `rbdyn {cmd}`, which is not a subcommand "
-                        f"(subcommands: {', '.join(commands)})")
+            log.warning(
+                f"{PAGE}: marker for `rbdyn {cmd}`, which is not a subcommand "
+                f"(subcommands: {', '.join(commands)})"
+            )
             return m[0]
         seen.add(cmd)
         return render(commands[cmd][0])
@@ -128,6 +131,8 @@ def on_page_markdown(markdown: str, page, **kwargs) -> str:
     markdown = MARKER.sub(replace, markdown)
     for cmd in commands:
         if cmd not in seen:
-            log.warning(f"{PAGE}: `rbdyn {cmd}` is not documented: add a section with the "
-                        f"marker <!-- rbdyn-help {cmd} -->")
+            log.warning(
+                f"{PAGE}: `rbdyn {cmd}` is not documented: add a section with the "
+                f"marker <!-- rbdyn-help {cmd} -->"
+            )
     return markdown

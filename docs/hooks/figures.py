@@ -52,9 +52,16 @@ JAX_CACHE = ROOT / "results" / "docs" / "jax-cache"
 HOOK = pathlib.Path(__file__).resolve()  # a change to this hook reruns the examples
 DEFAULT_OUT = "results/examples"  # the examples' own default --out-dir, shown in printouts
 
-EXAMPLES = ("torque_free_flip", "lagrange_top", "gg_integrable", "satellite_pitch",
-            "rotating_platform", "long_horizon_sweep", "identify_inertia",
-            "identify_restoring_moment")
+EXAMPLES = (
+    "torque_free_flip",
+    "lagrange_top",
+    "gg_integrable",
+    "satellite_pitch",
+    "rotating_platform",
+    "long_horizon_sweep",
+    "identify_inertia",
+    "identify_restoring_moment",
+)
 
 # The performance page's plots: `plot(rows, path)` of each benchmark script named here,
 # drawn from its committed JSON.
@@ -107,7 +114,8 @@ def _run(name: str, command: list[str], dest: pathlib.Path, expected: list[str])
         raise PluginError(
             f"figures: {name} failed (exit status {proc.returncode}"
             + (f", did not write {', '.join(missing)}" if missing else "")
-            + f"): {' '.join(command)}\n{proc.stdout[-3000:]}{proc.stderr[-3000:]}")
+            + f"): {' '.join(command)}\n{proc.stdout[-3000:]}{proc.stderr[-3000:]}"
+        )
     printed = proc.stdout.replace(str(tmp), DEFAULT_OUT)
     (tmp / "output.txt").write_text(printed)
     for f in tmp.iterdir():  # dated by the start: a source edited during the run is newer
@@ -135,21 +143,25 @@ def on_files(files: Files, config) -> Files:
         dest = CACHE / "performance" / plot
         if _stale([dest / f"{plot}.png"], [script, result], library):
             jobs[f"{plot} plot"] = (
-                [sys.executable, "-c", _RUN_PLOT, str(script), str(result),
-                 f"{{out}}/{plot}.png"], dest, [f"{plot}.png"])
+                [sys.executable, "-c", _RUN_PLOT, str(script), str(result), f"{{out}}/{plot}.png"],
+                dest,
+                [f"{plot}.png"],
+            )
 
     if jobs:
         workers = int(os.environ.get("RBDYN_DOCS_JOBS", os.cpu_count() or 1))
-        log.info(f"figures: running {len(jobs)} script(s), {workers} at a time: "
-                 f"{', '.join(jobs)}")
+        log.info(f"figures: running {len(jobs)} script(s), {workers} at a time: {', '.join(jobs)}")
         t0 = time.perf_counter()
         with concurrent.futures.ThreadPoolExecutor(max_workers=workers) as pool:
             # the identification examples take longest: start them first
             order = sorted(jobs, key=lambda n: not n.startswith("identify"))
             futures = {n: pool.submit(_run, n, *jobs[n]) for n in order}
             walls = {n: f.result() for n, f in futures.items()}
-        log.info("figures: " + ", ".join(f"{n} {w:.1f} s" for n, w in walls.items())
-                 + f"; {time.perf_counter() - t0:.1f} s in all")
+        log.info(
+            "figures: "
+            + ", ".join(f"{n} {w:.1f} s" for n, w in walls.items())
+            + f"; {time.perf_counter() - t0:.1f} s in all"
+        )
 
     # Hook modules (docs/hooks/*.py) are build code, not pages or assets of the site.
     for f in [f for f in files if f.src_uri.startswith("hooks/")]:

@@ -114,13 +114,17 @@ def _field_arguments(value: Any) -> dict[str, Any] | None:
 def _parameters(cls: griffe.Class) -> list[griffe.Parameter]:
     params: list[griffe.Parameter] = []
     for member in cls.members.values():
-        if (not isinstance(member, griffe.Attribute) or member.annotation is None
-                or "property" in member.labels):
+        if (
+            not isinstance(member, griffe.Attribute)
+            or member.annotation is None
+            or "property" in member.labels
+        ):
             continue
         if _canonical(member.annotation).startswith(_NOT_FIELDS):
             continue
         if isinstance(member.annotation, griffe.ExprSubscript) and _canonical(
-                member.annotation.left).startswith(_NOT_FIELDS):
+            member.annotation.left
+        ).startswith(_NOT_FIELDS):
             continue
         args = _field_arguments(member.value)
         if args is not None:
@@ -132,9 +136,14 @@ def _parameters(cls: griffe.Class) -> list[griffe.Parameter]:
                 default = args.get("default")
         else:
             default = member.value
-        params.append(griffe.Parameter(member.name, annotation=member.annotation,
-                                       kind=griffe.ParameterKind.positional_or_keyword,
-                                       default=default))
+        params.append(
+            griffe.Parameter(
+                member.name,
+                annotation=member.annotation,
+                kind=griffe.ParameterKind.positional_or_keyword,
+                default=default,
+            )
+        )
     return params
 
 
@@ -151,11 +160,16 @@ def _set_init(cls: griffe.Class) -> None:
         for p in _parameters(c):
             by_name[p.name] = p
     init = griffe.Function(
-        "__init__", lineno=0, endlineno=0, parent=cls,
+        "__init__",
+        lineno=0,
+        endlineno=0,
+        parent=cls,
         parameters=griffe.Parameters(
             griffe.Parameter("self", kind=griffe.ParameterKind.positional_or_keyword),
-            *by_name.values()),
-        returns="None")
+            *by_name.values(),
+        ),
+        returns="None",
+    )
     init.extra["rbdyn_docs"]["generated"] = True
     cls.set_member("__init__", init)
 

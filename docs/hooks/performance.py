@@ -51,14 +51,21 @@ def _e(x: float) -> str:
 def _environment() -> str:
     env = _load("environment")
     versions = ", ".join(f"{pkg} {v}" for pkg, v in env["versions"].items())
-    return "\n".join([f"- **Date of the run:** {env['date']}",
-                      f"- **CPU:** {env['cpu']}, {env['cores']} cores",
-                      f"- **Operating system:** {env['os']}",
-                      f"- **Versions:** {versions}"])
+    return "\n".join(
+        [
+            f"- **Date of the run:** {env['date']}",
+            f"- **CPU:** {env['cpu']}, {env['cores']} cores",
+            f"- **Operating system:** {env['os']}",
+            f"- **Versions:** {versions}",
+        ]
+    )
 
 
-_MODELS = {"torque_free": "torque-free", "heavy_top": "heavy top",
-           "gravity_gradient": "gravity gradient"}
+_MODELS = {
+    "torque_free": "torque-free",
+    "heavy_top": "heavy top",
+    "gravity_gradient": "gravity gradient",
+}
 
 
 def _throughput() -> str:
@@ -114,16 +121,31 @@ def _gradients() -> str:
         if "error" in r:
             rows.append([r["method"], "failed: " + r["error"], "", "", ""])
             continue
-        rows.append([r["method"], f"{1e3 * r['time_s']:.2f}", f"{r['x_default_forward']:.2f}",
-                     f"{r['first_call_s']:.2f}", _e(r["rel_error"])])
-    return _table(["method", "time (ms)", "× forward loss", "first call (s)", "relative error"],
-                  rows)
+        rows.append(
+            [
+                r["method"],
+                f"{1e3 * r['time_s']:.2f}",
+                f"{r['x_default_forward']:.2f}",
+                f"{r['first_call_s']:.2f}",
+                _e(r["rel_error"]),
+            ]
+        )
+    return _table(
+        ["method", "time (ms)", "× forward loss", "first call (s)", "relative error"], rows
+    )
 
 
 def _gradient_steps() -> str:
     d = _load("gradient_steps")
-    rows = [[r["method"], f"{r['us_per_step']:.2f}", f"{r['x_forward_step']:.2f}",
-             f"{r['median_us_per_step']:.2f}"] for r in d["rows"]]
+    rows = [
+        [
+            r["method"],
+            f"{r['us_per_step']:.2f}",
+            f"{r['x_forward_step']:.2f}",
+            f"{r['median_us_per_step']:.2f}",
+        ]
+        for r in d["rows"]
+    ]
     return _table(["step", "µs per step", "× forward step", "median µs per step"], rows)
 
 
@@ -146,21 +168,30 @@ def _compile() -> str:
     rows = []
     for r in d["rows"]:
         rel = f"{r['vs_bare']:.2f}" if r.get("vs_bare") else "—"
-        rows.append([_CASES.get(r["case"], r["case"]), f"{r['no_cache_s']:.2f}", rel,
-                     f"{r['warm_s']:.2f}", f"{r['speedup_warm']:.1f}",
-                     str(len(set(r["callback_programs"]))), str(r["trace_hits"])])
+        rows.append(
+            [
+                _CASES.get(r["case"], r["case"]),
+                f"{r['no_cache_s']:.2f}",
+                rel,
+                f"{r['warm_s']:.2f}",
+                f"{r['speedup_warm']:.1f}",
+                str(len(set(r["callback_programs"]))),
+                str(r["trace_hits"]),
+            ]
+        )
     imports = [r["import_s"] for r in d["rows"]]
     builds = [r["build_s"] for r in d["rows"]]
     writes = [r["cold_s"] - r["no_cache_s"] for r in d["rows"]]
-    return (_table(["case", "no cache", "÷ bare", "warm", "speed-up", "refused", "traces"],
-                   rows)
-            + "\n\nWith an empty cache directory the first call took from "
-            f"{min(writes):+.2f} to {max(writes):+.2f} s more than without a cache (writing "
-            "the entries, within the runs' spread). Before the first call, `import jax` and "
-            "`import rbdyn_jax.integrate` (the solver layer with diffrax, which `import "
-            "rbdyn_jax` alone leaves to the first name used) took "
-            f"{min(imports):.2f}–{max(imports):.2f} s, and building the inputs and the model "
-            f"{min(builds):.2f}–{max(builds):.2f} s.")
+    return (
+        _table(["case", "no cache", "÷ bare", "warm", "speed-up", "refused", "traces"], rows)
+        + "\n\nWith an empty cache directory the first call took from "
+        f"{min(writes):+.2f} to {max(writes):+.2f} s more than without a cache (writing "
+        "the entries, within the runs' spread). Before the first call, `import jax` and "
+        "`import rbdyn_jax.integrate` (the solver layer with diffrax, which `import "
+        "rbdyn_jax` alone leaves to the first name used) took "
+        f"{min(imports):.2f}–{max(imports):.2f} s, and building the inputs and the model "
+        f"{min(builds):.2f}–{max(builds):.2f} s."
+    )
 
 
 def _sweep_scale() -> str:
@@ -171,16 +202,38 @@ def _sweep_scale() -> str:
     for part in ("chunks", "devices", "memory"):
         for r in d[part]["rows"]:
             runs[(r["n"], r["chunk"], r["devices"])] = r
-    rows = [[_n(r["n"]), _n(r["chunk"]), r["devices"], f"{r['first_chunk_s']:.2f}",
-             f"{r['rest_s']:.2f}", _n(r["steady_traj_per_s"]), f"{r['peak_rss_mib']:.0f}"]
-            for _, r in sorted(runs.items())]
+    rows = [
+        [
+            _n(r["n"]),
+            _n(r["chunk"]),
+            r["devices"],
+            f"{r['first_chunk_s']:.2f}",
+            f"{r['rest_s']:.2f}",
+            _n(r["steady_traj_per_s"]),
+            f"{r['peak_rss_mib']:.0f}",
+        ]
+        for _, r in sorted(runs.items())
+    ]
     base = [r["base_rss_mib"] for r in runs.values()]
-    return (_table(["N", "chunk", "devices", "first chunk (s)", "the rest (s)", "steady traj/s",
-                    "peak RSS (MiB)"], rows)
-            + f"\n\nRSS after importing rbdyn_jax and starting JAX: {min(base):.0f}–"
-            f"{max(base):.0f} MiB. Stores of 1 and {d['devices']['rows'][-1]['devices']} devices "
-            "bitwise identical: " + ("yes." if d["devices"]["identical"] else "**no**.")
-            + ("\n\n" + _sweep_dask(d["dask"]) if "dask" in d else ""))
+    return (
+        _table(
+            [
+                "N",
+                "chunk",
+                "devices",
+                "first chunk (s)",
+                "the rest (s)",
+                "steady traj/s",
+                "peak RSS (MiB)",
+            ],
+            rows,
+        )
+        + f"\n\nRSS after importing rbdyn_jax and starting JAX: {min(base):.0f}–"
+        f"{max(base):.0f} MiB. Stores of 1 and {d['devices']['rows'][-1]['devices']} devices "
+        "bitwise identical: "
+        + ("yes." if d["devices"]["identical"] else "**no**.")
+        + ("\n\n" + _sweep_dask(d["dask"]) if "dask" in d else "")
+    )
 
 
 def _sweep_dask(d: dict) -> str:
@@ -188,28 +241,56 @@ def _sweep_dask(d: dict) -> str:
     rows = []
     for r in d["rows"]:
         dask = r["engine"] == "dask"
-        rows.append([r["engine"], r["workers"] if dask else "—", r["devices"],
-                     f"{r['cluster_start_s']:.2f}" if dask else "—",
-                     f"{r['first_chunk_s']:.2f}", f"{r['rest_s']:.2f}",
-                     _n(r["steady_traj_per_s"]),
-                     f"{r['worker_peak_rss_mib']:.0f}" if dask else "—"])
-    return (f"In-process against a Dask `LocalCluster` of {d['workers']} worker processes "
-            f"({d['devices_per_worker']} device each), N = {_n(d['n'])}, chunk "
-            f"{_n(d['chunk'])}:\n\n"
-            + _table(["engine", "workers", "devices", "cluster start (s)", "first chunk (s)",
-                      "the rest (s)", "steady traj/s", "worker peak RSS (MiB)"], rows)
-            + f"\n\nLocalCluster ÷ in-process, steady traj/s: {d['ratio']:.2f}. Stores "
-            "bitwise identical: " + ("yes." if d["identical"] else "**no**."))
+        rows.append(
+            [
+                r["engine"],
+                r["workers"] if dask else "—",
+                r["devices"],
+                f"{r['cluster_start_s']:.2f}" if dask else "—",
+                f"{r['first_chunk_s']:.2f}",
+                f"{r['rest_s']:.2f}",
+                _n(r["steady_traj_per_s"]),
+                f"{r['worker_peak_rss_mib']:.0f}" if dask else "—",
+            ]
+        )
+    return (
+        f"In-process against a Dask `LocalCluster` of {d['workers']} worker processes "
+        f"({d['devices_per_worker']} device each), N = {_n(d['n'])}, chunk "
+        f"{_n(d['chunk'])}:\n\n"
+        + _table(
+            [
+                "engine",
+                "workers",
+                "devices",
+                "cluster start (s)",
+                "first chunk (s)",
+                "the rest (s)",
+                "steady traj/s",
+                "worker peak RSS (MiB)",
+            ],
+            rows,
+        )
+        + f"\n\nLocalCluster ÷ in-process, steady traj/s: {d['ratio']:.2f}. Stores "
+        "bitwise identical: " + ("yes." if d["identical"] else "**no**.")
+    )
 
 
 def _identify() -> str:
     d = _load("identify")
-    rows = [[r["method"], f"{r['wall_s']:.2f}",
-             f"{r['residual_evals']} / {r['jacobian_evals']}", _e(r["max_abs_err_J"]),
-             f"{r['max_err_in_stderr']:.2f}", f"{r['time_ratio_scipy_over_this']:.1f}"]
-            for r in d["rows"]]
-    return _table(["method", "wall (s)", "evaluations", "max \\|ΔJ\\|", "÷ std. error",
-                   "scipy ÷ this"], rows)
+    rows = [
+        [
+            r["method"],
+            f"{r['wall_s']:.2f}",
+            f"{r['residual_evals']} / {r['jacobian_evals']}",
+            _e(r["max_abs_err_J"]),
+            f"{r['max_err_in_stderr']:.2f}",
+            f"{r['time_ratio_scipy_over_this']:.1f}",
+        ]
+        for r in d["rows"]
+    ]
+    return _table(
+        ["method", "wall (s)", "evaluations", "max \\|ΔJ\\|", "÷ std. error", "scipy ÷ this"], rows
+    )
 
 
 _GPU_METHODS = {
@@ -228,10 +309,15 @@ _GPU_METHODS = {
     "cuda f64": "CUDA kernel, float64",
     "cuda f32": "CUDA kernel, float32",
     # the throughput benchmark's other models, float64; ratios to the CUDA kernel's on each
-    **{f"{kind} {model}": f"{label}, {model.replace('_', ' ')}"
-       for model in ("heavy_top", "gravity_gradient")
-       for kind, label in (("cuda f64", "CUDA kernel"), ("kernel", "`Kernel()`"),
-                           ("lanes", "`Lanes()`"))},
+    **{
+        f"{kind} {model}": f"{label}, {model.replace('_', ' ')}"
+        for model in ("heavy_top", "gravity_gradient")
+        for kind, label in (
+            ("cuda f64", "CUDA kernel"),
+            ("kernel", "`Kernel()`"),
+            ("lanes", "`Lanes()`"),
+        )
+    },
 }
 
 
@@ -239,9 +325,11 @@ def _gpu_environment() -> str:
     """The GPU run's own machine and versions (`gpu.json`'s meta): the page's other tables
     come from the CPU machine of `environment.json`."""
     m = _load("gpu")["meta"]
-    return (f"- **GPU:** {m['jax_device']} (the CUDA kernel ran on {m['cuda_device']})\n"
-            f"- **Versions:** jax {m['jax']} (CUDA), diffrax {m['diffrax']}, equinox "
-            f"{m['equinox']}")
+    return (
+        f"- **GPU:** {m['jax_device']} (the CUDA kernel ran on {m['cuda_device']})\n"
+        f"- **Versions:** jax {m['jax']} (CUDA), diffrax {m['diffrax']}, equinox "
+        f"{m['equinox']}"
+    )
 
 
 def _gpu() -> str:
@@ -267,41 +355,81 @@ def _gpu() -> str:
         rows.append(row)
     for method in ("gradient", "kernel gradient", "lanes gradient"):
         if any(m == method for m, _ in cell):
-            rows.append([f"{_GPU_METHODS[method].split(' (')[0]} ÷ forward, time", *[
-                f"{cell[(method, n)]['times_forward']:.2f}"
-                if "times_forward" in cell.get((method, n), {}) else "—" for n in sizes]])
-    rows.append(["default ÷ `Vmap()`", *[
-        f"{cell[('default', n)]['traj_per_s'] / cell[('vmap', n)]['traj_per_s']:.1f}"
-        if ("vmap", n) in cell else "—" for n in sizes]])
-    for method, label in (("default", "first call (s), default"),
-                          ("kernel", "first call (s), `Kernel()`"),
-                          ("gradient", "first call (s), gradient"),
-                          ("kernel gradient", "first call (s), `Kernel()` gradient")):
+            rows.append(
+                [
+                    f"{_GPU_METHODS[method].split(' (')[0]} ÷ forward, time",
+                    *[
+                        f"{cell[(method, n)]['times_forward']:.2f}"
+                        if "times_forward" in cell.get((method, n), {})
+                        else "—"
+                        for n in sizes
+                    ],
+                ]
+            )
+    rows.append(
+        [
+            "default ÷ `Vmap()`",
+            *[
+                f"{cell[('default', n)]['traj_per_s'] / cell[('vmap', n)]['traj_per_s']:.1f}"
+                if ("vmap", n) in cell
+                else "—"
+                for n in sizes
+            ],
+        ]
+    )
+    for method, label in (
+        ("default", "first call (s), default"),
+        ("kernel", "first call (s), `Kernel()`"),
+        ("gradient", "first call (s), gradient"),
+        ("kernel gradient", "first call (s), `Kernel()` gradient"),
+    ):
         if method == "default" and any(m == "kernel" for m, _ in cell):
             continue  # measured after `Kernel()`'s first call, whose program it reuses
         if any(m == method for m, _ in cell):
-            rows.append([label, *[f"{cell[(method, n)]['first_call_s']:.1f}"
-                                  if (method, n) in cell else "—" for n in sizes]])
+            rows.append(
+                [
+                    label,
+                    *[
+                        f"{cell[(method, n)]['first_call_s']:.1f}" if (method, n) in cell else "—"
+                        for n in sizes
+                    ],
+                ]
+            )
     head = [""] + [f"N = {_n(n)}" for n in sizes]
     table = _table(head, rows)
     for r in sweeps:  # the summaries-only sweep, end to end
-        table += (f"\n\nA summaries-only sweep of {_n(r['batch'])} `torque_free_flip` "
-                  f"trajectories, its store written: {r['seconds']:.1f} s end to end "
-                  f"({_n(r['traj_per_s'])} a second).")
+        table += (
+            f"\n\nA summaries-only sweep of {_n(r['batch'])} `torque_free_flip` "
+            f"trajectories, its store written: {r['seconds']:.1f} s end to end "
+            f"({_n(r['traj_per_s'])} a second)."
+        )
     return table
 
 
 def _gpu_accuracy() -> str:
     """Steps and errors against the elliptic solution (the first 1000 trajectories of the
     smallest batch measured), for the torque-free rows."""
-    measured = [r for r in _load("gpu")["rows"] if "max_error" in r
-                and r["method"].rsplit(" ", 1)[-1] not in ("heavy_top", "gravity_gradient")]
+    measured = [
+        r
+        for r in _load("gpu")["rows"]
+        if "max_error" in r
+        and r["method"].rsplit(" ", 1)[-1] not in ("heavy_top", "gravity_gradient")
+    ]
     n = min(r["batch"] for r in measured)
-    rows = [[_GPU_METHODS.get(r["method"], r["method"]), f"{r['mean_steps']:.0f}",
-             str(r["max_steps"]), _e(r["median_error"]), _e(r["max_error"])]
-            for r in measured if r["batch"] == n]
-    return _table([f"method (N = {_n(n)})", "mean steps", "most steps", "median error",
-                   "largest error"], rows)
+    rows = [
+        [
+            _GPU_METHODS.get(r["method"], r["method"]),
+            f"{r['mean_steps']:.0f}",
+            str(r["max_steps"]),
+            _e(r["median_error"]),
+            _e(r["max_error"]),
+        ]
+        for r in measured
+        if r["batch"] == n
+    ]
+    return _table(
+        [f"method (N = {_n(n)})", "mean steps", "most steps", "median error", "largest error"], rows
+    )
 
 
 def _power(x: float) -> str:
@@ -321,29 +449,51 @@ def _long_horizon() -> str:
     rows = []
     for r in rows_in:
         early = r["energy_10_100"]
-        rows.append([r["method"], f"{r['steps_per_period']:.0f}", f"{r['us_per_period']:.0f}",
-                     f"{r['us_per_period'] / base['us_per_period']:.2f}", _e(r["energy_max"]),
-                     "—" if early is None else _e(early), _e(r["energy_last_decade"]),
-                     _e(r["L_max"]), _e(r["quat_norm_drift"]),
-                     _e(r["global_error_1e4"]) if "global_error_1e4" in r else "—"])
+        rows.append(
+            [
+                r["method"],
+                f"{r['steps_per_period']:.0f}",
+                f"{r['us_per_period']:.0f}",
+                f"{r['us_per_period'] / base['us_per_period']:.2f}",
+                _e(r["energy_max"]),
+                "—" if early is None else _e(early),
+                _e(r["energy_last_decade"]),
+                _e(r["L_max"]),
+                _e(r["quat_norm_drift"]),
+                _e(r["global_error_1e4"]) if "global_error_1e4" in r else "—",
+            ]
+        )
     t = d["meta"]["targets"]
     decade = f"{_power(d['meta']['periods'] / 10)}–{_power(d['meta']['periods'])}"
 
     def mark(ok):
         return "met" if ok else "**not met**"
 
-    return (_table(["method", "steps per period", "µs per period", f"× {t['baseline']}",
-                    "largest energy error", "periods 10–10²", f"periods {decade}",
-                    "largest \\|L\\| error", "\\|q\\| − 1", "global error at 10⁴ periods"],
-                   rows)
-            + f"\n\nTargets, on {t['method']}: |L| error ≤ 1e-12 — {mark(t['L_le_1e-12'])}; "
-            f"energy error ≤ 1e-8 — {mark(t['energy_le_1e-8'])}, without trend (the largest "
-            f"over the last decade within 2× of that over periods 10–10²) — "
-            f"{mark(t['energy_bounded'])}; cost per period ≤ 3× {t['baseline']}'s — "
-            f"{t['cost_ratio']:.2f}×, {mark(t['cost_le_3x'])}; global error at 10⁴ periods "
-            f"below {t['baseline']}'s — {mark(t['global_below_baseline'])}. On "
-            f"{t['fine_method']}: energy error ≤ 1e-13 — {mark(t['fine_energy_le_1e-13'])}, "
-            f"at {t['fine_cost_ratio']:.2f}× the cost per period of {t['baseline']}.")
+    return (
+        _table(
+            [
+                "method",
+                "steps per period",
+                "µs per period",
+                f"× {t['baseline']}",
+                "largest energy error",
+                "periods 10–10²",
+                f"periods {decade}",
+                "largest \\|L\\| error",
+                "\\|q\\| − 1",
+                "global error at 10⁴ periods",
+            ],
+            rows,
+        )
+        + f"\n\nTargets, on {t['method']}: |L| error ≤ 1e-12 — {mark(t['L_le_1e-12'])}; "
+        f"energy error ≤ 1e-8 — {mark(t['energy_le_1e-8'])}, without trend (the largest "
+        f"over the last decade within 2× of that over periods 10–10²) — "
+        f"{mark(t['energy_bounded'])}; cost per period ≤ 3× {t['baseline']}'s — "
+        f"{t['cost_ratio']:.2f}×, {mark(t['cost_le_3x'])}; global error at 10⁴ periods "
+        f"below {t['baseline']}'s — {mark(t['global_below_baseline'])}. On "
+        f"{t['fine_method']}: energy error ≤ 1e-13 — {mark(t['fine_energy_le_1e-13'])}, "
+        f"at {t['fine_cost_ratio']:.2f}× the cost per period of {t['baseline']}."
+    )
 
 
 def _long_horizon_potentials() -> str:
@@ -353,17 +503,39 @@ def _long_horizon_potentials() -> str:
     d = _load("long_horizon")
     periods = d["meta"]["potential_periods"]
     decade = f"{_power(periods / 10)}–{_power(periods)}"
-    rows = [[r["body"], r["method"], f"{r['steps_per_period']:.0f}",
-             f"{r['us_per_period']:.0f}", _e(r["energy_max"]), _e(r["energy_10_100"]),
-             _e(r["energy_last_decade"]), _e(r["quat_norm_drift"])]
-            for r in d["rows"] if r["body"] != "torque-free"]
+    rows = [
+        [
+            r["body"],
+            r["method"],
+            f"{r['steps_per_period']:.0f}",
+            f"{r['us_per_period']:.0f}",
+            _e(r["energy_max"]),
+            _e(r["energy_10_100"]),
+            _e(r["energy_last_decade"]),
+            _e(r["quat_norm_drift"]),
+        ]
+        for r in d["rows"]
+        if r["body"] != "torque-free"
+    ]
     bounded = d["meta"]["targets"]["potentials_bounded"]
-    return (_table(["body", "method", "steps per period", "µs per period",
-                    "largest energy error", "periods 10–10²", f"periods {decade}",
-                    "\\|q\\| − 1"], rows)
-            + "\n\nTarget, the splitting on every body: energy error without trend (the "
-            f"largest over the last decade within 2× of that over periods 10–10²) — "
-            f"{'met' if bounded else '**not met**'}.")
+    return (
+        _table(
+            [
+                "body",
+                "method",
+                "steps per period",
+                "µs per period",
+                "largest energy error",
+                "periods 10–10²",
+                f"periods {decade}",
+                "\\|q\\| − 1",
+            ],
+            rows,
+        )
+        + "\n\nTarget, the splitting on every body: energy error without trend (the "
+        f"largest over the last decade within 2× of that over periods 10–10²) — "
+        f"{'met' if bounded else '**not met**'}."
+    )
 
 
 TABLES = {
@@ -393,8 +565,10 @@ def _check_versions() -> None:
         meta = json.loads(path.read_text()).get("meta", {})
         for pkg in ("jax", "diffrax", "equinox"):
             if pkg in meta and meta[pkg] != versions.get(pkg):
-                raise PluginError(f"performance: {path.name} was measured with {pkg} "
-                                  f"{meta[pkg]}, environment.json says {versions.get(pkg)}.")
+                raise PluginError(
+                    f"performance: {path.name} was measured with {pkg} "
+                    f"{meta[pkg]}, environment.json says {versions.get(pkg)}."
+                )
 
 
 def on_page_markdown(markdown: str, page, config, files) -> str:

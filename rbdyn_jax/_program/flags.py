@@ -76,7 +76,7 @@ def merged_flags(old: str, host_devices: int | None, replaceable: str | None = N
         flags.append(f"{EXTRA_OPTIONS}{LOOP_OPTION}={LOOP_BYTES}")
     else:  # XLA keeps the last; add to it unless the threshold is already there
         i = backend[-1]
-        options = [o for o in flags[i][len(EXTRA_OPTIONS):].split(",") if o]
+        options = [o for o in flags[i][len(EXTRA_OPTIONS) :].split(",") if o]
         if not any(o.split("=")[0] == LOOP_OPTION for o in options):
             flags[i] = EXTRA_OPTIONS + ",".join([*options, f"{LOOP_OPTION}={LOOP_BYTES}"])
     if host_devices is not None:
@@ -118,8 +118,10 @@ def configure_xla(host_devices: int | None = None) -> str:
     """
     global _count_set_on_import
     if host_devices is not None and (
-            isinstance(host_devices, bool) or not isinstance(host_devices, numbers.Integral)
-            or host_devices < 1):
+        isinstance(host_devices, bool)
+        or not isinstance(host_devices, numbers.Integral)
+        or host_devices < 1
+    ):
         raise ValueError(f"`host_devices` must be a positive int or None, got {host_devices!r}.")
     old = os.environ.get("XLA_FLAGS", "")
     new = merged_flags(old, host_devices, _count_set_on_import)
@@ -128,7 +130,8 @@ def configure_xla(host_devices: int | None = None) -> str:
             raise RuntimeError(
                 "JAX's backend is already running, and XLA reads XLA_FLAGS only when it "
                 "starts: call `configure_xla` before the first JAX computation, or start "
-                f"Python with XLA_FLAGS='{new}'.")
+                f"Python with XLA_FLAGS='{new}'."
+            )
         os.environ["XLA_FLAGS"] = new
     if host_devices is not None:
         _count_set_on_import = None  # from here on the count is the caller's

@@ -51,8 +51,14 @@ class Program:
       programs (`False` for one `jax.export` cannot serialize, such as a Pallas kernel).
     """
 
-    def __init__(self, fn: Callable, *, validated: Callable | None = None,
-                 options: dict = COMPILER_OPTIONS, store: bool = True):
+    def __init__(
+        self,
+        fn: Callable,
+        *,
+        validated: Callable | None = None,
+        options: dict = COMPILER_OPTIONS,
+        store: bool = True,
+    ):
         self.fn = fn
         self.validated = validated
 
@@ -67,8 +73,9 @@ class Program:
                 return fn(*args)
 
         self._checked = filter_jit(checks_raising, options)
-        self._as_nan = (traces.cached(checks_nan, options) if store
-                        else filter_jit(checks_nan, options))
+        self._as_nan = (
+            traces.cached(checks_nan, options) if store else filter_jit(checks_nan, options)
+        )
         functools.update_wrapper(self, fn)
 
     def checks_nan(self, *args) -> bool:
@@ -79,7 +86,8 @@ class Program:
         return (self._as_nan if self.checks_nan(*args) else self._checked)(*args)
 
 
-def program(*, validated: Callable | None = None, options: dict = COMPILER_OPTIONS,
-            store: bool = True) -> Callable[[Callable], Program]:
+def program(
+    *, validated: Callable | None = None, options: dict = COMPILER_OPTIONS, store: bool = True
+) -> Callable[[Callable], Program]:
     """`Program` as a decorator: `@program(validated=...)` over a function's definition."""
     return functools.partial(Program, validated=validated, options=options, store=store)

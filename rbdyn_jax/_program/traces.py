@@ -52,10 +52,31 @@ from .xla import COMPILER_OPTIONS, export, filter_jit, jit, top_level
 
 # The modules whose classes and functions a key may name: their code is versioned by
 # `_environment` (builtins by the Python version, which changes the bytecode cache anyway).
-_LIBRARIES = ("builtins", "rbdyn_jax", "diffrax", "equinox", "lineax", "optimistix", "optax",
-              "jax", "jaxlib", "jaxtyping", "numpy")
-_DISTRIBUTIONS = ("jax", "jaxlib", "diffrax", "equinox", "lineax", "optimistix", "optax",
-                  "jaxtyping", "numpy", "flatbuffers")
+_LIBRARIES = (
+    "builtins",
+    "rbdyn_jax",
+    "diffrax",
+    "equinox",
+    "lineax",
+    "optimistix",
+    "optax",
+    "jax",
+    "jaxlib",
+    "jaxtyping",
+    "numpy",
+)
+_DISTRIBUTIONS = (
+    "jax",
+    "jaxlib",
+    "diffrax",
+    "equinox",
+    "lineax",
+    "optimistix",
+    "optax",
+    "jaxtyping",
+    "numpy",
+    "flatbuffers",
+)
 _SUBDIR = "rbdyn_jax-traces"
 
 stats = {"hits": 0, "stores": 0, "uncacheable": 0}  # this process's use of the cache (tests)
@@ -172,8 +193,14 @@ def _leaf(x):
 def _settings() -> tuple:
     """The JAX settings a trace depends on, and the devices it is lowered for."""
     c = jax.config
-    return (c.jax_enable_x64, str(c.jax_default_matmul_precision), c.jax_numpy_dtype_promotion,
-            c.jax_numpy_rank_promotion, jax.default_backend(), jax.device_count())
+    return (
+        c.jax_enable_x64,
+        str(c.jax_default_matmul_precision),
+        c.jax_numpy_dtype_promotion,
+        c.jax_numpy_rank_promotion,
+        jax.default_backend(),
+        jax.device_count(),
+    )
 
 
 def key(name: str, args: tuple, options: dict = COMPILER_OPTIONS) -> str | None:
@@ -227,10 +254,20 @@ def _memo_key(name, treedef, leaves, options=COMPILER_OPTIONS):
     JAX settings, the pytree structure (equinox's static fields compared by `==`), the
     static values with their types, and the arrays' shapes and dtypes: a dict lookup
     instead of the full description, which is too slow to build on every call."""
-    memo = (name, tuple(sorted(options.items())), _settings(), treedef, tuple(
-        _aval(x) if eqx.is_array(x)
-        else (type(x), repr(x)) if isinstance(x, (float, complex))  # 0.0 == -0.0
-        else (type(x), x) for x in leaves))
+    memo = (
+        name,
+        tuple(sorted(options.items())),
+        _settings(),
+        treedef,
+        tuple(
+            _aval(x)
+            if eqx.is_array(x)
+            else (type(x), repr(x))
+            if isinstance(x, (float, complex))  # 0.0 == -0.0
+            else (type(x), x)
+            for x in leaves
+        ),
+    )
     try:
         return _KEYS[memo]
     except KeyError:
@@ -267,7 +304,7 @@ def _placement(exported):
     devices, as `jit` placed them when it was traced."""
     if exported.nr_devices == 1:
         return lambda arrays: arrays
-    mesh = jax.sharding.Mesh(np.asarray(jax.devices()[:exported.nr_devices]), ("devices",))
+    mesh = jax.sharding.Mesh(np.asarray(jax.devices()[: exported.nr_devices]), ("devices",))
     replicated = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
     return lambda arrays: [jax.device_put(x, replicated) for x in arrays]
 
@@ -355,8 +392,10 @@ def embedded(fn, *args):
         return fn(*args)
     arrays = [x for x in leaves if eqx.is_array(x)]
     if k not in _EMBEDDED:
-        specs = [jax.ShapeDtypeStruct(x.shape, x.dtype, weak_type=jax.typeof(x).weak_type)
-                 for x in arrays]  # traced or not: the stored program takes them as inputs
+        specs = [
+            jax.ShapeDtypeStruct(x.shape, x.dtype, weak_type=jax.typeof(x).weak_type)
+            for x in arrays
+        ]  # traced or not: the stored program takes them as inputs
         entry = _entry(where, k, fn, args, specs)
         if entry is None:
             return fn(*args)

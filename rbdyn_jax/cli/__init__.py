@@ -58,5 +58,14 @@ from ._common import (
 from ._main import main as main
 from ._parser import build_parser as build_parser
 
-__all__ = ["EXIT_ALL_FAILED", "EXIT_DAMAGED", "EXIT_INCOMPLETE", "EXIT_INTERRUPTED",
-           "EXIT_NOT_CONVERGED", "EXIT_SOME_FAILED", "EXIT_USAGE", "build_parser", "main"]
+__all__ = [
+    "EXIT_ALL_FAILED",
+    "EXIT_DAMAGED",
+    "EXIT_INCOMPLETE",
+    "EXIT_INTERRUPTED",
+    "EXIT_NOT_CONVERGED",
+    "EXIT_SOME_FAILED",
+    "EXIT_USAGE",
+    "build_parser",
+    "main",
+]

@@ -14,8 +14,9 @@ EXIT_INTERRUPTED = 130  # Ctrl-C (128 + SIGINT)
 
 def cache_dir() -> str:
     """`$RBDYN_JAX_CACHE_DIR`, default `~/.cache/rbdyn_jax/xla`; empty: no cache."""
-    return os.environ.get("RBDYN_JAX_CACHE_DIR",
-                          os.path.join(os.path.expanduser("~"), ".cache", "rbdyn_jax", "xla"))
+    return os.environ.get(
+        "RBDYN_JAX_CACHE_DIR", os.path.join(os.path.expanduser("~"), ".cache", "rbdyn_jax", "xla")
+    )
 
 
 def compilation_cache(jax) -> None:

@@ -55,8 +55,10 @@ def demo(n_steps: int = 5, duration: float = 100.0) -> int:
         print("    " + "  ".join(f"{x:+.5f}" for x in row))
     A, B, C = np.asarray(moments)
     print(f"  principal moments A ≤ B ≤ C: {A:.5f}, {B:.5f}, {C:.5f}")
-    print(f"  planar moments A', B', C':    {(B + C - A) / 2:.5f}, {(C + A - B) / 2:.5f}, "
-          f"{(A + B - C) / 2:.5f}  (eig J' = {np.round(np.linalg.eigvalsh(Jp), 5)})")
+    print(
+        f"  planar moments A', B', C':    {(B + C - A) / 2:.5f}, {(C + A - B) / 2:.5f}, "
+        f"{(A + B - C) / 2:.5f}  (eig J' = {np.round(np.linalg.eigvalsh(Jp), 5)})"
+    )
     print(f"  physically consistent: {bool(inertia.is_physical(J))}")
     angles = rotation.dcm_to_euler(axes, "ZXZ")
     print(f"  principal frame as ZXZ angles (ψ, θ, φ) [deg]: {np.round(np.degrees(angles), 3)}")
@@ -85,17 +87,22 @@ def demo(n_steps: int = 5, duration: float = 100.0) -> int:
     L = np.asarray(invariants.angular_momentum_inertial(body, traj))
     along_b = np.asarray(traj.ys.omega) @ np.asarray(axes[:, 1])
     flips = int(np.sum(np.diff(np.sign(along_b)) != 0))
-    print("\n  torque-free spin |ω| = 2 rad/s, 1° off the intermediate axis, "
-          f"t ∈ [0, {duration:g}] s")
-    print(f"    result: {RESULTS[traj.result] or 'successful'}, "
-          f"{int(traj.stats['num_steps'])} steps (Tsit5, rtol = atol = 1e-10)")
+    print(
+        f"\n  torque-free spin |ω| = 2 rad/s, 1° off the intermediate axis, t ∈ [0, {duration:g}] s"
+    )
+    print(
+        f"    result: {RESULTS[traj.result] or 'successful'}, "
+        f"{int(traj.stats['num_steps'])} steps (Tsit5, rtol = atol = 1e-10)"
+    )
     print(f"    intermediate-axis flips: {flips}")
     print(f"    energy drift max|T − T0|/T0:       {np.max(np.abs(T - T[0])) / T[0]:.2e}")
-    print(f"    momentum drift max|L − L0|/|L0|:   "
-          f"{np.max(np.linalg.norm(L - L[:1], axis=-1)) / np.linalg.norm(L[0]):.2e}")
+    print(
+        f"    momentum drift max|L − L0|/|L0|:   "
+        f"{np.max(np.linalg.norm(L - L[:1], axis=-1)) / np.linalg.norm(L[0]):.2e}"
+    )
     print(f"    quaternion norm drift removed:     {float(traj.stats['norm_drift']):.2e}")
     print(f"    time: first call {t_first:.2f} s (with compilation), again {t_again * 1e3:.1f} ms")
-    for t, w in zip(np.asarray(ts)[:: 100], np.asarray(traj.ys.omega)[:: 100]):
+    for t, w in zip(np.asarray(ts)[::100], np.asarray(traj.ys.omega)[::100]):
         print(f"    t = {t:7.2f} s   ω_body = ({w[0]:+.4f}, {w[1]:+.4f}, {w[2]:+.4f}) rad/s")
     print(f"done in {time.perf_counter() - t0:.2f} s")
     return 0

@@ -25,24 +25,37 @@ def fit_command(args) -> int:
         scenario, model = _model(args.model)
         try:
             data = identify.Observations.from_file(
-                args.data, sigma_omega=args.sigma_omega, sigma_quat=args.sigma_quat,
-                trajectories=args.trajectories, seq=args.seq)
-            params, where = free_params([s.strip() for s in args.free.split(",") if s.strip()],
-                                        model.torque)
+                args.data,
+                sigma_omega=args.sigma_omega,
+                sigma_quat=args.sigma_quat,
+                trajectories=args.trajectories,
+                seq=args.seq,
+            )
+            params, where = free_params(
+                [s.strip() for s in args.free.split(",") if s.strip()], model.torque
+            )
         except (ValueError, OSError) as e:
             raise _Refused(e) from e
         scale = scale_arg(args.scale)
         K, n = data.ts.shape
-        print(f"rbdyn fit: {K} trajectories × {n} samples from {args.data}; model "
-              f"{scenario.name} ({', '.join(scenario.torques) or 'no torque'}); free: "
-              f"{', '.join(params)}")
+        print(
+            f"rbdyn fit: {K} trajectories × {n} samples from {args.data}; model "
+            f"{scenario.name} ({', '.join(scenario.torques) or 'no torque'}); free: "
+            f"{', '.join(params)}"
+        )
         horizons = _horizons_arg(args.horizons)
         t0 = time.perf_counter()
         try:
             with compile_meter(jax) as meter:
-                res = identify.fit(model, data, params=params, torque_where=where, scale=scale,
-                                   optimizer=identify.LevenbergMarquardt(steps=args.steps),
-                                   horizons=None if horizons == (1.0,) else horizons)
+                res = identify.fit(
+                    model,
+                    data,
+                    params=params,
+                    torque_where=where,
+                    scale=scale,
+                    optimizer=identify.LevenbergMarquardt(steps=args.steps),
+                    horizons=None if horizons == (1.0,) else horizons,
+                )
         except ValueError as e:
             raise _Refused(e) from e
     except _Refused as e:
@@ -50,8 +63,13 @@ def fit_command(args) -> int:
         return EXIT_USAGE
     elapsed = time.perf_counter() - t0
     _print_progress(args.steps, horizons, res, time_text(elapsed, meter))
-    report = {"converged": bool(res.converged), "loss": float(res.loss),
-              "notes": list(res.notes), "time_s": elapsed, **_print_values(res, params)}
+    report = {
+        "converged": bool(res.converged),
+        "loss": float(res.loss),
+        "notes": list(res.notes),
+        "time_s": elapsed,
+        **_print_values(res, params),
+    }
     for note in res.notes:
         print(f"  note: {note}")
     import json
@@ -115,12 +133,16 @@ def _print_progress(steps: int, horizons, res, took: str) -> None:
 
     lh = np.asarray(res.loss_history)
     if horizons == (1.0,):
-        print(f"  loss {lh[0]:.6g} → {lh[-1]:.6g} in at most {steps} step"
-              f"{'s' if steps > 1 else ''}, converged: {res.converged}, {took}")
+        print(
+            f"  loss {lh[0]:.6g} → {lh[-1]:.6g} in at most {steps} step"
+            f"{'s' if steps > 1 else ''}, converged: {res.converged}, {took}"
+        )
     else:
-        print(f"  horizons {', '.join(f'{h:g}' for h in horizons)} of each record, at most "
-              f"{steps} step{'s' if steps > 1 else ''} each: loss {lh[-1]:.6g} over "
-              f"the whole record, converged: {res.converged}, {took}")
+        print(
+            f"  horizons {', '.join(f'{h:g}' for h in horizons)} of each record, at most "
+            f"{steps} step{'s' if steps > 1 else ''} each: loss {lh[-1]:.6g} over "
+            f"the whole record, converged: {res.converged}, {took}"
+        )
 
 
 def _print_values(res, params) -> dict:
@@ -177,10 +199,14 @@ def _plot(path, data, res) -> bool:
             ax = axes[k, 0]
             for c in range(3):
                 ax.plot(ts[m], np.asarray(data.omega[k])[m, c], ".", ms=3, color=f"C{c}")
-                ax.plot(ts, np.asarray(traj.ys.omega)[:, c], "-", color=f"C{c}",
-                        label=f"ω_{'xyz'[c]}")
-            ax.set(xlabel="t [s]", ylabel="ω [rad/s]", title=f"trajectory {k}: ω observed "
-                   "(dots) vs fitted")
+                ax.plot(
+                    ts, np.asarray(traj.ys.omega)[:, c], "-", color=f"C{c}", label=f"ω_{'xyz'[c]}"
+                )
+            ax.set(
+                xlabel="t [s]",
+                ylabel="ω [rad/s]",
+                title=f"trajectory {k}: ω observed (dots) vs fitted",
+            )
             ax.legend(fontsize=7)
         if data.quat is not None:
             ax = axes[k, 1]
@@ -189,12 +215,14 @@ def _plot(path, data, res) -> bool:
             for c in range(4):
                 ax.plot(ts[m], qo[m, c], ".", ms=3, color=f"C{c}")
                 ax.plot(ts, qs[:, c], "-", color=f"C{c}", label="q_" + "wxyz"[c])
-            ax.set(xlabel="t [s]", ylabel="quaternion", title=f"trajectory {k}: attitude "
-                   "observed (dots) vs fitted")
+            ax.set(
+                xlabel="t [s]",
+                ylabel="quaternion",
+                title=f"trajectory {k}: attitude observed (dots) vs fitted",
+            )
             ax.legend(fontsize=7)
     if not res.converged:
-        fig.suptitle("not converged: the fitted curves are where the fit stopped",
-                     color="C3")
+        fig.suptitle("not converged: the fitted curves are where the fit stopped", color="C3")
     fig.savefig(path, dpi=90)
     return True
 
@@ -248,8 +276,10 @@ def compile_meter(jax):
     from .._program import traces
 
     meter = {"tracing_s": 0.0, "loaded": 0, "hit": False}
-    work = ("/jax/core/compile/jaxpr_trace_duration",
-            "/jax/core/compile/jaxpr_to_mlir_module_duration")
+    work = (
+        "/jax/core/compile/jaxpr_trace_duration",
+        "/jax/core/compile/jaxpr_to_mlir_module_duration",
+    )
 
     def event(name, **_):
         if name == "/jax/compilation_cache/cache_hits":  # inside the compile event below
@@ -305,35 +335,52 @@ def _hints(args, res, horizons, params, K) -> list[str]:
     loss, decrement = float(res.loss), float(res.decrement)
     hints = []
     if not np.isfinite(loss):
-        hints.append("the model could not be solved at the starting point (the loss is not "
-                     "finite): start nearer the truth (see the last point)")
+        hints.append(
+            "the model could not be solved at the starting point (the loss is not "
+            "finite): start nearer the truth (see the last point)"
+        )
     elif decrement >= 1e-2 * loss:  # Gauss–Newton: a step would still lower the loss much
-        hints.append(f"the loss ({loss:.4g}) is still falling (a Gauss–Newton step would "
-                     f"lower it by up to {decrement:.3g}): more steps, --steps "
-                     f"{max(2 * args.steps, 30)}")
+        hints.append(
+            f"the loss ({loss:.4g}) is still falling (a Gauss–Newton step would "
+            f"lower it by up to {decrement:.3g}): more steps, --steps "
+            f"{max(2 * args.steps, 30)}"
+        )
     else:
-        hints.append(f"the loss stalled at {loss:.4g} (a further step would lower it by at "
-                     f"most {decrement:.3g}), a local minimum that more steps do not leave")
+        hints.append(
+            f"the loss stalled at {loss:.4g} (a further step would lower it by at "
+            f"most {decrement:.3g}), a local minimum that more steps do not leave"
+        )
     if horizons == (1.0,):
-        hints.append("fit growing parts of the records, each stage starting from the last: "
-                     "--horizons 0.25,0.5,1 (a long or chaotic record fitted whole stalls in a "
-                     "local minimum)")
+        hints.append(
+            "fit growing parts of the records, each stage starting from the last: "
+            "--horizons 0.25,0.5,1 (a long or chaotic record fitted whole stalls in a "
+            "local minimum)"
+        )
     else:
-        hints.append(f"start from a shorter part of the records, in more stages: --horizons "
-                     f"{_finer(horizons)}")
+        hints.append(
+            f"start from a shorter part of the records, in more stages: --horizons "
+            f"{_finer(horizons)}"
+        )
     if "inertia" in params and args.scale is None and not res.scale_identified:
-        hints.append("the data fix J only up to scale: fix it with --scale trace=V or --scale "
-                     "moment=AXIS:V")
+        hints.append(
+            "the data fix J only up to scale: fix it with --scale trace=V or --scale moment=AXIS:V"
+        )
     if res.ill_determined > (0 if res.scale_identified and args.scale is None else 1):
-        hints.append(f"{res.ill_determined} direction(s) of the parameters are ill-determined: "
-                     "free fewer of them (--free), or fit more data")
+        hints.append(
+            f"{res.ill_determined} direction(s) of the parameters are ill-determined: "
+            "free fewer of them (--free), or fit more data"
+        )
     if args.trajectories is not None:
-        hints.append(f"fit more records, if the data hold more than the {K} fitted: "
-                     f"--trajectories {2 * K}, or leave --trajectories out for all of them")
-    hints.append(f"start nearer the truth: the fit starts from the nominal values of the "
-                 f"[model] of {args.model} and the first observed states; give --model a "
-                 "scenario file whose [model] values are closer (`rbdyn scenarios` names the "
-                 "shipped files to copy)")
+        hints.append(
+            f"fit more records, if the data hold more than the {K} fitted: "
+            f"--trajectories {2 * K}, or leave --trajectories out for all of them"
+        )
+    hints.append(
+        f"start nearer the truth: the fit starts from the nominal values of the "
+        f"[model] of {args.model} and the first observed states; give --model a "
+        "scenario file whose [model] values are closer (`rbdyn scenarios` names the "
+        "shipped files to copy)"
+    )
     return hints
 
 
@@ -341,8 +388,11 @@ def _verdict(args, res, horizons, params, K) -> int:
     """0 for a converged fit; else `EXIT_NOT_CONVERGED`, with what to try on stderr."""
     if res.converged:
         return 0
-    print("rbdyn fit: the fit did not converge: the values above are where it stopped, not a "
-          "fit of the data. To try:", file=sys.stderr)
+    print(
+        "rbdyn fit: the fit did not converge: the values above are where it stopped, not a "
+        "fit of the data. To try:",
+        file=sys.stderr,
+    )
     for hint in _hints(args, res, horizons, params, K):
         print(f"  - {hint}", file=sys.stderr)
     return EXIT_NOT_CONVERGED

@@ -21,7 +21,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         with warnings.catch_warnings():  # one line each, without the line that warned
             warnings.showwarning = lambda message, *_, **__: print(
-                f"rbdyn {args.command}: warning: {message}", file=sys.stderr)
+                f"rbdyn {args.command}: warning: {message}", file=sys.stderr
+            )
             return _dispatch(parser, args)
     except KeyboardInterrupt:
         print(f"\nrbdyn {args.command}: interrupted", file=sys.stderr)

@@ -50,13 +50,17 @@ def plot_command(args) -> int:
 
     with xr.open_zarr(args.path) as ds:
         if "omega" not in ds:
-            print("note: no trajectories.png or polhodes.png: the store keeps no states (a "
-                  'sweep with trajectories = "none"); sweep with --trajectories all or K '
-                  "to plot them")
+            print(
+                "note: no trajectories.png or polhodes.png: the store keeps no states (a "
+                'sweep with trajectories = "none"); sweep with --trajectories all or K '
+                "to plot them"
+            )
         elif not any(str(f).endswith("polhodes.png") for f in files):
-            print("note: no polhodes.png: this scenario's torque does not conserve the "
-                  "kinetic energy, so ω leaves the energy ellipsoid; trajectories.png shows "
-                  "|ω| and the nutation against time")
+            print(
+                "note: no polhodes.png: this scenario's torque does not conserve the "
+                "kinetic energy, so ω leaves the energy ellipsoid; trajectories.png shows "
+                "|ω| and the nutation against time"
+            )
     return 0
 
 
@@ -79,10 +83,26 @@ def verify_command(args) -> int:
     name = attrs["scenario_name"]
     scenario = name if name in catalogue() else "SCENARIO.toml"  # the file it was run from
     seed = [] if attrs["seed"] == 0 else ["--seed", str(attrs["seed"])]
-    print("finish it with: " + shlex.join([
-        "rbdyn", "sweep", scenario, "--n", str(attrs["n_trajectories"]), *seed,
-        "--trajectories", str(attrs["trajectories"]), "--dtype", attrs["dtype"],
-        "--out", str(args.store), "--resume"]))
+    print(
+        "finish it with: "
+        + shlex.join(
+            [
+                "rbdyn",
+                "sweep",
+                scenario,
+                "--n",
+                str(attrs["n_trajectories"]),
+                *seed,
+                "--trajectories",
+                str(attrs["trajectories"]),
+                "--dtype",
+                attrs["dtype"],
+                "--out",
+                str(args.store),
+                "--resume",
+            ]
+        )
+    )
     return EXIT_DAMAGED if not found.whole else EXIT_INCOMPLETE
 
 

@@ -27,8 +27,11 @@ def sweep_command(args) -> int:
         try:
             import distributed  # noqa: F401
         except ImportError:
-            print("rbdyn sweep: --scheduler/--workers need Dask's distributed: "
-                  "pip install 'rbdyn_jax[dask]'", file=sys.stderr)
+            print(
+                "rbdyn sweep: --scheduler/--workers need Dask's distributed: "
+                "pip install 'rbdyn_jax[dask]'",
+                file=sys.stderr,
+            )
             return EXIT_USAGE
     # XLA CPU devices: in-process, one per core (set by `import rbdyn_jax`) or --devices;
     # with --workers, cores // workers for each worker (whose environment comes from this
@@ -54,9 +57,11 @@ def sweep_command(args) -> int:
     try:
         scenario = scenario.with_settings(dtype=args.dtype, trajectories=args.trajectories)
     except ScenarioError as e:  # a float32 sweep of a scenario whose rtol is finer, say
-        given = " ".join(f"--{k} {v}" for k, v in (("dtype", args.dtype),
-                                                   ("trajectories", args.trajectories))
-                         if v is not None)
+        given = " ".join(
+            f"--{k} {v}"
+            for k, v in (("dtype", args.dtype), ("trajectories", args.trajectories))
+            if v is not None
+        )
         print(f"rbdyn sweep: the scenario cannot run with {given}: {e}", file=sys.stderr)
         return EXIT_USAGE
     if scenario.dtype == "float32":
@@ -72,16 +77,29 @@ def sweep_command(args) -> int:
     else:
         n_dev = args.devices
         workers = len(client.scheduler_info()["workers"])
-        where = (f"as Dask tasks on {workers} worker(s) at {client.scheduler.address}, "
-                 + ("each on all its devices" if n_dev is None else f"{n_dev} device(s) each"))
-    print(f"  {args.n} trajectories {where}, seed {args.seed}, {scenario.dtype}, "
-          f"{_states_text(scenario.trajectories)} → {args.out}")
+        where = f"as Dask tasks on {workers} worker(s) at {client.scheduler.address}, " + (
+            "each on all its devices" if n_dev is None else f"{n_dev} device(s) each"
+        )
+    print(
+        f"  {args.n} trajectories {where}, seed {args.seed}, {scenario.dtype}, "
+        f"{_states_text(scenario.trajectories)} → {args.out}"
+    )
     progress, close = _progress_reporter(args.n)
     t0 = time.perf_counter()
     try:
-        path = sweep.run(scenario, args.n, args.out, chunk=args.chunk, seed=args.seed,
-                         devices=n_dev, lanes=args.lanes, resume=args.resume,
-                         overwrite=args.overwrite, client=client, progress=progress)
+        path = sweep.run(
+            scenario,
+            args.n,
+            args.out,
+            chunk=args.chunk,
+            seed=args.seed,
+            devices=n_dev,
+            lanes=args.lanes,
+            resume=args.resume,
+            overwrite=args.overwrite,
+            client=client,
+            progress=progress,
+        )
     except KeyboardInterrupt:
         close()
         print(f"\nrbdyn sweep: interrupted: {_solved_text(sweep, args)}", file=sys.stderr)
@@ -100,13 +118,18 @@ def sweep_command(args) -> int:
     stats = sweep.summarize(path)
     attrs = sweep.open_dataset(path).attrs
     print_summary(stats)
-    print(f"\nwrote {path} in {elapsed:.1f} s {where}, in chunks of {attrs['chunk']} with "
-          f"{attrs['lanes']} lanes per device (open with xarray.open_zarr({str(path)!r}));"
-          f" plots: rbdyn plot {path}")
+    print(
+        f"\nwrote {path} in {elapsed:.1f} s {where}, in chunks of {attrs['chunk']} with "
+        f"{attrs['lanes']} lanes per device (open with xarray.open_zarr({str(path)!r}));"
+        f" plots: rbdyn plot {path}"
+    )
     failed = stats["n"] - stats["status"].get("successful", 0)
     if failed:
-        print(f"\nrbdyn sweep: {failed} of {stats['n']} trajectories failed (their data are "
-              "NaN; everything solved is written):", file=sys.stderr)
+        print(
+            f"\nrbdyn sweep: {failed} of {stats['n']} trajectories failed (their data are "
+            "NaN; everything solved is written):",
+            file=sys.stderr,
+        )
         for hint in _hints(stats["status"], scenario):
             print(f"  {hint}", file=sys.stderr)
         return EXIT_ALL_FAILED if failed == stats["n"] else EXIT_SOME_FAILED
@@ -141,8 +164,13 @@ def _cluster(args):
     env = {"JAX_ENABLE_X64": "1"}
     if cache:
         env.update(JAX_COMPILATION_CACHE_DIR=cache, JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="1")
-    cluster = LocalCluster(n_workers=args.workers, threads_per_worker=1, processes=True,
-                           dashboard_address=":0", env=env)
+    cluster = LocalCluster(
+        n_workers=args.workers,
+        threads_per_worker=1,
+        processes=True,
+        dashboard_address=":0",
+        env=env,
+    )
     return Client(cluster), cluster
 
 
@@ -169,8 +197,14 @@ def _progress_reporter(total: int):
     if sys.stderr.isatty():
         from tqdm import tqdm
 
-        bar = tqdm(total=total, unit="traj", unit_scale=True, dynamic_ncols=True,
-                   desc="solving (first chunk compiles)", file=sys.stderr)
+        bar = tqdm(
+            total=total,
+            unit="traj",
+            unit_scale=True,
+            dynamic_ncols=True,
+            desc="solving (first chunk compiles)",
+            file=sys.stderr,
+        )
 
         def progress(p) -> None:
             if bar.n == 0 and p.done > p.solved_now:  # resumed: count the finished ones
@@ -187,8 +221,12 @@ def _progress_reporter(total: int):
         now = time.perf_counter()
         if now - last[0] >= LOG_EVERY or p.done == p.total:
             last[0] = now
-            print(f"solved {p.done} of {p.total} ({100 * p.done / p.total:.0f} %), "
-                  f"{p.failed} failed, {p.elapsed:.1f} s", file=sys.stderr, flush=True)
+            print(
+                f"solved {p.done} of {p.total} ({100 * p.done / p.total:.0f} %), "
+                f"{p.failed} failed, {p.elapsed:.1f} s",
+                file=sys.stderr,
+                flush=True,
+            )
 
     return line, lambda: None
 
@@ -213,21 +251,30 @@ def _solved_text(sweep, args) -> str:
 
 def _table(rows: list[list[str]], header: list[str]) -> str:
     widths = [max(len(r[i]) for r in [header, *rows]) for i in range(len(header))]
-    line = lambda r: "  ".join(c.rjust(w) if i else c.ljust(w)  # noqa: E731
-                               for i, (c, w) in enumerate(zip(r, widths)))
+
+    def line(r):
+        return "  ".join(c.rjust(w) if i else c.ljust(w) for i, (c, w) in enumerate(zip(r, widths)))
+
     return "\n".join([line(header), "  ".join("-" * w for w in widths), *map(line, rows)])
 
 
 def print_summary(stats: dict) -> None:
     """Print `sweep.summarize`'s result as tables."""
-    print(f"\nscenario {stats['scenario']}: {stats['n']} trajectories"
-          + ("" if stats["complete"] else " (incomplete: run again with --resume)"))
+    print(
+        f"\nscenario {stats['scenario']}: {stats['n']} trajectories"
+        + ("" if stats["complete"] else " (incomplete: run again with --resume)")
+    )
     print(_table([[k, str(v)] for k, v in stats["status"].items()], ["status", "count"]))
     cols = ["count", "mean", "std", "min", "q05", "q50", "q95", "max"]
     rows = []
     for name, row in stats["summaries"].items():
-        rows.append([name] + [str(row[c]) if c == "count" else
-                              (f"{row[c]:.6g}" if c in row else "-") for c in cols])
+        rows.append(
+            [name]
+            + [
+                str(row[c]) if c == "count" else (f"{row[c]:.6g}" if c in row else "-")
+                for c in cols
+            ]
+        )
     if rows:
         print()
         print(_table(rows, ["summary (successful)"] + cols))
@@ -237,12 +284,17 @@ def _hints(status: dict[str, int], scenario) -> list[str]:
     """What to change for each kind of failure in a sweep's status counts."""
     hints = {
         "max_steps_reached": f"raise [solver] max_steps (now {scenario.max_steps}) in the "
-                             "scenario, or loosen [solver] rtol/atol",
+        "scenario, or loosen [solver] rtol/atol",
         "nonfinite_state": "a drawn sample or the state became non-finite: narrow the "
-                           "scenario's distributions (a lognormal's sigma, say) or shorten "
-                           "[time] t1",
+        "scenario's distributions (a lognormal's sigma, say) or shorten "
+        "[time] t1",
         "dt_min_reached": "the step size reached its minimum: loosen [solver] rtol/atol",
     }
-    return [f"{count} {name}: " + hints.get(name, "see the status codes in the sweep "
-                                                  "guide (rbdyn_jax.sweep.status_meanings())")
-            for name, count in status.items() if name not in ("successful", "not_run")]
+    return [
+        f"{count} {name}: "
+        + hints.get(
+            name, "see the status codes in the sweep guide (rbdyn_jax.sweep.status_meanings())"
+        )
+        for name, count in status.items()
+        if name not in ("successful", "not_run")
+    ]

@@ -54,5 +54,16 @@ from ._scale import (
     TraceScale as TraceScale,
 )
 
-__all__ = ["AbstractOptimizer", "AbstractScale", "FitResult", "LevenbergMarquardt",
-           "MomentScale", "Observations", "Optax", "TraceScale", "fit", "loss", "residuals"]
+__all__ = [
+    "AbstractOptimizer",
+    "AbstractScale",
+    "FitResult",
+    "LevenbergMarquardt",
+    "MomentScale",
+    "Observations",
+    "Optax",
+    "TraceScale",
+    "fit",
+    "loss",
+    "residuals",
+]

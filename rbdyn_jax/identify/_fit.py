@@ -140,18 +140,34 @@ def fit(
     if not isinstance(data, Observations):
         raise ValueError(f"`data` must be Observations, got {type(data).__name__}.")
     if scale is not None and not isinstance(scale, AbstractScale):
-        raise ValueError("`scale` must be None, identify.TraceScale(value) or "
-                         f"identify.MomentScale(axis, value), got {scale!r}.")
+        raise ValueError(
+            "`scale` must be None, identify.TraceScale(value) or "
+            f"identify.MomentScale(axis, value), got {scale!r}."
+        )
     if not isinstance(optimizer, AbstractOptimizer):
-        raise ValueError("`optimizer` must be identify.LevenbergMarquardt(...) or "
-                         "identify.Optax(tx, ...) (an optax transformation wrapped), got "
-                         f"{type(optimizer).__name__}.")
-    controller = make_controller(stepsize_controller, rtol, atol, default_tol=DEFAULT_TOL,
-                                 dtype=data.ts.dtype)
+        raise ValueError(
+            "`optimizer` must be identify.LevenbergMarquardt(...) or "
+            "identify.Optax(tx, ...) (an optax transformation wrapped), got "
+            f"{type(optimizer).__name__}."
+        )
+    controller = make_controller(
+        stepsize_controller, rtol, atol, default_tol=DEFAULT_TOL, dtype=data.ts.dtype
+    )
     if horizons is not None:
-        return _staged_fit(model, data, horizons, params=params, torque_where=torque_where,
-                           y0=y0, scale=scale, optimizer=optimizer, rcond=rcond, solver=solver,
-                           stepsize_controller=controller, max_steps=max_steps)
+        return _staged_fit(
+            model,
+            data,
+            horizons,
+            params=params,
+            torque_where=torque_where,
+            y0=y0,
+            scale=scale,
+            optimizer=optimizer,
+            rcond=rcond,
+            solver=solver,
+            stepsize_controller=controller,
+            max_steps=max_steps,
+        )
     params = tuple(params)
     for p in params:
         if p not in PARAMS:
@@ -167,9 +183,15 @@ def fit(
 
     # The optimiser's `tol` as an input of the compiled fit: another value reuses it.
     tol = jnp.asarray(optimizer.tol, data.ts.dtype)
-    cfg = _Config(solver=solver, stepsize_controller=controller, max_steps=int(max_steps),
-                  scale=scale, optimizer=eqx.tree_at(lambda o: o.tol, optimizer, tol),
-                  torque_static=torque_static, params=tuple(sorted(set(params))))
+    cfg = _Config(
+        solver=solver,
+        stepsize_controller=controller,
+        max_steps=int(max_steps),
+        scale=scale,
+        optimizer=eqx.tree_at(lambda o: o.tol, optimizer, tol),
+        torque_static=torque_static,
+        params=tuple(sorted(set(params))),
+    )
     out = _run(model, y0, torque_dyn, data, cfg)
     return _result(out, params, scale, optimizer, rcond)
 
@@ -186,8 +208,9 @@ def _torque_parts(torque, torque_where: Callable | None) -> tuple[PyTree, PyTree
     return eqx.partition(torque, spec)
 
 
-def _result(out: "_Optimum", params, scale: AbstractScale | None,
-            optimizer: AbstractOptimizer, rcond: float) -> FitResult:
+def _result(
+    out: "_Optimum", params, scale: AbstractScale | None, optimizer: AbstractOptimizer, rcond: float
+) -> FitResult:
     """The compiled fit's output read into a `FitResult`, with its notes on identifiability
     and convergence (NumPy: no further programs to compile)."""
     labels = _labels(out.params)
@@ -221,10 +244,20 @@ def _result(out: "_Optimum", params, scale: AbstractScale | None,
             f"{float(out.decrement):.3g} ≥ tol = {optimizer.tol:g}."
         )
     return FitResult(
-        model=out.model, y0=out.y0, loss=out.loss, loss_history=out.loss_history,
-        inertia_history=out.inertia_history, grad_norm=out.grad_norm,
-        decrement=out.decrement, converged=converged, covariance=out.covariance, labels=labels,
-        stderr=stderr, scale_identified=scale_ok, ill_determined=ill, notes=tuple(notes),
+        model=out.model,
+        y0=out.y0,
+        loss=out.loss,
+        loss_history=out.loss_history,
+        inertia_history=out.inertia_history,
+        grad_norm=out.grad_norm,
+        decrement=out.decrement,
+        converged=converged,
+        covariance=out.covariance,
+        labels=labels,
+        stderr=stderr,
+        scale_identified=scale_ok,
+        ill_determined=ill,
+        notes=tuple(notes),
     )
 
 
@@ -239,12 +272,18 @@ def _staged_fit(model, data: Observations, horizons, **kwargs) -> FitResult:
     res, y0 = None, kwargs.pop("y0")
     for frac in h:
         keep = jnp.asarray(ts <= (t0 + frac * (t1 - t0))[:, None] * (1 + 1e-12))
-        stage = eqx.tree_at(lambda d: (d.mask_omega, d.mask_quat), data,
-                            (data.mask_omega & keep, data.mask_quat & keep))
+        stage = eqx.tree_at(
+            lambda d: (d.mask_omega, d.mask_quat),
+            data,
+            (data.mask_omega & keep, data.mask_quat & keep),
+        )
         res = fit(model, stage, y0=y0, **kwargs)
         model, y0 = res.model, res.y0
-    notes = (*res.notes, f"Staged horizons {tuple(float(x) for x in h)}: each stage started "
-             "from the previous fit; the result is the last (full-record) stage's.")
+    notes = (
+        *res.notes,
+        f"Staged horizons {tuple(float(x) for x in h)}: each stage started "
+        "from the previous fit; the result is the last (full-record) stage's.",
+    )
     return dataclasses.replace(res, notes=notes)
 
 
@@ -267,8 +306,12 @@ class _Config(eqx.Module):
 
 
 # The parameters and which entry of `fit`'s `params` frees each.
-_FREED_BY = {"theta": "inertia", "torque": "torque", "omega0": "initial_conditions",
-             "dq0": "initial_conditions"}
+_FREED_BY = {
+    "theta": "inertia",
+    "torque": "torque",
+    "omega0": "initial_conditions",
+    "dq0": "initial_conditions",
+}
 
 
 def _initial_guess(data: Observations) -> State:
@@ -308,8 +351,12 @@ def _starting_point(model, y0, torque_dyn, data, cfg: _Config) -> _Start:
     if y0 is None:
         y0 = _initial_guess(data)
     q0_guess = rotation.quat_normalize(y0.quat)
-    start = {"theta": to_log_cholesky(model.inertia), "torque": torque_dyn,
-             "omega0": y0.omega, "dq0": jnp.zeros_like(y0.omega)}
+    start = {
+        "theta": to_log_cholesky(model.inertia),
+        "torque": torque_dyn,
+        "omega0": y0.omega,
+        "dq0": jnp.zeros_like(y0.omega),
+    }
     free = {k: v for k, v in start.items() if _FREED_BY[k] in cfg.params}
     fixed = {k: v for k, v in start.items() if _FREED_BY[k] not in cfg.params}
     return _Start(free, fixed, q0_guess)
@@ -337,9 +384,15 @@ def _objective(model, data: Observations, cfg: _Config, start: _Start, unravel) 
 
     def res(flat, adjoint):
         built = _assemble(unravel(flat), start, model, cfg)
-        return residuals(built.model, built.y0, data, solver=cfg.solver,
-                         stepsize_controller=cfg.stepsize_controller,
-                         max_steps=cfg.max_steps, adjoint=adjoint)
+        return residuals(
+            built.model,
+            built.y0,
+            data,
+            solver=cfg.solver,
+            stepsize_controller=cfg.stepsize_controller,
+            max_steps=cfg.max_steps,
+            adjoint=adjoint,
+        )
 
     def linearise(y) -> Linearisation:
         def both(z):
@@ -395,8 +448,7 @@ def _covariance(H, scale: AbstractScale | None):
     if scale is None:  # an undetermined direction gets a huge (not a hidden) variance
         inv_evals = 1.0 / jnp.maximum(evals, floor)
     else:  # the scale fix leaves one exact gauge direction (J unchanged): pseudo-inverse
-        inv_evals = jnp.where(evals > 1e-13 * jnp.max(evals), 1.0 / jnp.maximum(evals, floor),
-                              0.0)
+        inv_evals = jnp.where(evals > 1e-13 * jnp.max(evals), 1.0 / jnp.maximum(evals, floor), 0.0)
     return evals, evecs @ jnp.diag(inv_evals) @ evecs.T
 
 
@@ -425,10 +477,18 @@ def _at_optimum(found: Minimum, start: _Start, unravel, model, cfg: _Config) -> 
         stderr["omega0"] = se["omega0"]
         stderr["quat0"] = se["dq0"]
     return _Optimum(
-        params=p_opt, model=fitted.model, y0=fitted.y0, stderr=stderr,
-        scale_curvature=curvature, loss=f, loss_history=found.loss_history,
-        inertia_history=found.inertia_history, grad_norm=jnp.linalg.norm(g),
-        decrement=0.5 * g @ inv @ g, covariance=inv, eigenvalues=evals,
+        params=p_opt,
+        model=fitted.model,
+        y0=fitted.y0,
+        stderr=stderr,
+        scale_curvature=curvature,
+        loss=f,
+        loss_history=found.loss_history,
+        inertia_history=found.inertia_history,
+        grad_norm=jnp.linalg.norm(g),
+        decrement=0.5 * g @ inv @ g,
+        covariance=inv,
+        eigenvalues=evals,
     )
 
 

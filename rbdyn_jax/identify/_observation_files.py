@@ -63,8 +63,7 @@ def _csv(p: pathlib.Path) -> dict:
     if table.size == 0:
         raise ValueError(f"{p}: no rows under the header")
     fields: dict = {}
-    traj = table["trajectory"].astype(int) if "trajectory" in names else np.zeros(len(table),
-                                                                                int)
+    traj = table["trajectory"].astype(int) if "trajectory" in names else np.zeros(len(table), int)
     ids = np.unique(traj)
     n = max(int(np.sum(traj == i)) for i in ids)
     K = len(ids)
@@ -76,8 +75,10 @@ def _csv(p: pathlib.Path) -> dict:
         elif any(c in names for c in cols):
             raise ValueError(f"{p}: `{name}` needs all of the columns {cols}")
     if not fields:
-        raise ValueError(f"{p}: the header names no observed field: columns "
-                         f"{CSV_COLUMNS['omega']} and/or {CSV_COLUMNS['quat']}, got {names}")
+        raise ValueError(
+            f"{p}: the header names no observed field: columns "
+            f"{CSV_COLUMNS['omega']} and/or {CSV_COLUMNS['quat']}, got {names}"
+        )
     for k, i in enumerate(ids):
         rows = table[traj == i]
         ts[k, : len(rows)] = rows["t"]
@@ -95,12 +96,16 @@ def _dataset(p: pathlib.Path, trajectories: int | None) -> dict:
     try:
         ds = xr.open_zarr(p) if p.is_dir() else xr.open_dataset(p)
     except Exception as e:  # xarray's and its backends' errors have no common type
-        raise ValueError(f"{p}: not a .npz or .csv file, nor a dataset xarray opens (a sweep "
-                         f"store, a netCDF file): {e}") from e
+        raise ValueError(
+            f"{p}: not a .npz or .csv file, nor a dataset xarray opens (a sweep "
+            f"store, a netCDF file): {e}"
+        ) from e
     with ds:
         if "omega" not in ds and "quat" not in ds:
-            raise ValueError(f"{p} holds no ω or attitude to fit (a sweep store keeping no "
-                             "states: sweep with --trajectories all or K)")
+            raise ValueError(
+                f"{p} holds no ω or attitude to fit (a sweep store keeping no "
+                "states: sweep with --trajectories all or K)"
+            )
         if "time" not in ds:
             raise ValueError(f"{p}: no `time` coordinate")
         # A sweep keeping every K-th trajectory's states has them over `sampled_trajectory`.

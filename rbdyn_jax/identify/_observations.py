@@ -175,10 +175,12 @@ class Observations(eqx.Module):
         self.ts = jnp.asarray(t)
         self.omega = None if w is None else jnp.asarray(w)
         self.quat = None if q is None else jnp.asarray(q)
-        self.sigma_omega = None if w is None else jnp.asarray(_sigma(sigma_omega, (K, n, 3),
-                                                                     "sigma_omega"))
-        self.sigma_quat = None if q is None else jnp.asarray(_sigma(sigma_quat, (K, n),
-                                                                    "sigma_quat"))
+        self.sigma_omega = (
+            None if w is None else jnp.asarray(_sigma(sigma_omega, (K, n, 3), "sigma_omega"))
+        )
+        self.sigma_quat = (
+            None if q is None else jnp.asarray(_sigma(sigma_quat, (K, n), "sigma_quat"))
+        )
         self.mask = jnp.asarray(m)
         self.mask_omega = jnp.asarray(m_w)
         self.mask_quat = jnp.asarray(m_q)
@@ -219,6 +221,13 @@ class Observations(eqx.Module):
             fields["sigma_omega"] = sigma_omega
         if sigma_quat is not None:
             fields["sigma_quat"] = sigma_quat
-        return cls(fields.pop("ts"), omega=fields.get("omega"), quat=fields.get("quat"),
-                   sigma_omega=fields.get("sigma_omega"), sigma_quat=fields.get("sigma_quat"),
-                   mask=fields.get("mask"), euler=fields.get("euler"), seq=seq)
+        return cls(
+            fields.pop("ts"),
+            omega=fields.get("omega"),
+            quat=fields.get("quat"),
+            sigma_omega=fields.get("sigma_omega"),
+            sigma_quat=fields.get("sigma_quat"),
+            mask=fields.get("mask"),
+            euler=fields.get("euler"),
+            seq=seq,
+        )

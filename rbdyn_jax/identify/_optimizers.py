@@ -120,8 +120,9 @@ class LevenbergMarquardt(AbstractOptimizer):
 
     def __check_init__(self):
         if not (math.isfinite(self.damping) and self.damping > 0):
-            raise ValueError("LevenbergMarquardt: `damping` must be finite and positive, "
-                             f"got {self.damping!r}.")
+            raise ValueError(
+                f"LevenbergMarquardt: `damping` must be finite and positive, got {self.damping!r}."
+            )
 
     def minimise(self, objective: Objective, x0: Array) -> Minimum:
         """`steps + 1` iterations of a `lax.scan`: entry i of the history is the accepted
@@ -151,14 +152,22 @@ class LevenbergMarquardt(AbstractOptimizer):
             return s, Iterate(loss=s.loss, inertia=objective.inertia(s.x))
 
         m = objective.num_residuals
-        init = LMState(x=x0, r=jnp.zeros(m, x0.dtype),
-                       jacobian=jnp.zeros((m, x0.size), x0.dtype),
-                       loss=jnp.asarray(jnp.inf, x0.dtype),
-                       damping=jnp.asarray(self.damping, x0.dtype), trial=x0,
-                       done=jnp.asarray(False))
+        init = LMState(
+            x=x0,
+            r=jnp.zeros(m, x0.dtype),
+            jacobian=jnp.zeros((m, x0.size), x0.dtype),
+            loss=jnp.asarray(jnp.inf, x0.dtype),
+            damping=jnp.asarray(self.damping, x0.dtype),
+            trial=x0,
+            done=jnp.asarray(False),
+        )
         final, history = jax.lax.scan(step, init, jnp.arange(self.steps + 1))
-        return Minimum(x=final.x, at=Linearisation(final.jacobian, final.r),
-                       loss_history=history.loss, inertia_history=history.inertia)
+        return Minimum(
+            x=final.x,
+            at=Linearisation(final.jacobian, final.r),
+            loss_history=history.loss,
+            inertia_history=history.inertia,
+        )
 
 
 class OptaxState(NamedTuple):
@@ -192,8 +201,10 @@ class Optax(AbstractOptimizer):
 
     def __check_init__(self):
         if not isinstance(self.tx, optax.GradientTransformation):
-            raise ValueError("Optax: `tx` must be an optax GradientTransformation, got "
-                             f"{type(self.tx).__name__}.")
+            raise ValueError(
+                "Optax: `tx` must be an optax GradientTransformation, got "
+                f"{type(self.tx).__name__}."
+            )
 
     def minimise(self, objective: Objective, x0: Array) -> Minimum:
         """`steps` updates of a `lax.scan`, then the residuals and Jacobian at the last point
@@ -205,16 +216,15 @@ class Optax(AbstractOptimizer):
         def step(s: OptaxState, _):
             f, g = vg(s.x)
             if isinstance(opt, optax.GradientTransformationExtraArgs):
-                upd, opt_state = opt.update(g, s.opt_state, s.x, value=f, grad=g,
-                                            value_fn=objective.loss)
+                upd, opt_state = opt.update(
+                    g, s.opt_state, s.x, value=f, grad=g, value_fn=objective.loss
+                )
             else:
                 upd, opt_state = opt.update(g, s.opt_state, s.x)
             x_new = optax.apply_updates(s.x, upd)
-            return OptaxState(x_new, opt_state), Iterate(loss=f,
-                                                          inertia=objective.inertia(x_new))
+            return OptaxState(x_new, opt_state), Iterate(loss=f, inertia=objective.inertia(x_new))
 
-        final, history = jax.lax.scan(step, OptaxState(x0, opt.init(x0)), None,
-                                      length=self.steps)
+        final, history = jax.lax.scan(step, OptaxState(x0, opt.init(x0)), None, length=self.steps)
         x = final.x
         at_x = objective.linearise(x)
         r = at_x.residuals

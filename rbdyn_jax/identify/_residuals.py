@@ -14,11 +14,20 @@ from ._observations import Observations
 DEFAULT_TOL = 1e-10  # identify's default rtol and atol: solve errors far below the noise
 
 
-def _simulate_all(model, y0s: State, data: Observations, solver, stepsize_controller,
-                  max_steps, adjoint):
+def _simulate_all(
+    model, y0s: State, data: Observations, solver, stepsize_controller, max_steps, adjoint
+):
     def one(y0, ts):
-        return simulate(model, y0, ts, solver=solver, stepsize_controller=stepsize_controller,
-                        max_steps=max_steps, adjoint=adjoint, throw=False)
+        return simulate(
+            model,
+            y0,
+            ts,
+            solver=solver,
+            stepsize_controller=stepsize_controller,
+            max_steps=max_steps,
+            adjoint=adjoint,
+            throw=False,
+        )
 
     return jax.vmap(one)(y0s, data.ts)
 

@@ -24,8 +24,9 @@ class AbstractScale(eqx.Module):
 
     def __check_init__(self):
         if not (math.isfinite(self.value) and self.value > 0):
-            raise ValueError(f"{type(self).__name__}: `value` must be finite and positive, "
-                             f"got {self.value!r}.")
+            raise ValueError(
+                f"{type(self).__name__}: `value` must be finite and positive, got {self.value!r}."
+            )
 
     @property
     @abc.abstractmethod
@@ -70,8 +71,9 @@ def _axis(axis):
     except (TypeError, ValueError):
         a = None
     if a is None or a.ndim != 1:
-        raise ValueError("MomentScale: `axis` must be an index 0, 1 or 2 or a non-zero "
-                         f"3-vector, got {axis!r}.")
+        raise ValueError(
+            f"MomentScale: `axis` must be an index 0, 1 or 2 or a non-zero 3-vector, got {axis!r}."
+        )
     return tuple(a.tolist())
 
 
@@ -92,10 +94,11 @@ class MomentScale(AbstractScale):
         if isinstance(self.axis, int):
             if not 0 <= self.axis < 3:
                 raise ValueError(f"MomentScale: `axis` index must be 0, 1 or 2, got {self.axis}.")
-        elif (len(self.axis) != 3 or not all(map(math.isfinite, self.axis))
-              or not any(self.axis)):
-            raise ValueError("MomentScale: `axis` must be an index 0, 1 or 2 or a non-zero "
-                             f"3-vector, got {self.axis}.")
+        elif len(self.axis) != 3 or not all(map(math.isfinite, self.axis)) or not any(self.axis):
+            raise ValueError(
+                "MomentScale: `axis` must be an index 0, 1 or 2 or a non-zero "
+                f"3-vector, got {self.axis}."
+            )
 
     @property
     def direction(self) -> np.ndarray:

@@ -68,8 +68,26 @@ from ._solution import (
     result_names as result_names,
 )
 
-__all__ = ["COMPILER_OPTIONS", "RESULTS", "SPLITTING_ORDERS", "AbstractBatching", "Kernel",
-           "Lanes", "LiePoissonSplitting", "Trajectory", "Vmap", "configure_xla",
-           "default_batching", "default_lanes", "default_tolerance", "device_memory",
-           "fixed_steps", "make_controller", "min_rtol", "result_code", "result_names",
-           "simulate", "simulate_batch"]
+__all__ = [
+    "COMPILER_OPTIONS",
+    "RESULTS",
+    "SPLITTING_ORDERS",
+    "AbstractBatching",
+    "Kernel",
+    "Lanes",
+    "LiePoissonSplitting",
+    "Trajectory",
+    "Vmap",
+    "configure_xla",
+    "default_batching",
+    "default_lanes",
+    "default_tolerance",
+    "device_memory",
+    "fixed_steps",
+    "make_controller",
+    "min_rtol",
+    "result_code",
+    "result_names",
+    "simulate",
+    "simulate_batch",
+]

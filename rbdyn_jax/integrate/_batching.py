@@ -30,8 +30,9 @@ class AbstractBatching(eqx.Module):
     `Lanes` where it serves; else `Vmap`)."""
 
     @abc.abstractmethod
-    def solve(self, model, y0s, ts, *, solver, controller, adjoint, max_steps, dt0,
-              model_axes) -> Trajectory:
+    def solve(
+        self, model, y0s, ts, *, solver, controller, adjoint, max_steps, dt0, model_axes
+    ) -> Trajectory:
         """The batch's `Trajectory` (leading batch axis on every leaf)."""
 
 
@@ -42,11 +43,11 @@ class Vmap(AbstractBatching):
     that adjoint. Choose it for an implicit solver, a chosen adjoint, or reverse-over-reverse
     derivatives; the default takes it where `Lanes` cannot run the solve."""
 
-    def solve(self, model, y0s, ts, *, solver, controller, adjoint, max_steps, dt0,
-              model_axes) -> Trajectory:
+    def solve(
+        self, model, y0s, ts, *, solver, controller, adjoint, max_steps, dt0, model_axes
+    ) -> Trajectory:
         adjoint = diffrax.RecursiveCheckpointAdjoint() if adjoint is None else adjoint
-        return _vmapped(model, y0s, ts, solver, controller, adjoint, max_steps, dt0,
-                        model_axes)
+        return _vmapped(model, y0s, ts, solver, controller, adjoint, max_steps, dt0, model_axes)
 
 
 class Lanes(AbstractBatching):
@@ -101,19 +102,22 @@ class Lanes(AbstractBatching):
     def __check_init__(self):
         for name in ("lanes", "devices"):
             v = getattr(self, name)
-            if v is not None and (isinstance(v, bool) or not isinstance(v, numbers.Integral)
-                                  or v < 1):
+            if v is not None and (
+                isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < 1
+            ):
                 raise ValueError(f"`{name}` must be a positive int or None, got {v!r}.")
         if self.layout is not None and self.layout not in LAYOUTS:
-            raise ValueError(f"`layout` must be one of {LAYOUTS} or None, got "
-                             f"{self.layout!r}.")
+            raise ValueError(f"`layout` must be one of {LAYOUTS} or None, got {self.layout!r}.")
 
-    def solve(self, model, y0s, ts, *, solver, controller, adjoint, max_steps, dt0,
-              model_axes) -> Trajectory:
+    def solve(
+        self, model, y0s, ts, *, solver, controller, adjoint, max_steps, dt0, model_axes
+    ) -> Trajectory:
         reason = _lanes_refuse(solver, controller, adjoint)
         if reason is not None:
-            raise ValueError(f"`Lanes` {reason}; `batching=Vmap()` takes any solver, "
-                             "controller and adjoint diffeqsolve takes.")
+            raise ValueError(
+                f"`Lanes` {reason}; `batching=Vmap()` takes any solver, "
+                "controller and adjoint diffeqsolve takes."
+            )
         # A solve whose times or tolerances are traced checks them at run time: on one
         # device, since a check raising on one of several devices aborts the process.
         mesh = _mesh(self.devices if concrete(ts, controller) else 1)
@@ -122,12 +126,14 @@ class Lanes(AbstractBatching):
         n = jax.tree_util.tree_leaves(y0s)[0].shape[0]
         if self.lanes is None:
             per_lane = lane_bytes(y0s, model if model_axes is not None else None)
-            lanes = default_lanes(n, mesh.devices.size, platform, per_lane,
-                                  device_memory(mesh.devices.flat[0]))
+            lanes = default_lanes(
+                n, mesh.devices.size, platform, per_lane, device_memory(mesh.devices.flat[0])
+            )
         else:
             lanes = int(self.lanes)
-        return _lane_solved(model, y0s, ts, solver, controller, max_steps, dt0, model_axes,
-                            lanes, mesh, layout)
+        return _lane_solved(
+            model, y0s, ts, solver, controller, max_steps, dt0, model_axes, lanes, mesh, layout
+        )
 
 
 class Kernel(AbstractBatching):
@@ -160,34 +166,41 @@ class Kernel(AbstractBatching):
 
     def __check_init__(self):
         b = self.block
-        if b is not None and (isinstance(b, bool) or not isinstance(b, numbers.Integral)
-                              or b < 1 or b & (b - 1)):
+        if b is not None and (
+            isinstance(b, bool) or not isinstance(b, numbers.Integral) or b < 1 or b & (b - 1)
+        ):
             raise ValueError(f"`block` must be a power of two or None, got {b!r}.")
         if self.interpret is not None and not isinstance(self.interpret, bool):
             raise ValueError(f"`interpret` must be a bool or None, got {self.interpret!r}.")
 
-    def solve(self, model, y0s, ts, *, solver, controller, adjoint, max_steps, dt0,
-              model_axes) -> Trajectory:
+    def solve(
+        self, model, y0s, ts, *, solver, controller, adjoint, max_steps, dt0, model_axes
+    ) -> Trajectory:
         reason = kernel_refuse(model, solver, controller, adjoint)
         if reason is not None:
             raise ValueError(f"`Kernel` {reason}; `batching=Lanes()` or `Vmap()` takes it.")
         gpu = jax.default_backend() == "gpu"
         interpret = (not gpu) if self.interpret is None else self.interpret
         block = kernel_block(self.block, jax.tree_util.tree_leaves(y0s)[0].shape[0], gpu)
-        return kernel_solved[interpret](model, y0s, ts, solver, controller, max_steps, dt0,
-                                        model_axes, block, interpret)
+        return kernel_solved[interpret](
+            model, y0s, ts, solver, controller, max_steps, dt0, model_axes, block, interpret
+        )
 
 
 def _lanes_refuse(solver, controller, adjoint) -> str | None:
     """Why `Lanes` cannot run this solve, or `None`."""
     if not isinstance(solver, diffrax.AbstractERK):
-        return ("needs an explicit Runge–Kutta solver (a `diffrax.AbstractERK`: Tsit5, "
-                f"Dopri5, Dopri8, Bosh3, Heun, …), got {type(solver).__name__}")
+        return (
+            "needs an explicit Runge–Kutta solver (a `diffrax.AbstractERK`: Tsit5, "
+            f"Dopri5, Dopri8, Bosh3, Heun, …), got {type(solver).__name__}"
+        )
     if not isinstance(controller, diffrax.PIDController):
         return f"needs a `diffrax.PIDController`, got {type(controller).__name__}"
     if adjoint is not None:
-        return ("differentiates by forward sensitivities and takes no `adjoint`, got "
-                f"{type(adjoint).__name__}")
+        return (
+            "differentiates by forward sensitivities and takes no `adjoint`, got "
+            f"{type(adjoint).__name__}"
+        )
     return None
 
 
@@ -233,8 +246,9 @@ def device_memory(device) -> int | None:
     return None if not stats else stats.get("bytes_limit")
 
 
-def default_lanes(n: int, devices: int, platform: str = "cpu", per_lane: int = 0,
-                  memory: int | None = None) -> int:
+def default_lanes(
+    n: int, devices: int, platform: str = "cpu", per_lane: int = 0, memory: int | None = None
+) -> int:
     """The lanes per device `Lanes()` takes for `n` trajectories over `devices` devices of
     `platform` (a device's `.platform`: "cpu", "gpu", …).
 
@@ -254,15 +268,20 @@ def default_lanes(n: int, devices: int, platform: str = "cpu", per_lane: int = 0
     return max(1, min(cap, max(min(share, MIN_LANES), math.ceil(share / PER_LANE))))
 
 
-def default_batching(solver, controller, adjoint, model=None, y0s=None, model_axes=None,
-                     backend=None) -> AbstractBatching:
+def default_batching(
+    solver, controller, adjoint, model=None, y0s=None, model_axes=None, backend=None
+) -> AbstractBatching:
     """The default strategy: on a GPU backend (`backend`, default JAX's), `Kernel()` where
     it can run the solve (`model` and `y0s` given, and its field runs on rows of lanes);
     else `Lanes()` where the lane solver can run it; else `Vmap()`."""
     backend = jax.default_backend() if backend is None else backend
-    if (backend == "gpu" and model is not None and y0s is not None
-            and kernel_refuse(model, solver, controller, adjoint) is None
-            and field_refuse(model, y0s, model_axes) is None):
+    if (
+        backend == "gpu"
+        and model is not None
+        and y0s is not None
+        and kernel_refuse(model, solver, controller, adjoint) is None
+        and field_refuse(model, y0s, model_axes) is None
+    ):
         return Kernel()
     return Vmap() if _lanes_refuse(solver, controller, adjoint) is not None else Lanes()
 
@@ -272,13 +291,16 @@ def _mesh(devices) -> jax.sharding.Mesh:
     if devices is None:
         devices = len(available)
     if not 1 <= devices <= len(available):
-        raise ValueError(f"`devices` must be an int in [1, {len(available)}] (the local "
-                         f"devices), got {devices!r}.")
+        raise ValueError(
+            f"`devices` must be an int in [1, {len(available)}] (the local "
+            f"devices), got {devices!r}."
+        )
     return jax.sharding.Mesh(np.asarray(available[:devices]), ("batch",))
 
 
-def lane_solve(model, y0s, ts, solver, controller, max_steps, dt0, model_axes, lanes,
-               mesh=None, layout="cpu") -> Trajectory:
+def lane_solve(
+    model, y0s, ts, solver, controller, max_steps, dt0, model_axes, lanes, mesh=None, layout="cpu"
+) -> Trajectory:
     """The lane loop (`_lanes.lane_loop`; on each device of `mesh`, `_sharded`) and its
     `Trajectory`s.
 
@@ -301,8 +323,21 @@ def lane_solve(model, y0s, ts, solver, controller, max_steps, dt0, model_axes, l
     stored = traces.embedder()  # inside a caller's transformation, stored programs
 
     def loop(system, y0s, ts, tols):
-        return stored(lane_run, system, y0s, ts, tols, cstatic, solver, max_steps, dt0,
-                      batched, lanes, mesh, layout)
+        return stored(
+            lane_run,
+            system,
+            y0s,
+            ts,
+            tols,
+            cstatic,
+            solver,
+            max_steps,
+            dt0,
+            batched,
+            lanes,
+            mesh,
+            layout,
+        )
 
     @jax.custom_jvp
     def solve(dyn, y0s, ts, tols):
@@ -315,14 +350,23 @@ def lane_solve(model, y0s, ts, solver, controller, max_steps, dt0, model_axes, l
         return finish(m, ts, ys, ok, as_result(result), list(counts))
 
     return eqx.filter_vmap(finished, in_axes=(0 if batched else None, 0, 0, 0, 0))(
-        model, ys, ok0, result, counts)
+        model, ys, ok0, result, counts
+    )
 
 
-def lane_run(system, y0s, ts, tols, cstatic, solver, max_steps, dt0, batched, lanes, mesh,
-             layout="cpu"):
+def lane_run(
+    system, y0s, ts, tols, cstatic, solver, max_steps, dt0, batched, lanes, mesh, layout="cpu"
+):
     """The lane loop (in `layout`), on one device or on each of `mesh`'s."""
-    run = functools.partial(lane_loop, solver=solver, max_steps=max_steps, dt0=dt0,
-                            batched=batched, lanes=lanes, layout=layout)
+    run = functools.partial(
+        lane_loop,
+        solver=solver,
+        max_steps=max_steps,
+        dt0=dt0,
+        batched=batched,
+        lanes=lanes,
+        layout=layout,
+    )
     if mesh is None or mesh.devices.size == 1:
         return run(system, y0s, ts, eqx.combine(tols, cstatic))
     return _sharded(run, system, y0s, ts, tols, cstatic, batched, mesh)
@@ -355,10 +399,13 @@ def _sharded(run, system, y0s, ts, tols, cstatic, batched, mesh):
     def local(dyn, y0s, ts, tols):
         return run(eqx.combine(dyn, static), y0s, ts, eqx.combine(tols, cstatic))
 
-    out = jax.shard_map(local, mesh=mesh,
-                        in_specs=(spec, PartitionSpec("batch"), PartitionSpec(),
-                                  PartitionSpec()),
-                        out_specs=PartitionSpec("batch"), check_vma=False)(dyn, y0s, ts, tols)
+    out = jax.shard_map(
+        local,
+        mesh=mesh,
+        in_specs=(spec, PartitionSpec("batch"), PartitionSpec(), PartitionSpec()),
+        out_specs=PartitionSpec("batch"),
+        check_vma=False,
+    )(dyn, y0s, ts, tols)
     return jax.tree_util.tree_map(collected, out)
 
 

@@ -16,7 +16,6 @@ Under `vmap` the programs are batched and the choice stays open; forward-mode
 differentiation (a second derivative) differentiates the program chosen so far.
 """
 
-
 import jax
 from jax.extend import core
 from jax.interpreters import ad, batching, mlir, partial_eval as pe
@@ -70,10 +69,19 @@ def _dce(used, eqn):
     chosen = next(i for i, k in enumerate(params["keys"]) if read <= set(k))
     old = dict(zip(have, eqn.outvars))
     program = params["programs"][chosen]
-    outvars = [old[k] if k in read else core.DropVar(aval)
-               for k, aval in zip(params["keys"][chosen], program.out_avals)]
-    new = core.new_jaxpr_eqn(eqn.invars, outvars, cheapest_p, dict(params, chosen=chosen),
-                             program.effects, eqn.source_info, eqn.ctx)
+    outvars = [
+        old[k] if k in read else core.DropVar(aval)
+        for k, aval in zip(params["keys"][chosen], program.out_avals)
+    ]
+    new = core.new_jaxpr_eqn(
+        eqn.invars,
+        outvars,
+        cheapest_p,
+        dict(params, chosen=chosen),
+        program.effects,
+        eqn.source_info,
+        eqn.ctx,
+    )
     return [True] * len(eqn.invars), new
 
 
@@ -81,7 +89,8 @@ def _batch(args, dims, *, programs, keys, chosen):
     avals = [jax.ShapeDtypeStruct(x.shape, x.dtype) for x in args]
     batched = tuple(
         jax.make_jaxpr(jax.vmap(core.jaxpr_as_fun(p), in_axes=tuple(dims), out_axes=0))(*avals)
-        for p in programs)
+        for p in programs
+    )
     outs = cheapest_p.bind(*args, programs=batched, keys=keys, chosen=chosen)
     return outs, [0] * len(outs)
 

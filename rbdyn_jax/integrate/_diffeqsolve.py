@@ -40,8 +40,9 @@ def solve(model, y0, ts, solver, controller, adjoint, max_steps, dt0) -> Traject
     return finish(model, ts, sol.ys, ok0, sol.result, counts)
 
 
-def solve_vmapped(model, y0s, ts, solver, controller, adjoint, max_steps, dt0,
-                  model_axes) -> Trajectory:
+def solve_vmapped(
+    model, y0s, ts, solver, controller, adjoint, max_steps, dt0, model_axes
+) -> Trajectory:
     """`solve` vmapped over `y0s` and, along `model_axes`, over the model."""
 
     def one(m, y0):

@@ -74,18 +74,23 @@ def controller_in_unit_time(controller, t0, span):
     if isinstance(controller, diffrax.ConstantStepSize):
         return controller
     if isinstance(controller, diffrax.PIDController):
-        return dataclasses.replace(controller, dtmin=dt(controller.dtmin),
-                                   dtmax=dt(controller.dtmax))
+        return dataclasses.replace(
+            controller, dtmin=dt(controller.dtmin), dtmax=dt(controller.dtmax)
+        )
     if isinstance(controller, diffrax.StepTo):
         return dataclasses.replace(controller, ts=t(controller.ts))
     if isinstance(controller, diffrax.ClipStepSizeController):
         return dataclasses.replace(
-            controller, controller=controller_in_unit_time(controller.controller, t0, span),
-            step_ts=t(controller.step_ts), jump_ts=t(controller.jump_ts))
+            controller,
+            controller=controller_in_unit_time(controller.controller, t0, span),
+            step_ts=t(controller.step_ts),
+            jump_ts=t(controller.jump_ts),
+        )
     raise ValueError(
         f"rbdyn_jax does not know which times a {type(controller).__name__} holds (its "
         "solves run in a rescaled time): use a diffrax PIDController, ConstantStepSize, "
-        "StepTo or ClipStepSizeController.")
+        "StepTo or ClipStepSizeController."
+    )
 
 
 def per_unit_time(span, tree):
@@ -120,8 +125,11 @@ class Guarded(eqx.Module):
 def solve_dtype(model, y0, t):
     """The dtype a solve runs in: that of the times, the model's arrays and `y0` together
     (standard promotion, also under the caller's strict promotion)."""
-    inexact = [x for x in jax.tree_util.tree_leaves((t, model, y0))
-               if eqx.is_array(x) and jnp.issubdtype(x.dtype, jnp.inexact)]
+    inexact = [
+        x
+        for x in jax.tree_util.tree_leaves((t, model, y0))
+        if eqx.is_array(x) and jnp.issubdtype(x.dtype, jnp.inexact)
+    ]
     with jax.numpy_dtype_promotion("standard"):
         return jnp.result_type(*inexact)
 
@@ -132,7 +140,8 @@ def promoted(model, y0, t):
     there."""
     dtype = solve_dtype(model, y0, t)
     return jax.tree_util.tree_map(
-        lambda y: y.astype(dtype) if jnp.issubdtype(y.dtype, jnp.inexact) else y, y0)
+        lambda y: y.astype(dtype) if jnp.issubdtype(y.dtype, jnp.inexact) else y, y0
+    )
 
 
 def start(model, y0, t0):

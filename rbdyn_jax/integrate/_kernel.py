@@ -62,8 +62,10 @@ def kernel_refuse(model, solver, controller, adjoint) -> str | None:
     needs an explicit Runge–Kutta solver, a `PIDController` and no adjoint. (Whether the
     model's field runs on rows of lanes is `field_refuse`'s question.)"""
     if not isinstance(solver, diffrax.AbstractERK):
-        return ("needs an explicit Runge–Kutta solver (a `diffrax.AbstractERK`: Tsit5, "
-                f"Dopri5, Dopri8, Bosh3, …), got {type(solver).__name__}")
+        return (
+            "needs an explicit Runge–Kutta solver (a `diffrax.AbstractERK`: Tsit5, "
+            f"Dopri5, Dopri8, Bosh3, …), got {type(solver).__name__}"
+        )
     if not isinstance(controller, diffrax.PIDController):
         return f"needs a `diffrax.PIDController`, got {type(controller).__name__}"
     if adjoint is not None:
@@ -100,8 +102,10 @@ def _signature(model, y0s, model_axes):
     included), each array's shape and dtype and each other leaf's value; `None` where a
     value is unhashable."""
     leaves, tree = jax.tree_util.tree_flatten((model, y0s, model_axes))
-    key = (tree, tuple((type(x), x.shape, x.dtype) if hasattr(x, "dtype") else (type(x), x)
-                       for x in leaves))
+    key = (
+        tree,
+        tuple((type(x), x.shape, x.dtype) if hasattr(x, "dtype") else (type(x), x) for x in leaves),
+    )
     try:
         hash(key)
     except (TypeError, ValueError):
@@ -115,20 +119,23 @@ def _field_refuse(model, y0s, model_axes) -> str | None:
 
     if model_axes is not None:
         model = eqx.filter_eval_shape(
-            lambda m: eqx.filter_vmap(lambda x: x, in_axes=(model_axes,))(m), model)
+            lambda m: eqx.filter_vmap(lambda x: x, in_axes=(model_axes,))(m), model
+        )
         model = jax.tree_util.tree_map(one, model)
-    dyn, static = eqx.partition(model, lambda x: eqx.is_array(x)
-                                or isinstance(x, jax.ShapeDtypeStruct))
+    dyn, static = eqx.partition(
+        model, lambda x: eqx.is_array(x) or isinstance(x, jax.ShapeDtypeStruct)
+    )
     dyn = jax.tree_util.tree_map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), dyn)
     y = jax.tree_util.tree_map(one, y0s)
     t = jax.ShapeDtypeStruct((), jax.tree_util.tree_leaves(y)[0].dtype)
-    closed, _ = trace(lambda d, t, y: eqx.combine(d, static).vector_field(t, y, None),
-                      dyn, t, y)
+    closed, _ = trace(lambda d, t, y: eqx.combine(d, static).vector_field(t, y, None), dyn, t, y)
     bad = unsupported(closed.jaxpr)
     if not bad:
         return None
-    return (f"cannot run this model on rows of lanes: its vector field uses {sorted(bad)}, "
-            "which have no form on rows (write the field on vector components)")
+    return (
+        f"cannot run this model on rows of lanes: its vector field uses {sorted(bad)}, "
+        "which have no form on rows (write the field on vector components)"
+    )
 
 
 def kernel_block(block, n: int, gpu: bool) -> int:
@@ -160,12 +167,16 @@ def _unflat_rows(layout, rows):
     leaves, at = [], 0
     for shape, dtype in spec:
         k = int(np.prod(shape, dtype=int))
-        chunk = rows[at:at + k]
+        chunk = rows[at : at + k]
         at += k
         if dtype == jnp.bool_:
             chunk = [r != 0 for r in chunk]
-        leaves.append(objects(shape, lambda idx, c=chunk, s=shape: c[
-            int(np.ravel_multi_index(idx, s)) if s else 0]))
+        leaves.append(
+            objects(
+                shape,
+                lambda idx, c=chunk, s=shape: c[int(np.ravel_multi_index(idx, s)) if s else 0],
+            )
+        )
     return jax.tree_util.tree_unflatten(treedef, leaves)
 
 
@@ -179,17 +190,20 @@ def _with_elements(tree, rows):
     leaves, treedef = jax.tree_util.tree_flatten(tree)
     it = iter(rows)
     return jax.tree_util.tree_unflatten(
-        treedef, [objects(x.shape, lambda idx: next(it)) for x in leaves])
+        treedef, [objects(x.shape, lambda idx: next(it)) for x in leaves]
+    )
 
 
 def _select(mask, new, old):
     """Per lane `where` on pytrees of object arrays of rows."""
-    return _with_elements(old, [jnp.where(mask, a, b)
-                                for a, b in zip(_elements(new), _elements(old))])
+    return _with_elements(
+        old, [jnp.where(mask, a, b) for a, b in zip(_elements(new), _elements(old))]
+    )
 
 
-def kernel_solve(model, y0s, ts, solver, controller, max_steps, dt0, model_axes, block,
-                 interpret) -> Trajectory:
+def kernel_solve(
+    model, y0s, ts, solver, controller, max_steps, dt0, model_axes, block, interpret
+) -> Trajectory:
     """The kernel (`Kernel`) over the batch, and its `Trajectory`s.
 
     Differentiable in both modes by forward sensitivities, by the lane solver's rule
@@ -207,8 +221,18 @@ def kernel_solve(model, y0s, ts, solver, controller, max_steps, dt0, model_axes,
     tols, cstatic = eqx.partition(controller, eqx.is_array)
 
     def loop(system, y0s, ts, tols):
-        return kernel_run(system, y0s, ts, eqx.combine(tols, cstatic), solver, max_steps, dt0,
-                          batched, block, interpret)
+        return kernel_run(
+            system,
+            y0s,
+            ts,
+            eqx.combine(tols, cstatic),
+            solver,
+            max_steps,
+            dt0,
+            batched,
+            block,
+            interpret,
+        )
 
     @jax.custom_jvp
     def solve(dyn, y0s, ts, tols):
@@ -221,11 +245,11 @@ def kernel_solve(model, y0s, ts, solver, controller, max_steps, dt0, model_axes,
         return finish(m, ts, ys, ok, as_result(result), list(counts))
 
     return eqx.filter_vmap(finished, in_axes=(0 if batched else None, 0, 0, 0, 0))(
-        model, ys, ok0, result, counts)
+        model, ys, ok0, result, counts
+    )
 
 
-def kernel_run(system, y0s, ts, controller, solver, max_steps, dt0, batched, block,
-               interpret):
+def kernel_run(system, y0s, ts, controller, solver, max_steps, dt0, batched, block, interpret):
     """The kernel over the batch `y0s` of what `system` integrates (`_lanes.
     AbstractLaneSystem`: the model, or the model and its sensitivities; a leading
     trajectory axis on its array leaves when `batched`): the raw saved states `(N, n, …)`
@@ -242,10 +266,12 @@ def kernel_run(system, y0s, ts, controller, solver, max_steps, dt0, batched, blo
     controller = controller_in_unit_time(controller, start_time, span)
     dtype = uts.dtype
     axis = 0 if batched else None
-    first = functools.partial(lane_first, controller=controller, solver=solver,
-                              start_time=start_time, span=span, dt0=dt0)
-    ok0, y0r, tnext0, sstate0, cstate0, difficulty = eqx.filter_vmap(
-        first, in_axes=(axis, 0))(system, y0s)
+    first = functools.partial(
+        lane_first, controller=controller, solver=solver, start_time=start_time, span=span, dt0=dt0
+    )
+    ok0, y0r, tnext0, sstate0, cstate0, difficulty = eqx.filter_vmap(first, in_axes=(axis, 0))(
+        system, y0s
+    )
 
     # Longest first, padded to a multiple of the block by the last.
     order = jnp.argsort(-difficulty)
@@ -259,9 +285,12 @@ def kernel_run(system, y0s, ts, controller, solver, max_steps, dt0, batched, blo
         return jnp.broadcast_to(x, (P,) + jnp.shape(x))
 
     ctrl_dyn, cstatic = eqx.partition(controller, eqx.is_array)
-    params = (jax.tree_util.tree_map(lanes if batched else shared, dyn),
-              jax.tree_util.tree_map(shared, ctrl_dyn),
-              shared(jnp.asarray(start_time, dtype)), shared(jnp.asarray(span, dtype)))
+    params = (
+        jax.tree_util.tree_map(lanes if batched else shared, dyn),
+        jax.tree_util.tree_map(shared, ctrl_dyn),
+        shared(jnp.asarray(start_time, dtype)),
+        shared(jnp.asarray(span, dtype)),
+    )
     init = jax.tree_util.tree_map(lanes, (y0r, sstate0, cstate0, tnext0, ok0))
     in_rows, in_layout = _flat_rows((params, init))
     n_in = len(in_rows)
@@ -274,9 +303,17 @@ def kernel_run(system, y0s, ts, controller, solver, max_steps, dt0, batched, blo
         ctrl = eqx.combine(c_dyn, cstatic)
         term = guarded_term(m, t0_, span_)
         y1, y_error, dense, f1 = unrolled_step(solver, term, tprev, tnext, y, ok, f0)
-        keep, tp, tn, cs, code = lane_control(ctrl, error_order, jnp.asarray(t1_floor),
-                                              tprev, tnext, m.primal(y), m.primal(y1),
-                                              m.primal(y_error), cstate)
+        keep, tp, tn, cs, code = lane_control(
+            ctrl,
+            error_order,
+            jnp.asarray(t1_floor),
+            tprev,
+            tnext,
+            m.primal(y),
+            m.primal(y1),
+            m.primal(y_error),
+            cstate,
+        )
         return y1, dense, f1, keep, tp, tn, cs, code
 
     def interpolate(tprev, tnext, dense, t):
@@ -287,18 +324,26 @@ def kernel_run(system, y0s, ts, controller, solver, max_steps, dt0, batched, blo
     ex_params, (ex_y, ex_f, ex_c, ex_tn, ex_ok) = example
     dense_shape = jax.eval_shape(
         lambda *a: step(*a)[1],
-        *jax.tree_util.tree_map(lambda x: jax.ShapeDtypeStruct(x.shape, x.flat[0].dtype),
-                                (ex_params, ex_tn, ex_tn, ex_y, ex_ok, ex_f, ex_c)))
+        *jax.tree_util.tree_map(
+            lambda x: jax.ShapeDtypeStruct(x.shape, x.flat[0].dtype),
+            (ex_params, ex_tn, ex_tn, ex_y, ex_ok, ex_f, ex_c),
+        ),
+    )
     ex_dense = jax.tree_util.tree_map(
-        lambda s: objects(s.shape, lambda idx: jnp.zeros((), s.dtype)), dense_shape)
+        lambda s: objects(s.shape, lambda idx: jnp.zeros((), s.dtype)), dense_shape
+    )
     bad = set()
-    for fn, args in ((step, (ex_params, ex_tn, ex_tn, ex_y, ex_ok, ex_f, ex_c)),
-                     (interpolate, (ex_tn, ex_tn, ex_dense, ex_tn))):
+    for fn, args in (
+        (step, (ex_params, ex_tn, ex_tn, ex_y, ex_ok, ex_f, ex_c)),
+        (interpolate, (ex_tn, ex_tn, ex_dense, ex_tn)),
+    ):
         bad |= unsupported(trace(fn, *args)[0].jaxpr)
     if bad:
-        reason = (f"cannot run this model on rows of lanes: its vector field (or the "
-                  f"solver's step, controller or interpolant) uses {sorted(bad)}, which "
-                  "have no form on rows (write the field on vector components)")
+        reason = (
+            f"cannot run this model on rows of lanes: its vector field (or the "
+            f"solver's step, controller or interpolant) uses {sorted(bad)}, which "
+            "have no form on rows (write the field on vector components)"
+        )
         raise ValueError(f"`Kernel` {reason}; `batching=Lanes()` or `Vmap()` takes it.")
 
     y_spec = [x.shape[1:] for x in jax.tree_util.tree_leaves(y0s)]
@@ -311,10 +356,12 @@ def kernel_run(system, y0s, ts, controller, solver, max_steps, dt0, batched, blo
 
     def kernel(ts_ref, *refs):
         in_refs, out_refs = refs[:n_in], refs[n_in:]
-        ys_refs, counts_refs, result_ref = (out_refs[:n_y], out_refs[n_y:n_y + 3],
-                                            out_refs[n_y + 3])
-        params, (y, f, cstate, tnext, ok) = _unflat_rows(in_layout,
-                                                        [r[...] for r in in_refs])
+        ys_refs, counts_refs, result_ref = (
+            out_refs[:n_y],
+            out_refs[n_y : n_y + 3],
+            out_refs[n_y + 3],
+        )
+        params, (y, f, cstate, tnext, ok) = _unflat_rows(in_layout, [r[...] for r in in_refs])
         rows = (block,)
         zero_f = jnp.zeros(rows, dtype)
         zero_i = jnp.zeros(rows, int_t)
@@ -322,24 +369,60 @@ def kernel_run(system, y0s, ts, controller, solver, max_steps, dt0, batched, blo
         def full(x):
             return jnp.broadcast_to(x, rows)
 
-        dense = jax.tree_util.tree_map(lambda d: objects(d.shape, lambda idx: full(
-            jnp.zeros((), d.dtype))), dense_shape)
-        state = dict(tprev=zero_f, tnext=tnext[()], y=y, f=f, cstate=cstate, ok=ok[()],
-                     dense=dense, dt0=zero_f - 2, dt1=zero_f - 1, steps=zero_i,
-                     accepted=zero_i, rejected=zero_i, result=zero_i)
+        dense = jax.tree_util.tree_map(
+            lambda d: objects(d.shape, lambda idx: full(jnp.zeros((), d.dtype))), dense_shape
+        )
+        state = dict(
+            tprev=zero_f,
+            tnext=tnext[()],
+            y=y,
+            f=f,
+            cstate=cstate,
+            ok=ok[()],
+            dense=dense,
+            dt0=zero_f - 2,
+            dt1=zero_f - 1,
+            steps=zero_i,
+            accepted=zero_i,
+            rejected=zero_i,
+            result=zero_i,
+        )
         # The loops carry plain arrays: every row, broadcast to the block.
         template = jax.tree_util.tree_map(
-            lambda x: x if isinstance(x, np.ndarray) else objects((), lambda idx: x), state)
+            lambda x: x if isinstance(x, np.ndarray) else objects((), lambda idx: x), state
+        )
 
         def pack(s):
-            return [full(e) for e in _elements(jax.tree_util.tree_map(
-                lambda x: x if isinstance(x, np.ndarray) else objects((), lambda idx: x), s))]
+            return [
+                full(e)
+                for e in _elements(
+                    jax.tree_util.tree_map(
+                        lambda x: x if isinstance(x, np.ndarray) else objects((), lambda idx: x), s
+                    )
+                )
+            ]
 
         def unpack(carry):
             s = _with_elements(template, carry)
-            return {k: (v[()] if k in ("tprev", "tnext", "ok", "dt0", "dt1", "steps",
-                                       "accepted", "rejected", "result") else v)
-                    for k, v in s.items()}
+            return {
+                k: (
+                    v[()]
+                    if k
+                    in (
+                        "tprev",
+                        "tnext",
+                        "ok",
+                        "dt0",
+                        "dt1",
+                        "steps",
+                        "accepted",
+                        "rejected",
+                        "result",
+                    )
+                    else v
+                )
+                for k, v in s.items()
+            }
 
         def output(i, carry):
             t_i = ts_ref[i]
@@ -355,31 +438,45 @@ def kernel_run(system, y0s, ts, controller, solver, max_steps, dt0, batched, blo
                 go = wanted(s)
                 obj = functools.partial(objects, ())
                 y1, dense, f1, keep, tp, tn, cs, code = rowwise(
-                    step, params, obj(lambda idx: s["tprev"]), obj(lambda idx: s["tnext"]),
-                    s["y"], obj(lambda idx: s["ok"]), s["f"], s["cstate"])
+                    step,
+                    params,
+                    obj(lambda idx: s["tprev"]),
+                    obj(lambda idx: s["tnext"]),
+                    s["y"],
+                    obj(lambda idx: s["ok"]),
+                    s["f"],
+                    s["cstate"],
+                )
                 keep, tp, tn, code = (full(x[()]) for x in (keep, tp, tn, code))
                 accept = go & keep
-                s = dict(s, y=_select(accept, y1, s["y"]), f=_select(accept, f1, s["f"]),
-                         cstate=_select(go, cs, s["cstate"]),
-                         dense=_select(accept, dense, s["dense"]),
-                         dt0=jnp.where(accept, s["tprev"], s["dt0"]),
-                         dt1=jnp.where(accept, s["tnext"], s["dt1"]),
-                         tprev=jnp.where(go, tp, s["tprev"]),
-                         tnext=jnp.where(go, tn, s["tnext"]),
-                         steps=s["steps"] + go.astype(int_t),
-                         accepted=s["accepted"] + accept.astype(int_t),
-                         rejected=s["rejected"] + (go & ~keep).astype(int_t),
-                         result=jnp.where(go, code, s["result"]))
-                maxed = (go & (s["steps"] >= max_steps) & (s["tprev"] < 1)
-                         & (s["result"] == 0))
-                s["result"] = jnp.where(maxed, result_code(RESULTS.max_steps_reached),
-                                        s["result"])
+                s = dict(
+                    s,
+                    y=_select(accept, y1, s["y"]),
+                    f=_select(accept, f1, s["f"]),
+                    cstate=_select(go, cs, s["cstate"]),
+                    dense=_select(accept, dense, s["dense"]),
+                    dt0=jnp.where(accept, s["tprev"], s["dt0"]),
+                    dt1=jnp.where(accept, s["tnext"], s["dt1"]),
+                    tprev=jnp.where(go, tp, s["tprev"]),
+                    tnext=jnp.where(go, tn, s["tnext"]),
+                    steps=s["steps"] + go.astype(int_t),
+                    accepted=s["accepted"] + accept.astype(int_t),
+                    rejected=s["rejected"] + (go & ~keep).astype(int_t),
+                    result=jnp.where(go, code, s["result"]),
+                )
+                maxed = go & (s["steps"] >= max_steps) & (s["tprev"] < 1) & (s["result"] == 0)
+                s["result"] = jnp.where(maxed, result_code(RESULTS.max_steps_reached), s["result"])
                 return pack(s)
 
             s = unpack(jax.lax.while_loop(cond, body, carry))
             obj = functools.partial(objects, ())
-            vals = rowwise(interpolate, obj(lambda idx: s["dt0"]), obj(lambda idx: s["dt1"]),
-                           s["dense"], obj(lambda idx: full(t_i)))
+            vals = rowwise(
+                interpolate,
+                obj(lambda idx: s["dt0"]),
+                obj(lambda idx: s["dt1"]),
+                s["dense"],
+                obj(lambda idx: full(t_i)),
+            )
             reached = s["dt1"] >= t_i
             for ref, v in zip(ys_refs, _elements(vals)):
                 ref[i, :] = jnp.where(reached, full(v), jnp.inf).astype(ref.dtype)
@@ -391,27 +488,33 @@ def kernel_run(system, y0s, ts, controller, solver, max_steps, dt0, batched, blo
         result_ref[...] = s["result"]
 
     row_spec = pl.BlockSpec((block,), lambda i: (i,))
-    out_shape = ([jax.ShapeDtypeStruct((n_pad, P), d) for d in y_dtypes]
-                 + [jax.ShapeDtypeStruct((P,), int_t)] * 4)
-    out_specs = ([pl.BlockSpec((n_pad, block), lambda i: (0, i))] * n_y + [row_spec] * 4)
+    out_shape = [jax.ShapeDtypeStruct((n_pad, P), d) for d in y_dtypes] + [
+        jax.ShapeDtypeStruct((P,), int_t)
+    ] * 4
+    out_specs = [pl.BlockSpec((n_pad, block), lambda i: (0, i))] * n_y + [row_spec] * 4
     call = pl.pallas_call(
-        kernel, out_shape=out_shape, grid=(P // block,),
+        kernel,
+        out_shape=out_shape,
+        grid=(P // block,),
         in_specs=[pl.BlockSpec((n_pad,), lambda i: (0,))] + [row_spec] * n_in,
-        out_specs=out_specs, interpret=interpret, name="rbdyn_kernel",
+        out_specs=out_specs,
+        interpret=interpret,
+        name="rbdyn_kernel",
         # Triton's lowering, asked for by its parameters: JAX's default for a GPU is Mosaic
         # GPU (`jax_pallas_use_mosaic_gpu`), whose copies are of whole warpgroups.
-        compiler_params=None if interpret else pltriton.CompilerParams(
-            num_warps=TRITON_WARPS, num_stages=1),
+        compiler_params=None
+        if interpret
+        else pltriton.CompilerParams(num_warps=TRITON_WARPS, num_stages=1),
     )
     outs = _undifferentiated(call)(ts_pad, *in_rows)
-    ys_rows, counts, result = outs[:n_y], outs[n_y:n_y + 3], outs[n_y + 3]
+    ys_rows, counts, result = outs[:n_y], outs[n_y : n_y + 3], outs[n_y + 3]
 
     # Back to the batch's order: position p of the kernel holds trajectory order[p].
     back = jnp.argsort(order)
     leaves, at = [], 0
     for shape in y_spec:
         k = int(np.prod(shape, dtype=int))
-        x = jnp.stack(ys_rows[at:at + k], axis=-1)[:n, :N]  # (n, N, k)
+        x = jnp.stack(ys_rows[at : at + k], axis=-1)[:n, :N]  # (n, N, k)
         at += k
         leaves.append(jnp.moveaxis(x, 1, 0)[back].reshape((N, n) + shape))
     ys = jax.tree_util.tree_unflatten(jax.tree_util.tree_structure(y0s), leaves)
@@ -430,9 +533,11 @@ def _undifferentiated(call):
         return call(*args)
 
     def refused(primals, tangents):
-        raise ValueError("`Kernel` differentiates a solve once (forward sensitivities "
-                         "integrated in the kernel), not its derivative: take a second "
-                         "derivative through `batching=Lanes()` or `Vmap()`.")
+        raise ValueError(
+            "`Kernel` differentiates a solve once (forward sensitivities "
+            "integrated in the kernel), not its derivative: take a second "
+            "derivative through `batching=Lanes()` or `Vmap()`."
+        )
 
     run.defjvp(refused)
     return run
@@ -445,7 +550,12 @@ def _undifferentiated(call):
 # `kernel_solved[interpret]`; a Pallas program is not stored by the cache of traced programs
 # (`jax.export` does not serialize it).
 INTERPRET_OPTIONS = {**COMPILER_OPTIONS, "xla_backend_optimization_level": 1}
-kernel_solved = {interpret: Program(kernel_solve, validated=checked_before_tracing,
-                                    options=INTERPRET_OPTIONS if interpret else COMPILER_OPTIONS,
-                                    store=False)
-                 for interpret in (False, True)}
+kernel_solved = {
+    interpret: Program(
+        kernel_solve,
+        validated=checked_before_tracing,
+        options=INTERPRET_OPTIONS if interpret else COMPILER_OPTIONS,
+        store=False,
+    )
+    for interpret in (False, True)
+}

@@ -100,8 +100,11 @@ class LaneField(eqx.Module):
 
     def __call__(self, s, y, ok):  # `Guarded` per lane: the vmapped path's arithmetic
         axis = -1 if self.batched else None
-        return eqx.filter_vmap(lambda m, s, x, ok: Guarded(m, self.t0, self.span)(s, x, ok),
-                               in_axes=(axis, 0, -1, 0), out_axes=-1)(self.system, s, y, ok)
+        return eqx.filter_vmap(
+            lambda m, s, x, ok: Guarded(m, self.t0, self.span)(s, x, ok),
+            in_axes=(axis, 0, -1, 0),
+            out_axes=-1,
+        )(self.system, s, y, ok)
 
 
 class LaneState(eqx.Module):
@@ -134,13 +137,15 @@ class LaneState(eqx.Module):
 def lane_select(mask, new, old):
     """Per-lane `where` on pytrees whose lane axis is the last."""
     return jax.tree_util.tree_map(
-        lambda a, b: jnp.where(jnp.broadcast_to(mask, b.shape), a, b), new, old)
+        lambda a, b: jnp.where(jnp.broadcast_to(mask, b.shape), a, b), new, old
+    )
 
 
 def first_select(mask, new, old):
     """Per-lane `where` on pytrees whose lane axis is the first."""
     return jax.tree_util.tree_map(
-        lambda a, b: jnp.where(mask.reshape(mask.shape + (1,) * (b.ndim - 1)), a, b), new, old)
+        lambda a, b: jnp.where(mask.reshape(mask.shape + (1,) * (b.ndim - 1)), a, b), new, old
+    )
 
 
 def clip_floor(dtype) -> np.floating:
@@ -256,10 +261,11 @@ def _interpolate(solver, tprev, tnext, dense, t):
     keys = sorted(k for k in dense if k != "k")
     stages = jax.tree_util.tree_leaves(dense["k"])[0].shape[0]
     eye = jnp.eye(len(keys) + stages, dtype=theta.dtype)
-    probe = dict(zip(keys, eye), k=eye[len(keys):])
+    probe = dict(zip(keys, eye), k=eye[len(keys) :])
     zero, one = jnp.zeros((), theta.dtype), jnp.ones((), theta.dtype)
-    w = jax.vmap(lambda th: solver.interpolation_cls(t0=zero, t1=one, **probe)
-                 .evaluate(th))(theta).T  # (keys + stages, lanes)
+    w = jax.vmap(lambda th: solver.interpolation_cls(t0=zero, t1=one, **probe).evaluate(th))(
+        theta
+    ).T  # (keys + stages, lanes)
 
     def combine(*leaves):  # unrolled: XLA:CPU's reductions over a few rows are slow
         *ys, k = leaves
@@ -284,8 +290,7 @@ def lane_first(m: AbstractLaneSystem, y0, *, controller, solver, start_time, spa
     ok, y, f = start(m.model, m.primal(y0), start_time)  # f at y: the stand-in if not ok
     y_run, f_run = m.extend(ok, y, f, y0, start_time)
     term = guarded_term(m.model, start_time, span)
-    tnext, cstate = controller.init(term, t0, t1, y, dt0, ok, solver.func,
-                                    solver.error_order(term))
+    tnext, cstate = controller.init(term, t0, t1, y, dt0, ok, solver.func, solver.error_order(term))
     tnext = jnp.minimum(tnext, t1)
     # An FSAL step starts from f(t0, y0), the last stage of the step before: give it
     # now, so that a refilled lane needs no extra evaluation of the field. (Another
@@ -294,8 +299,10 @@ def lane_first(m: AbstractLaneSystem, y0, *, controller, solver, start_time, spa
     # How long the trajectory will take: |f(t0, y0)| in the controller's tolerance
     # scale. An ordering only: no tangents through it.
     f, y_ = jax.lax.stop_gradient((f, y))
-    d = sum(jnp.sum((a / (controller.atol + controller.rtol * jnp.abs(b))) ** 2)
-            for a, b in zip(jax.tree_util.tree_leaves(f), jax.tree_util.tree_leaves(y_)))
+    d = sum(
+        jnp.sum((a / (controller.atol + controller.rtol * jnp.abs(b))) ** 2)
+        for a, b in zip(jax.tree_util.tree_leaves(f), jax.tree_util.tree_leaves(y_))
+    )
     d = jnp.where(ok & ~jnp.isnan(d), d, -1.0)  # an overflow to inf goes first
     return ok, y_run, tnext, sstate, jax.tree_util.tree_map(jnp.asarray, cstate), d
 
@@ -308,15 +315,27 @@ def lane_control(controller, error_order, t1_floor, tprev, tnext, y, y1, y_error
     t1 = jnp.ones((), t1_floor.dtype)
     y_error = jax.tree_util.tree_map(lambda x: jnp.where(jnp.isnan(x), jnp.inf, x), y_error)
     keep, tp, tn, _, cstate, result = controller.adapt_step_size(
-        tprev, tnext, y, y1, None, y_error, error_order, cstate)
+        tprev, tnext, y, y1, None, y_error, error_order, cstate
+    )
     tp = jnp.minimum(tp, t1)
     tn = jnp.where(tn > t1_floor, jnp.where(keep, t1, tp + 0.5 * (t1 - tp)), tn)
     cstate = jax.tree_util.tree_map(jnp.asarray, cstate)
     return keep, tp, tn, cstate, result_code(result)
 
 
-def lane_loop(system: AbstractLaneSystem, y0s, ts, controller, *, solver, max_steps, dt0,
-              batched, lanes, layout="cpu"):
+def lane_loop(
+    system: AbstractLaneSystem,
+    y0s,
+    ts,
+    controller,
+    *,
+    solver,
+    max_steps,
+    dt0,
+    batched,
+    lanes,
+    layout="cpu",
+):
     """All trajectories of `y0s` through `lanes` lanes of one while loop (in the `layout`
     of `LAYOUTS`); the raw saved states (before `finish`), the start flags, result codes
     and step counts.
@@ -342,11 +361,13 @@ def lane_loop(system: AbstractLaneSystem, y0s, ts, controller, *, solver, max_st
     t1_floor = jnp.asarray(clip_floor(ts.dtype))  # diffeqsolve's clip
     dyn, static = eqx.partition(system, eqx.is_array)
     axis = 0 if batched else None
-    first = functools.partial(lane_first, controller=controller, solver=solver,
-                              start_time=start_time, span=span, dt0=dt0)
+    first = functools.partial(
+        lane_first, controller=controller, solver=solver, start_time=start_time, span=span, dt0=dt0
+    )
 
-    ok0, y0r, tnext0, sstate0, cstate0, difficulty = eqx.filter_vmap(
-        first, in_axes=(axis, 0))(system, y0s)
+    ok0, y0r, tnext0, sstate0, cstate0, difficulty = eqx.filter_vmap(first, in_axes=(axis, 0))(
+        system, y0s
+    )
     y0r, sstate0 = lanes_last((y0r, sstate0))
     lane_dyn = lanes_last(dyn) if batched else dyn
     order = jnp.argsort(-difficulty)  # longest first
@@ -362,8 +383,8 @@ def lane_loop(system: AbstractLaneSystem, y0s, ts, controller, *, solver, max_st
             if array:
                 return unrolled_step(solver, term, tprev, tnext, y, ok, f0)
             y1, y_error, dense, sstate, _ = solver.step(
-                term, tprev, tnext, y, ok, None if f0 is None else (jnp.array(False), f0),
-                False)
+                term, tprev, tnext, y, ok, None if f0 is None else (jnp.array(False), f0), False
+            )
         return y1, y_error, dense, None if sstate is None else sstate[1]
 
     def write(buf, index, vals, mask):  # only the lanes where `mask` write
@@ -375,19 +396,37 @@ def lane_loop(system: AbstractLaneSystem, y0s, ts, controller, *, solver, max_st
     m0 = take_last(lane_dyn, lane) if batched else None
     tprev0 = jnp.full(L, t0)
     y_lane, ss_lane, ok_lane = take_last(y0r, lane), take_last(sstate0, lane), ok0[lane]
-    dense_struct = jax.eval_shape(lambda: step(
-        eqx.combine(m0 if batched else dyn, static), tprev0, tnext0[lane], y_lane, ok_lane,
-        ss_lane)[2])
+    dense_struct = jax.eval_shape(
+        lambda: step(
+            eqx.combine(m0 if batched else dyn, static),
+            tprev0,
+            tnext0[lane],
+            y_lane,
+            ok_lane,
+            ss_lane,
+        )[2]
+    )
     state = LaneState(
-        idx=jnp.arange(L, dtype=jnp.int32), tprev=tprev0, tnext=tnext0[lane], y=y_lane,
-        solver_state=ss_lane, controller_state=take(cstate0, lane), ok=ok_lane, model=m0,
+        idx=jnp.arange(L, dtype=jnp.int32),
+        tprev=tprev0,
+        tnext=tnext0[lane],
+        y=y_lane,
+        solver_state=ss_lane,
+        controller_state=take(cstate0, lane),
+        ok=ok_lane,
+        model=m0,
         dense=jax.tree_util.tree_map(lambda x: jnp.zeros(x.shape, x.dtype), dense_struct),
-        dense_t=jnp.zeros((2, L), ts.dtype), pending=jnp.zeros(L, bool),
-        save=jnp.zeros(L, jnp.int32), counts=jnp.zeros((3, L), int),
-        result=jnp.zeros(L, jnp.int32), next=jnp.asarray(L, jnp.int32),
-        ys=jax.tree_util.tree_map(lambda x: jnp.full((N + 1, n) + x.shape[1:], jnp.inf, x.dtype),
-                                  y0s),
-        out_counts=jnp.zeros((N + 1, 3), int), out_result=jnp.zeros(N + 1, jnp.int32),
+        dense_t=jnp.zeros((2, L), ts.dtype),
+        pending=jnp.zeros(L, bool),
+        save=jnp.zeros(L, jnp.int32),
+        counts=jnp.zeros((3, L), int),
+        result=jnp.zeros(L, jnp.int32),
+        next=jnp.asarray(L, jnp.int32),
+        ys=jax.tree_util.tree_map(
+            lambda x: jnp.full((N + 1, n) + x.shape[1:], jnp.inf, x.dtype), y0s
+        ),
+        out_counts=jnp.zeros((N + 1, 3), int),
+        out_result=jnp.zeros(N + 1, jnp.int32),
     )
     # The state, the solver's state, the step's dense output and the saved values take a
     # batch axis (`jax.vmap`) from the model and the initial states (and tangents, for a
@@ -396,8 +435,11 @@ def lane_loop(system: AbstractLaneSystem, y0s, ts, controller, *, solver, max_st
     # a fixpoint that re-traces the whole body on each pass; tying those carries to the
     # inputs from the start (a select that always picks the initial value) makes it
     # converge in one pass.
-    inputs = [x for x in jax.tree_util.tree_leaves((dyn, y0s, sstate0)) if
-              jnp.issubdtype(x.dtype, jnp.inexact)]
+    inputs = [
+        x
+        for x in jax.tree_util.tree_leaves((dyn, y0s, sstate0))
+        if jnp.issubdtype(x.dtype, jnp.inexact)
+    ]
     if inputs:
         anchor = sum(jnp.sum(x) for x in inputs)
         never = jnp.zeros((), bool)
@@ -408,9 +450,12 @@ def lane_loop(system: AbstractLaneSystem, y0s, ts, controller, *, solver, max_st
             return jnp.where(never, anchor.astype(x.dtype), x)
 
         state = dataclasses.replace(
-            state, **{k: jax.tree_util.tree_map(tied, getattr(state, k))
-                      for k in ("y", "solver_state", "dense", "ys")})
-
+            state,
+            **{
+                k: jax.tree_util.tree_map(tied, getattr(state, k))
+                for k in ("y", "solver_state", "dense", "ys")
+            },
+        )
 
     def cond(c: LaneState):
         return jnp.any(c.idx < N)
@@ -420,21 +465,47 @@ def lane_loop(system: AbstractLaneSystem, y0s, ts, controller, *, solver, max_st
         current = order[jnp.minimum(c.idx, N - 1)]  # each lane's row of the batch
         # (1) Save one output time from each lane's last step.
         s = jnp.minimum(c.save, n - 1)
-        vals = lanes_first(
-            _interpolate(solver, c.dense_t[0], c.dense_t[1], c.dense, ts[s]))
-        ys = jax.tree_util.tree_map(lambda o, v: write(o, (current, s), v, c.pending),
-                                    c.ys, vals)
+        vals = lanes_first(_interpolate(solver, c.dense_t[0], c.dense_t[1], c.dense, ts[s]))
+        ys = jax.tree_util.tree_map(lambda o, v: write(o, (current, s), v, c.pending), c.ys, vals)
         save = c.save + c.pending.astype(jnp.int32)
         s = jnp.minimum(save, n - 1)
         pending = c.pending & (save < n) & (ts[s] <= c.dense_t[1])
         # (2) Finished lanes report and take the next trajectory.
         done = active & ~pending & ((c.tprev >= t1) | (c.result != 0))
-        lanes_now = (c.idx, c.tprev, c.tnext, c.y, c.solver_state, c.controller_state, c.ok,
-                     c.model, save, c.counts, c.result, c.out_counts, c.out_result, c.next)
+        lanes_now = (
+            c.idx,
+            c.tprev,
+            c.tnext,
+            c.y,
+            c.solver_state,
+            c.controller_state,
+            c.ok,
+            c.model,
+            save,
+            c.counts,
+            c.result,
+            c.out_counts,
+            c.out_result,
+            c.next,
+        )
 
         def refill(lanes_now):
-            (idx, tprev, tnext, y, sstate, cstate, ok, m, save, counts, result, out_counts,
-             out_result, nxt) = lanes_now
+            (
+                idx,
+                tprev,
+                tnext,
+                y,
+                sstate,
+                cstate,
+                ok,
+                m,
+                save,
+                counts,
+                result,
+                out_counts,
+                out_result,
+                nxt,
+            ) = lanes_now
             out_counts = write(out_counts, (current,), counts.T, done)
             out_result = write(out_result, (current,), result, done)
             new = nxt + jnp.cumsum(done, dtype=jnp.int32) - 1
@@ -451,21 +522,51 @@ def lane_loop(system: AbstractLaneSystem, y0s, ts, controller, *, solver, max_st
             save = jnp.where(done, 0, save)
             counts = jnp.where(done, 0, counts)
             result = jnp.where(done, 0, result)
-            return (idx, tprev, tnext, y, sstate, cstate, ok, m, save, counts, result,
-                    out_counts, out_result, nxt)
+            return (
+                idx,
+                tprev,
+                tnext,
+                y,
+                sstate,
+                cstate,
+                ok,
+                m,
+                save,
+                counts,
+                result,
+                out_counts,
+                out_result,
+                nxt,
+            )
 
         if array:  # a branch would wait for the host: refill, selecting per lane
             refilled = refill(lanes_now)
         else:  # skipped at the iterations where no lane finished
             refilled = jax.lax.cond(jnp.any(done), refill, lambda x: x, lanes_now)
-        (idx, tprev, tnext, y, sstate, cstate, ok, m, save, counts, result, out_counts,
-         out_result, nxt) = refilled
+        (
+            idx,
+            tprev,
+            tnext,
+            y,
+            sstate,
+            cstate,
+            ok,
+            m,
+            save,
+            counts,
+            result,
+            out_counts,
+            out_result,
+            nxt,
+        ) = refilled
         # (3) One solver step in every lane with nothing left to save.
         go = (idx < N) & ~pending & (tprev < t1) & (result == 0)
-        y1, y_error, dense, ss1 = step(eqx.combine(m if batched else dyn, static), tprev,
-                                       tnext, y, ok, sstate)
+        y1, y_error, dense, ss1 = step(
+            eqx.combine(m if batched else dyn, static), tprev, tnext, y, ok, sstate
+        )
         keep, tp, tn, cs1, step_result = jax.vmap(control, in_axes=(0, 0, -1, -1, -1, 0))(
-            tprev, tnext, primal(y), primal(y1), primal(y_error), cstate)
+            tprev, tnext, primal(y), primal(y1), primal(y_error), cstate
+        )
         accept = go & keep
         y = lane_select(accept, y1, y)
         sstate = lane_select(accept, ss1, sstate)
@@ -480,11 +581,26 @@ def lane_loop(system: AbstractLaneSystem, y0s, ts, controller, *, solver, max_st
         result = jnp.where(maxed, result_code(RESULTS.max_steps_reached), result)
         s = jnp.minimum(save, n - 1)
         pending = pending | (accept & (save < n) & (ts[s] <= dense_t[1]))
-        return LaneState(idx=idx, tprev=tprev, tnext=tnext, y=y, solver_state=sstate,
-                         controller_state=cstate, ok=ok, model=m, dense=dense,
-                         dense_t=dense_t, pending=pending, save=save, counts=counts,
-                         result=result, next=nxt, ys=ys, out_counts=out_counts,
-                         out_result=out_result)
+        return LaneState(
+            idx=idx,
+            tprev=tprev,
+            tnext=tnext,
+            y=y,
+            solver_state=sstate,
+            controller_state=cstate,
+            ok=ok,
+            model=m,
+            dense=dense,
+            dense_t=dense_t,
+            pending=pending,
+            save=save,
+            counts=counts,
+            result=result,
+            next=nxt,
+            ys=ys,
+            out_counts=out_counts,
+            out_result=out_result,
+        )
 
     c = jax.lax.while_loop(cond, body, state)
     return take(c.ys, slice(N)), ok0, c.out_result[:N], c.out_counts[:N]

@@ -78,12 +78,14 @@ UNROLL = 1
 
 
 def _refusal(what: str) -> str:
-    return (f"`LiePoissonSplitting` cannot integrate {what} geometrically: it splits a "
-            "`RigidBody` whose torque depends on the attitude alone (`NoTorque`, "
-            "`UniformGravity`, `GravityGradient`, `RestoringMoment`, `BodyTorque`, "
-            "`InertialTorque` and their sums), which acts as an exact kick. Use an adaptive "
-            "solver for this model: the default `diffrax.Tsit5()`, or `diffrax.Dopri8()` "
-            "with tight tolerances (docs/physics.md#what-the-splitting-cannot-treat).")
+    return (
+        f"`LiePoissonSplitting` cannot integrate {what} geometrically: it splits a "
+        "`RigidBody` whose torque depends on the attitude alone (`NoTorque`, "
+        "`UniformGravity`, `GravityGradient`, `RestoringMoment`, `BodyTorque`, "
+        "`InertialTorque` and their sums), which acts as an exact kick. Use an adaptive "
+        "solver for this model: the default `diffrax.Tsit5()`, or `diffrax.Dopri8()` "
+        "with tight tolerances (docs/physics.md#what-the-splitting-cannot-treat)."
+    )
 
 
 def check_splittable(model) -> bool:
@@ -91,21 +93,27 @@ def check_splittable(model) -> bool:
     naming the model or the torque where the splitting cannot treat it."""
     if type(model) is not RigidBody:
         name = type(model).__name__
-        raise ValueError(_refusal(
-            f"a `{name}`, a subclass of `RigidBody` whose equations it does not know"
-            if isinstance(model, RigidBody) else
-            f"a `{name}` (the relative-motion equations and the Euler-angle and Poisson "
-            "state forms have no such split)"))
+        raise ValueError(
+            _refusal(
+                f"a `{name}`, a subclass of `RigidBody` whose equations it does not know"
+                if isinstance(model, RigidBody)
+                else f"a `{name}` (the relative-motion equations and the Euler-angle and Poisson "
+                "state forms have no such split)"
+            )
+        )
     parts = model.torque.torques if isinstance(model.torque, SumTorque) else (model.torque,)
     kicked = False
     for torque in parts:
         if type(torque) is NoTorque:
             continue
         if type(torque) not in KICKED:
-            raise ValueError(_refusal(
-                f"the torque `{type(torque).__name__}` (a moment that depends on the rates, "
-                "or one whose dependence the splitting does not know, has no exactly solved "
-                "flow of its own)"))
+            raise ValueError(
+                _refusal(
+                    f"the torque `{type(torque).__name__}` (a moment that depends on the rates, "
+                    "or one whose dependence the splitting does not know, has no exactly solved "
+                    "flow of its own)"
+                )
+            )
         kicked = True
     return kicked
 
@@ -125,20 +133,26 @@ def fixed_step_controller(model, ts, controller, rtol, atol, dt0, max_steps):
     `max_steps` that covers `ts` in steps of `dt0`."""
     check_splittable(model)
     if rtol is not None or atol is not None:
-        raise ValueError("`LiePoissonSplitting` takes fixed steps (`dt0`): `rtol` and `atol` "
-                         "mean nothing to it; leave them out.")
+        raise ValueError(
+            "`LiePoissonSplitting` takes fixed steps (`dt0`): `rtol` and `atol` "
+            "mean nothing to it; leave them out."
+        )
     if controller is None:
         controller = diffrax.ConstantStepSize()
     if not isinstance(controller, (diffrax.ConstantStepSize, diffrax.StepTo)):
-        raise ValueError("`LiePoissonSplitting` takes fixed steps: `stepsize_controller` "
-                         "must be `diffrax.ConstantStepSize()` (the default, with `dt0`) or "
-                         f"`diffrax.StepTo(ts)`, got {type(controller).__name__}.")
+        raise ValueError(
+            "`LiePoissonSplitting` takes fixed steps: `stepsize_controller` "
+            "must be `diffrax.ConstantStepSize()` (the default, with `dt0`) or "
+            f"`diffrax.StepTo(ts)`, got {type(controller).__name__}."
+        )
     if isinstance(controller, diffrax.StepTo):
         return controller
     if dt0 is None:
-        raise ValueError("`dt0` is the fixed step of `LiePoissonSplitting`: give it (in the "
-                         "unit of `ts`; a fiftieth to a hundredth of the motion's period "
-                         "suits order 6, docs/physics.md#choosing-the-step).")
+        raise ValueError(
+            "`dt0` is the fixed step of `LiePoissonSplitting`: give it (in the "
+            "unit of `ts`; a fiftieth to a hundredth of the motion's period "
+            "suits order 6, docs/physics.md#choosing-the-step)."
+        )
     if isinstance(dt0, jax.core.Tracer) or isinstance(ts, jax.core.Tracer):
         return controller
     if not float(dt0) > 0:
@@ -146,9 +160,11 @@ def fixed_step_controller(model, ts, controller, rtol, atol, dt0, max_steps):
     t = np.asarray(ts)
     steps = fixed_steps(float(t[-1]) - float(t[0]), float(dt0))
     if max_steps < steps:
-        raise ValueError(f"`max_steps` = {max_steps} is fewer than the {steps} steps of "
-                         f"`dt0` = {float(dt0):g} from ts[0] to ts[-1]: give `max_steps` ≥ "
-                         f"{steps}.")
+        raise ValueError(
+            f"`max_steps` = {max_steps} is fewer than the {steps} steps of "
+            f"`dt0` = {float(dt0):g} from ts[0] to ts[-1]: give `max_steps` ≥ "
+            f"{steps}."
+        )
     return controller
 
 
@@ -172,10 +188,12 @@ def _q_times(q, p):
     """Hamilton product `q ⊗ p` on components (lists of four arrays)."""
     w, x, y, z = q
     a, b, c, d = p
-    return [w * a - x * b - y * c - z * d,
-            w * b + x * a + y * d - z * c,
-            w * c - x * d + y * a + z * b,
-            w * d + x * c - y * b + z * a]
+    return [
+        w * a - x * b - y * c - z * d,
+        w * b + x * a + y * d - z * c,
+        w * c - x * d + y * a + z * b,
+        w * d + x * c - y * b + z * a,
+    ]
 
 
 def _two_sum(hi, lo, d):
@@ -324,8 +342,7 @@ class Stepper(eqx.Module):
 
         dtype = p.L.dtype
         xs = (jnp.asarray(g, dtype), jnp.asarray((*g[1:], 0.0), dtype))
-        (L, q, elapsed), _ = jax.lax.scan(stage, (L, q, jnp.zeros((), dtype)), xs,
-                                          unroll=UNROLL)
+        (L, q, elapsed), _ = jax.lax.scan(stage, (L, q, jnp.zeros((), dtype)), xs, unroll=UNROLL)
 
         def stacked(pairs, part):
             return jnp.stack([x[part] for x in pairs], axis=-1)
@@ -342,8 +359,13 @@ class Stepper(eqx.Module):
         """The state in the principal frame: `L = I Vᵀ ω`, `q ⊗ quat`."""
         f = self.frame
         V, omega = f.axes, split(y.omega)
-        L = jnp.stack([f.moments[i] * (V[0, i] * omega[0] + V[1, i] * omega[1]
-                                       + V[2, i] * omega[2]) for i in range(3)], axis=-1)
+        L = jnp.stack(
+            [
+                f.moments[i] * (V[0, i] * omega[0] + V[1, i] * omega[1] + V[2, i] * omega[2])
+                for i in range(3)
+            ],
+            axis=-1,
+        )
         q = jnp.stack(_q_times(split(y.quat), split(f.quat)), axis=-1)
         return Principal(L, q, jnp.zeros_like(L), jnp.zeros_like(q))
 
@@ -353,8 +375,7 @@ class Stepper(eqx.Module):
         L, q = split(p.L + p.L_lo), split(p.quat + p.quat_lo)
         if self.deferred:
             elapsed = self.direction * since_sync * self.span  # physical time
-            q = _q_times(q, _casimir_rotation(L, elapsed / self.frame.moments[CASIMIR_AXIS],
-                                              False))
+            q = _q_times(q, _casimir_rotation(L, elapsed / self.frame.moments[CASIMIR_AXIS], False))
         return self._body(L, q)
 
     def _body(self, L, q) -> State:
@@ -381,19 +402,24 @@ def _recovered(terms, args):
     direction of time and the ok flag (`None` for an unguarded term)."""
     term, direction = _compat.unwrapped_term(terms)
     if not isinstance(term, diffrax.ODETerm):
-        raise ValueError("`LiePoissonSplitting` takes one `diffrax.ODETerm` of a rigid-body "
-                         f"model, got {type(term).__name__}.")
+        raise ValueError(
+            "`LiePoissonSplitting` takes one `diffrax.ODETerm` of a rigid-body "
+            f"model, got {type(term).__name__}."
+        )
     field = term.vector_field
     if isinstance(field, Guarded):  # the field of `simulate` / `simulate_batch`
         return field.model, field.t0, field.span, direction, args
     owner = getattr(field, "__self__", None)
     if owner is not None and getattr(field, "__func__", None) is getattr(
-            type(owner), "vector_field", None):  # diffrax.ODETerm(model.vector_field)
+        type(owner), "vector_field", None
+    ):  # diffrax.ODETerm(model.vector_field)
         return owner, jnp.zeros(()), jnp.ones(()), direction, None
-    raise ValueError("`LiePoissonSplitting` needs the rigid-body model behind the term: "
-                     "solve with `rbdyn_jax.simulate` / `simulate_batch`, or give "
-                     "`diffrax.diffeqsolve` the term `diffrax.ODETerm(model.vector_field)`; "
-                     f"got a term of {type(field).__name__}.")
+    raise ValueError(
+        "`LiePoissonSplitting` needs the rigid-body model behind the term: "
+        "solve with `rbdyn_jax.simulate` / `simulate_batch`, or give "
+        "`diffrax.diffeqsolve` the term `diffrax.ODETerm(model.vector_field)`; "
+        f"got a term of {type(field).__name__}."
+    )
 
 
 class SplittingInterpolation(diffrax.AbstractLocalInterpolation):
@@ -413,15 +439,19 @@ class SplittingInterpolation(diffrax.AbstractLocalInterpolation):
     def evaluate(self, t0, t1=None, left=True):
         del left
         if t1 is not None:
-            return jax.tree_util.tree_map(lambda a, b: a - b, self.evaluate(t1),
-                                          self.evaluate(t0))
+            return jax.tree_util.tree_map(lambda a, b: a - b, self.evaluate(t1), self.evaluate(t0))
         st = self.stepper
-        y = st.guarded(st.body(st.advance(self.t0, self.start, t0 - self.t0), t0 - self.sync),
-                       self.y0)
+        y = st.guarded(
+            st.body(st.advance(self.t0, self.start, t0 - self.t0), t0 - self.sync), self.y0
+        )
         return jax.tree_util.tree_map(
-            lambda mid, end, start: jnp.where(t0 == self.t1, end,
-                                              jnp.where(t0 == self.t0, start, mid)),
-            y, self.y1, self.y0)
+            lambda mid, end, start: jnp.where(
+                t0 == self.t1, end, jnp.where(t0 == self.t0, start, mid)
+            ),
+            y,
+            self.y1,
+            self.y0,
+        )
 
 
 class LiePoissonSplitting(diffrax.AbstractSolver):
@@ -485,14 +515,26 @@ class LiePoissonSplitting(diffrax.AbstractSolver):
         outer, inner = str(OUTER), str(INNER)
         kicked = check_splittable(model)
         if kicked:  # K(h/2) ∘ Casimir(h) ∘ F(h) ∘ K(h/2)
-            scheme = Scheme(("kick", 0.5), ((outer, 0.5), (inner, 1.0), (outer, 0.5),
-                                            ("casimir", 1.0)), gammas, clock=inner)
+            scheme = Scheme(
+                ("kick", 0.5),
+                ((outer, 0.5), (inner, 1.0), (outer, 0.5), ("casimir", 1.0)),
+                gammas,
+                clock=inner,
+            )
         else:  # the Casimir's flow commutes with the others: deferred to the outputs
             scheme = Scheme((outer, 0.5), ((inner, 1.0),), gammas, clock=inner)
         if frame is None:
             frame = PrincipalFrame.of(model.inertia)
-        return Stepper(model, jnp.asarray(t0), jnp.asarray(span), jnp.asarray(direction),
-                       ok, frame, scheme, deferred=not kicked)
+        return Stepper(
+            model,
+            jnp.asarray(t0),
+            jnp.asarray(span),
+            jnp.asarray(direction),
+            ok,
+            frame,
+            scheme,
+            deferred=not kicked,
+        )
 
     def init(self, terms, t0, t1, y0, args) -> SplittingState:
         stepper = self._stepper(terms, args, None)
@@ -501,10 +543,17 @@ class LiePoissonSplitting(diffrax.AbstractSolver):
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
         del made_jump
         stepper = self._stepper(terms, args, solver_state.frame)
-        carried = jnp.stack([jnp.all(a == b) for a, b in zip(
-            jax.tree_util.tree_leaves(y0), jax.tree_util.tree_leaves(solver_state.y))]).all()
-        start = jax.tree_util.tree_map(lambda a, b: jnp.where(carried, a, b),
-                                       solver_state.principal, stepper.principal(y0))
+        carried = jnp.stack(
+            [
+                jnp.all(a == b)
+                for a, b in zip(
+                    jax.tree_util.tree_leaves(y0), jax.tree_util.tree_leaves(solver_state.y)
+                )
+            ]
+        ).all()
+        start = jax.tree_util.tree_map(
+            lambda a, b: jnp.where(carried, a, b), solver_state.principal, stepper.principal(y0)
+        )
         sync = jnp.where(carried, solver_state.sync, t0)
         end = stepper.guarded(stepper.advance(t0, start, t1 - t0), start)
         y1 = stepper.guarded(stepper.body(end, t1 - sync), y0)
@@ -516,5 +565,10 @@ class LiePoissonSplitting(diffrax.AbstractSolver):
         return terms.vf(t0, y0, args)
 
 
-__all__ = ["ORDERS", "LiePoissonSplitting", "check_splittable", "fixed_step_controller",
-           "fixed_steps"]
+__all__ = [
+    "ORDERS",
+    "LiePoissonSplitting",
+    "check_splittable",
+    "fixed_step_controller",
+    "fixed_steps",
+]

@@ -24,30 +24,123 @@ import jax.numpy as jnp
 import numpy as np
 
 # Primitives applied element by element: the operands share the result's shape.
-ELEMENTWISE = frozenset({
-    "abs", "acos", "acosh", "add", "add_any", "and", "asin", "asinh", "atan", "atan2", "atanh",
-    "cbrt", "ceil", "clamp", "convert_element_type", "copy", "copy_p", "cos", "cosh", "div", "eq",
-    "erf", "erfc", "exp", "exp2", "expm1", "floor", "ge", "gt", "integer_pow", "is_finite",
-    "le", "log", "log1p", "logistic", "lt", "max", "min", "mul", "ne", "neg", "nextafter",
-    "not", "or", "pow", "reduce_precision", "rem", "round", "rsqrt", "select_n", "sign", "sin",
-    "sinh", "sqrt", "square", "stop_gradient", "sub", "tan", "tanh", "xor", "optimization_barrier",
-})
+ELEMENTWISE = frozenset(
+    {
+        "abs",
+        "acos",
+        "acosh",
+        "add",
+        "add_any",
+        "and",
+        "asin",
+        "asinh",
+        "atan",
+        "atan2",
+        "atanh",
+        "cbrt",
+        "ceil",
+        "clamp",
+        "convert_element_type",
+        "copy",
+        "copy_p",
+        "cos",
+        "cosh",
+        "div",
+        "eq",
+        "erf",
+        "erfc",
+        "exp",
+        "exp2",
+        "expm1",
+        "floor",
+        "ge",
+        "gt",
+        "integer_pow",
+        "is_finite",
+        "le",
+        "log",
+        "log1p",
+        "logistic",
+        "lt",
+        "max",
+        "min",
+        "mul",
+        "ne",
+        "neg",
+        "nextafter",
+        "not",
+        "or",
+        "pow",
+        "reduce_precision",
+        "rem",
+        "round",
+        "rsqrt",
+        "select_n",
+        "sign",
+        "sin",
+        "sinh",
+        "sqrt",
+        "square",
+        "stop_gradient",
+        "sub",
+        "tan",
+        "tanh",
+        "xor",
+        "optimization_barrier",
+    }
+)
 # Calls of an inner jaxpr, and the parameter holding it.
-CALLS = {"jit": "jaxpr", "pjit": "jaxpr", "closed_call": "call_jaxpr", "core_call": "call_jaxpr",
-         "custom_jvp_call": "call_jaxpr", "custom_vjp_call": "call_jaxpr",
-         "custom_vjp_call_jaxpr": "fun_jaxpr", "checkpoint": "jaxpr", "remat": "jaxpr"}
-REDUCTIONS = {"reduce_sum": "add", "reduce_max": "max", "reduce_min": "min",
-              "reduce_prod": "mul", "reduce_and": "and", "reduce_or": "or"}
-STRUCTURAL = frozenset({"broadcast_in_dim", "reshape", "squeeze", "expand_dims", "concatenate",
-                        "stack", "slice", "rev", "transpose", "split", "iota", "dot_general",
-                        "scan", "cond"})
+CALLS = {
+    "jit": "jaxpr",
+    "pjit": "jaxpr",
+    "closed_call": "call_jaxpr",
+    "core_call": "call_jaxpr",
+    "custom_jvp_call": "call_jaxpr",
+    "custom_vjp_call": "call_jaxpr",
+    "custom_vjp_call_jaxpr": "fun_jaxpr",
+    "checkpoint": "jaxpr",
+    "remat": "jaxpr",
+}
+REDUCTIONS = {
+    "reduce_sum": "add",
+    "reduce_max": "max",
+    "reduce_min": "min",
+    "reduce_prod": "mul",
+    "reduce_and": "and",
+    "reduce_or": "or",
+}
+STRUCTURAL = frozenset(
+    {
+        "broadcast_in_dim",
+        "reshape",
+        "squeeze",
+        "expand_dims",
+        "concatenate",
+        "stack",
+        "slice",
+        "rev",
+        "transpose",
+        "split",
+        "iota",
+        "dot_general",
+        "scan",
+        "cond",
+    }
+)
 SUPPORTED = ELEMENTWISE | STRUCTURAL | frozenset(CALLS) | frozenset(REDUCTIONS)
-_BINARY = {"add": jax.lax.add_p, "max": jax.lax.max_p, "min": jax.lax.min_p,
-           "mul": jax.lax.mul_p, "and": jax.lax.and_p, "or": jax.lax.or_p}
+_BINARY = {
+    "add": jax.lax.add_p,
+    "max": jax.lax.max_p,
+    "min": jax.lax.min_p,
+    "mul": jax.lax.mul_p,
+    "and": jax.lax.and_p,
+    "or": jax.lax.or_p,
+}
 
 
 # The parameters read below are JAX's jaxpr internals, which change between releases;
 # tests/test_rows.py checks each form against `jax.vmap` and runs under the next JAX too.
+
 
 def _open(j):
     """A jaxpr parameter as (jaxpr, constants): a closed jaxpr, or an open one (a scan's
@@ -102,8 +195,9 @@ def objects(shape, fill) -> np.ndarray:
 
 def _constant(val, aval) -> np.ndarray:
     if isinstance(val, jax.core.Tracer):
-        raise ValueError("a function run on rows closes over a traced value; pass it as an "
-                         "argument.")
+        raise ValueError(
+            "a function run on rows closes over a traced value; pass it as an argument."
+        )
     val = np.asarray(val)
     return objects(aval.shape, lambda idx: jnp.asarray(val[idx], aval.dtype))
 
@@ -130,11 +224,12 @@ def _elementwise(eqn, ins):
     shape = eqn.outvars[0].aval.shape
 
     def at(x, idx):  # NumPy's broadcasting of a size-1 axis or a lower rank
-        idx = idx[len(idx) - x.ndim:]
+        idx = idx[len(idx) - x.ndim :]
         return x[tuple(0 if n == 1 else i for n, i in zip(x.shape, idx))]
 
-    return [objects(shape, lambda idx: _bind(eqn.primitive, *(at(x, idx) for x in ins),
-                                             **eqn.params))]
+    return [
+        objects(shape, lambda idx: _bind(eqn.primitive, *(at(x, idx) for x in ins), **eqn.params))
+    ]
 
 
 def _identity(op, dtype):
@@ -172,16 +267,21 @@ def _dot_general(eqn, lhs, rhs):
     L = np.transpose(lhs, (*lb, *lfree, *lc))
     R = np.transpose(rhs, (*rb, *rc, *rfree))
     nb, nl, nk = len(lb), len(lfree), len(lc)
-    bshape, lshape = L.shape[:nb], L.shape[nb:nb + nl]
-    kshape, rshape = L.shape[nb + nl:], R.shape[nb + nk:]
+    bshape, lshape = L.shape[:nb], L.shape[nb : nb + nl]
+    kshape, rshape = L.shape[nb + nl :], R.shape[nb + nk :]
     aval = eqn.outvars[0].aval
 
     def entry(idx):
-        b, i, j = idx[:nb], idx[nb:nb + nl], idx[nb + nl:]
+        b, i, j = idx[:nb], idx[nb : nb + nl], idx[nb + nl :]
         # The operands in the result's dtype (JAX takes a float32 and a float64 one)
-        terms = [_bind(jax.lax.mul_p, jnp.asarray(L[b + i + k]).astype(aval.dtype),
-                       jnp.asarray(R[b + k + j]).astype(aval.dtype))
-                 for k in np.ndindex(*kshape)]
+        terms = [
+            _bind(
+                jax.lax.mul_p,
+                jnp.asarray(L[b + i + k]).astype(aval.dtype),
+                jnp.asarray(R[b + k + j]).astype(aval.dtype),
+            )
+            for k in np.ndindex(*kshape)
+        ]
         return _fold("add", terms, aval.dtype).astype(aval.dtype)
 
     return [objects(bshape + lshape + rshape, entry)]
@@ -191,22 +291,23 @@ def _reduce(eqn, x):
     axes = tuple(eqn.params["axes"])
     keep = [d for d in range(x.ndim) if d not in axes]
     moved = np.transpose(x, (*keep, *axes))
-    shape = moved.shape[:len(keep)]
+    shape = moved.shape[: len(keep)]
     flat = moved.reshape(shape + (-1,))
     dtype = eqn.outvars[0].aval.dtype
-    return [objects(shape, lambda idx: _fold(REDUCTIONS[eqn.primitive.name],
-                                             list(flat[idx]), dtype))]
+    return [
+        objects(shape, lambda idx: _fold(REDUCTIONS[eqn.primitive.name], list(flat[idx]), dtype))
+    ]
 
 
 def _first(x, i):
     """`x[i]` along the first axis, as an array (NumPy gives the element for a 1-D array)."""
-    return x[i:i + 1].reshape(x.shape[1:])
+    return x[i : i + 1].reshape(x.shape[1:])
 
 
 def _scan(eqn, ins):
     p = eqn.params
     (nc, ncar), length, body = _scan_counts(p), p["length"], _open(p["jaxpr"])
-    consts, carry, xs = ins[:nc], list(ins[nc:nc + ncar]), ins[nc + ncar:]
+    consts, carry, xs = ins[:nc], list(ins[nc : nc + ncar]), ins[nc + ncar :]
     ys = []
     steps = range(length - 1, -1, -1) if p["reverse"] else range(length)
     for i in steps:
@@ -215,9 +316,12 @@ def _scan(eqn, ins):
         ys.append(y)
     if p["reverse"]:
         ys = ys[::-1]
-    stacked = [np.stack([y[k] for y in ys]) if ys else
-               objects(v.aval.shape, lambda idx, v=v: jnp.zeros((), v.aval.dtype))
-               for k, v in enumerate(eqn.outvars[ncar:])]
+    stacked = [
+        np.stack([y[k] for y in ys])
+        if ys
+        else objects(v.aval.shape, lambda idx, v=v: jnp.zeros((), v.aval.dtype))
+        for k, v in enumerate(eqn.outvars[ncar:])
+    ]
     return [*carry, *stacked]
 
 
@@ -231,9 +335,13 @@ def _cond(eqn, ins):
         which = i
     else:
         which = i.astype(jnp.int32)
-    return [objects(outs[0].shape, lambda idx, outs=outs: _bind(
-        jax.lax.select_n_p, which, *(o[idx] for o in outs)))
-        for outs in zip(*branches)]
+    return [
+        objects(
+            outs[0].shape,
+            lambda idx, outs=outs: _bind(jax.lax.select_n_p, which, *(o[idx] for o in outs)),
+        )
+        for outs in zip(*branches)
+    ]
 
 
 def _apply(eqn, ins):
@@ -248,8 +356,12 @@ def _apply(eqn, ins):
     x = ins[0] if ins else None
     if name == "broadcast_in_dim":
         bd = p["broadcast_dimensions"]
-        return [objects(p["shape"], lambda idx: x[tuple(
-            0 if x.shape[i] == 1 else idx[d] for i, d in enumerate(bd))])]
+        return [
+            objects(
+                p["shape"],
+                lambda idx: x[tuple(0 if x.shape[i] == 1 else idx[d] for i, d in enumerate(bd))],
+            )
+        ]
     if name == "reshape":
         return [x.reshape(p["new_sizes"])]
     if name == "squeeze":
@@ -262,8 +374,14 @@ def _apply(eqn, ins):
         return [np.stack(ins, axis=p["axis"])]
     if name == "slice":
         strides = p["strides"] or (1,) * x.ndim
-        return [x[tuple(slice(a, b, s) for a, b, s in
-                        zip(p["start_indices"], p["limit_indices"], strides))]]
+        return [
+            x[
+                tuple(
+                    slice(a, b, s)
+                    for a, b, s in zip(p["start_indices"], p["limit_indices"], strides)
+                )
+            ]
+        ]
     if name == "rev":
         return [np.flip(x, axis=tuple(p["dimensions"]))]
     if name == "transpose":
@@ -316,8 +434,7 @@ def trace(fn, *args):
     of object arrays of rows (or of `jax.ShapeDtypeStruct`s)."""
     leaves, tree = jax.tree_util.tree_flatten(args)
     avals = [_aval(x) if isinstance(x, np.ndarray) else x for x in leaves]
-    closed, out = jax.make_jaxpr(lambda *xs: fn(*tree.unflatten(xs)),
-                                 return_shape=True)(*avals)
+    closed, out = jax.make_jaxpr(lambda *xs: fn(*tree.unflatten(xs)), return_shape=True)(*avals)
     return closed, jax.tree_util.tree_structure(out)
 
 
@@ -331,4 +448,3 @@ def rowwise(fn, *args):
         raise ValueError(f"operations with no form on rows of lanes: {sorted(bad)}.")
     outs = eval_jaxpr(closed.jaxpr, closed.consts, jax.tree_util.tree_leaves(args))
     return jax.tree_util.tree_unflatten(out_tree, outs)
-

@@ -31,7 +31,7 @@ def unit_columns(leaves, offsets, P, symmetric=()):
                 e[o + r, i, j] = e[o + r, j, i] = 1.0
             out.append(jnp.asarray(e, x.dtype))
         else:
-            out.append(jnp.eye(P, dtype=x.dtype)[:, o:o + x.size].reshape((P,) + x.shape))
+            out.append(jnp.eye(P, dtype=x.dtype)[:, o : o + x.size].reshape((P,) + x.shape))
     return out
 
 
@@ -97,8 +97,9 @@ class Sensitivity(AbstractLaneSystem):
             return with_leaves(self.model, self.which, p).vector_field(t, y, args)
 
         basis = unit_columns(p, self.offsets, self.P, self.symmetric)
-        f, dS = jax.vmap(lambda b, s: jax.jvp(field, (p, y), (b, s)), in_axes=(0, -1),
-                         out_axes=(None, -1))(basis, jax.tree_util.tree_unflatten(treedef, cols))
+        f, dS = jax.vmap(
+            lambda b, s: jax.jvp(field, (p, y), (b, s)), in_axes=(0, -1), out_axes=(None, -1)
+        )(basis, jax.tree_util.tree_unflatten(treedef, cols))
         dS = jax.tree_util.tree_leaves(dS)
         return f, tuple(jnp.ravel(dS[i]) for i in self.carried)
 
@@ -120,8 +121,15 @@ def lane_jvp(loop, static, batched, primals, tangents):
     def live(tree, tangent):  # the array leaves with a tangent, and all the tangents
         xs = jax.tree_util.tree_leaves(tree)
         dxs = jax.tree_util.tree_leaves(tangent, is_leaf=lambda x: isinstance(x, zero))
-        return [i for i, (x, dx) in enumerate(zip(xs, dxs)) if not isinstance(dx, zero)
-                and jnp.issubdtype(x.dtype, jnp.inexact)], xs, dxs
+        return (
+            [
+                i
+                for i, (x, dx) in enumerate(zip(xs, dxs))
+                if not isinstance(dx, zero) and jnp.issubdtype(x.dtype, jnp.inexact)
+            ],
+            xs,
+            dxs,
+        )
 
     m_which, m_leaves, m_dots = live(dyn, tdyn)
     y_which, y_leaves, y_dots = live(y0s, ty0s)
@@ -132,17 +140,21 @@ def lane_jvp(loop, static, batched, primals, tangents):
     # The inertia is a symmetric tensor: six columns, and a tangent counts by its
     # symmetric part.
     paths = [path for path, _ in jax.tree_util.tree_flatten_with_path(dyn)[0]]
-    symmetric = tuple(paths[i] == (jax.tree_util.GetAttrKey("inertia"),)
-                      and m_leaves[i].shape[batched:] == (3, 3) for i in m_which)
-    sizes = ([6 if sym else m_leaves[i][0].size if batched else m_leaves[i].size
-              for i, sym in zip(m_which, symmetric)]
-             + [y_leaves[i][0].size for i in y_which])
+    symmetric = tuple(
+        paths[i] == (jax.tree_util.GetAttrKey("inertia"),) and m_leaves[i].shape[batched:] == (3, 3)
+        for i in m_which
+    )
+    sizes = [
+        6 if sym else m_leaves[i][0].size if batched else m_leaves[i].size
+        for i, sym in zip(m_which, symmetric)
+    ] + [y_leaves[i][0].size for i in y_which]
     offsets = tuple(int(o) for o in np.cumsum([0] + sizes)[:-1])
     P = sum(sizes) + t_live
     if P == 0:  # tangents on the tolerances only
         out = loop(Plain(model), y0s, ts, tols)
         return out, (jax.tree_util.tree_map(jnp.zeros_like, out[0]),) + tuple(
-            np.zeros(x.shape, jax.dtypes.float0) for x in out[1:])
+            np.zeros(x.shape, jax.dtypes.float0) for x in out[1:]
+        )
 
     def initial(m, y0):  # S at t0: the derivative of the normalised y0, and −f(t0, y0)
         p = pick(m, m_which)
@@ -152,8 +164,9 @@ def lane_jvp(loop, static, batched, primals, tangents):
             return with_leaves(m, m_which, p).normalize(with_leaves(y0, y_which, q))[0]
 
         basis = unit_columns(p + q, offsets, P, symmetric)
-        _, S0 = jax.vmap(lambda b: jax.jvp(start, (p, q), (b[:len(p)], b[len(p):])),
-                         axis_size=P)(basis)
+        _, S0 = jax.vmap(lambda b: jax.jvp(start, (p, q), (b[: len(p)], b[len(p) :])), axis_size=P)(
+            basis
+        )
         if t_live:
             f0 = m.vector_field(ts[0], m.normalize(y0)[0], None)
             S0 = jax.tree_util.tree_map(lambda s, f: s.at[-1].set(-f), S0, f0)
@@ -171,32 +184,33 @@ def lane_jvp(loop, static, batched, primals, tangents):
     programs = sorted(set(groups) | {every}, key=lambda g: (len(g), g))
 
     def program(carried, dyn, y0s, S0, ts, tols):
-        aug = Sensitivity(eqx.combine(dyn, static), tuple(m_which), offsets[:len(m_which)],
-                           P, symmetric, carried)
-        (ys, S), ok0, result, counts = loop(aug, (y0s, tuple(S0[i] for i in carried)), ts,
-                                            tols)
+        aug = Sensitivity(
+            eqx.combine(dyn, static), tuple(m_which), offsets[: len(m_which)], P, symmetric, carried
+        )
+        (ys, S), ok0, result, counts = loop(aug, (y0s, tuple(S0[i] for i in carried)), ts, tols)
         out = {("ys", i): y for i, y in enumerate(jax.tree_util.tree_leaves(ys))}
         out.update({("S", i): s for i, s in zip(carried, S)})
         return dict(out, ok0=ok0, result=result, counts=counts)
 
-    got = cheapest([functools.partial(program, c) for c in programs],
-                             dyn, y0s, S0, ts, tols)
+    got = cheapest([functools.partial(program, c) for c in programs], dyn, y0s, S0, ts, tols)
     ok0, result, counts = got["ok0"], got["result"], got["counts"]
     leaves = [got[("ys", i)] for i in every]
     # Rows never saved (a trajectory out of steps) stay +inf, and a row that diverged is not
     # finite: their tangents are zero, and masked on both sides of the contraction, so that
     # reverse mode does not multiply inf or NaN by a zero cotangent into every shared
     # parameter's gradient.
-    finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(y.reshape(y.shape[:2] + (-1,))), -1)
-                                for y in leaves]), 0)  # (N, n)
+    finite = jnp.all(
+        jnp.stack([jnp.all(jnp.isfinite(y.reshape(y.shape[:2] + (-1,))), -1) for y in leaves]), 0
+    )  # (N, n)
 
     def masked(x):
         return jnp.where(finite.reshape(finite.shape + (1,) * (x.ndim - 2)), x, 0.0)
 
-    coef = [symmetric_part(m_dots[i]) if sym else m_dots[i]
-            for i, sym in zip(m_which, symmetric)]
-    coef = [c.reshape(N, -1) if batched else jnp.broadcast_to(c.reshape(1, -1), (N, c.size))
-            for c in coef]
+    coef = [symmetric_part(m_dots[i]) if sym else m_dots[i] for i, sym in zip(m_which, symmetric)]
+    coef = [
+        c.reshape(N, -1) if batched else jnp.broadcast_to(c.reshape(1, -1), (N, c.size))
+        for c in coef
+    ]
     coef += [y_dots[i].reshape(N, -1) for i in y_which]
     coef += [jnp.broadcast_to(tts[0], (N, 1))] if t_live else []
     if t_live:  # the output times themselves: f(tᵢ, y(tᵢ)) dtᵢ
@@ -205,15 +219,20 @@ def lane_jvp(loop, static, batched, primals, tangents):
             f = jax.vmap(lambda t, y: m.vector_field(t, y, None))(ts, ys)
             return where_tree(ok, f, 0.0)
 
-        F = jax.tree_util.tree_leaves(eqx.filter_vmap(
-            rates, in_axes=(0 if batched else None, 0, 0))(
-                model, jax.tree_util.tree_unflatten(treedef, leaves), ok0))
+        F = jax.tree_util.tree_leaves(
+            eqx.filter_vmap(rates, in_axes=(0 if batched else None, 0, 0))(
+                model, jax.tree_util.tree_unflatten(treedef, leaves), ok0
+            )
+        )
     dys = []
     for i, y in enumerate(leaves):
         s = got[("S", i)].reshape(y.shape + (P,))
         # The tangent: S contracted with the inputs' tangents, per trajectory.
-        d = jnp.einsum("nt...p,np->nt...", masked(s), jnp.concatenate(
-            [c.astype(s.dtype) for c in coef], axis=1))
+        d = jnp.einsum(
+            "nt...p,np->nt...",
+            masked(s),
+            jnp.concatenate([c.astype(s.dtype) for c in coef], axis=1),
+        )
         if t_live:
             d = d + masked(F[i]) * tts.reshape((1, -1) + (1,) * (y.ndim - 2))
         dys.append(masked(d))

@@ -73,34 +73,38 @@ def make_controller(
     `simulate` and `simulate_batch` call it on their arguments; call it yourself to hold a
     controller in your own compiled function (as `identify.fit` does)."""
     if stepsize_controller is None:
-        tol = default_tolerance(jnp.result_type(float) if dtype is None else dtype,
-                                default_tol)
-        stepsize_controller = diffrax.PIDController(rtol=tol if rtol is None else rtol,
-                                                    atol=tol if atol is None else atol)
+        tol = default_tolerance(jnp.result_type(float) if dtype is None else dtype, default_tol)
+        stepsize_controller = diffrax.PIDController(
+            rtol=tol if rtol is None else rtol, atol=tol if atol is None else atol
+        )
     elif rtol is not None or atol is not None:
-        raise ValueError("Give the tolerances either as `rtol`/`atol` or inside "
-                         "`stepsize_controller`, not both.")
+        raise ValueError(
+            "Give the tolerances either as `rtol`/`atol` or inside `stepsize_controller`, not both."
+        )
     if not isinstance(stepsize_controller, diffrax.AbstractStepSizeController):
-        raise ValueError("`stepsize_controller` must be a diffrax step-size controller, got "
-                         f"{type(stepsize_controller).__name__}.")
+        raise ValueError(
+            "`stepsize_controller` must be a diffrax step-size controller, got "
+            f"{type(stepsize_controller).__name__}."
+        )
     if isinstance(stepsize_controller, diffrax.PIDController):
         dtype = jnp.result_type(float) if dtype is None else dtype
-        tols = (_tolerance(stepsize_controller.rtol, "rtol", dtype),
-                _tolerance(stepsize_controller.atol, "atol", dtype))
+        tols = (
+            _tolerance(stepsize_controller.rtol, "rtol", dtype),
+            _tolerance(stepsize_controller.atol, "atol", dtype),
+        )
         rtol = stepsize_controller.rtol
         if not isinstance(rtol, jax.core.Tracer) and float(rtol) < min_rtol(dtype):
             raise ValueError(
                 f"`rtol` = {float(rtol):g} is finer than {np.dtype(dtype).name} resolves "
                 f"(rtol ≥ {min_rtol(dtype):.2g}, {RTOL_EPS} machine epsilons): the step-size "
                 "controller's error estimate would be rounding. Use a larger rtol, or solve "
-                "in float64 (`jax.config.update('jax_enable_x64', True)`, float64 inputs).")
-        stepsize_controller = eqx.tree_at(lambda c: (c.rtol, c.atol), stepsize_controller,
-                                          tols)
+                "in float64 (`jax.config.update('jax_enable_x64', True)`, float64 inputs)."
+            )
+        stepsize_controller = eqx.tree_at(lambda c: (c.rtol, c.atol), stepsize_controller, tols)
     return stepsize_controller
 
 
-def _prepare(model, y0, ts, stepsize_controller, rtol, atol, max_steps, solver=None,
-             dt0=None):
+def _prepare(model, y0, ts, stepsize_controller, rtol, atol, max_steps, solver=None, dt0=None):
     if not isinstance(model, AbstractRigidBody):
         raise ValueError(f"`model` must be a rigid-body model, got {type(model).__name__}.")
     ts = as_float_array(ts, "ts")
@@ -113,11 +117,11 @@ def _prepare(model, y0, ts, stepsize_controller, rtol, atol, max_steps, solver=N
     if not isinstance(max_steps, numbers.Integral) or isinstance(max_steps, bool) or max_steps < 1:
         raise ValueError(f"`max_steps` must be a positive int, got {max_steps!r}.")
     if isinstance(solver, LiePoissonSplitting):  # fixed steps, its models only
-        stepsize_controller = fixed_step_controller(model, ts, stepsize_controller, rtol,
-                                                    atol, dt0, max_steps)
+        stepsize_controller = fixed_step_controller(
+            model, ts, stepsize_controller, rtol, atol, dt0, max_steps
+        )
         rtol = atol = None
-    controller = make_controller(stepsize_controller, rtol, atol,
-                                 dtype=solve_dtype(model, y0, ts))
+    controller = make_controller(stepsize_controller, rtol, atol, dtype=solve_dtype(model, y0, ts))
     return ts, controller, int(max_steps)
 
 
@@ -171,8 +175,9 @@ def simulate(
 
     **Returns:** a `Trajectory`.
     """
-    ts, controller, max_steps = _prepare(model, y0, ts, stepsize_controller, rtol, atol,
-                                         max_steps, solver, dt0)
+    ts, controller, max_steps = _prepare(
+        model, y0, ts, stepsize_controller, rtol, atol, max_steps, solver, dt0
+    )
     adjoint = diffrax.RecursiveCheckpointAdjoint() if adjoint is None else adjoint
     traj = _solved(model, y0, ts, solver, controller, adjoint, max_steps, dt0)
     return thrown(traj) if throw else traj
@@ -222,16 +227,27 @@ def simulate_batch(
     **Returns:** a `Trajectory` with a leading batch axis on every leaf (including `ts`,
     `stats` and `result`).
     """
-    ts, controller, max_steps = _prepare(model, y0s, ts, stepsize_controller, rtol, atol,
-                                         max_steps, solver, dt0)
+    ts, controller, max_steps = _prepare(
+        model, y0s, ts, stepsize_controller, rtol, atol, max_steps, solver, dt0
+    )
     if batching is None:
         batching = default_batching(solver, controller, adjoint, model, y0s, model_axes)
     elif not isinstance(batching, AbstractBatching):
-        raise ValueError("`batching` must be `rbdyn_jax.Lanes(...)`, `rbdyn_jax.Kernel(...)`, "
-                         f"`rbdyn_jax.Vmap()` or None, got {type(batching).__name__}.")
+        raise ValueError(
+            "`batching` must be `rbdyn_jax.Lanes(...)`, `rbdyn_jax.Kernel(...)`, "
+            f"`rbdyn_jax.Vmap()` or None, got {type(batching).__name__}."
+        )
     if throw and isinstance(batching, Lanes) and not top_level():
         batching = Lanes(batching.lanes, devices=1, layout=batching.layout)
-    traj = batching.solve(model, y0s, ts, solver=solver, controller=controller,
-                          adjoint=adjoint, max_steps=max_steps, dt0=dt0,
-                          model_axes=model_axes)
+    traj = batching.solve(
+        model,
+        y0s,
+        ts,
+        solver=solver,
+        controller=controller,
+        adjoint=adjoint,
+        max_steps=max_steps,
+        dt0=dt0,
+        model_axes=model_axes,
+    )
     return thrown(traj) if throw else traj

@@ -30,7 +30,6 @@ def result_code(result) -> Array:
     return jnp.asarray(_compat.result_value(result), jnp.int32)
 
 
-
 def as_result(values) -> RESULTS:
     """A `RESULTS` item holding an integer array of codes (as the lane loop carries them)."""
     return _compat.result_with_value(RESULTS.successful, values)
@@ -38,8 +37,10 @@ def as_result(values) -> RESULTS:
 
 def result_names() -> dict[int, str]:
     """`{code: name}` of every `RESULTS` item."""
-    return {int(_compat.result_value(item)): name
-            for name, item in _compat.result_names(RESULTS).items()}
+    return {
+        int(_compat.result_value(item)): name
+        for name, item in _compat.result_names(RESULTS).items()
+    }
 
 
 class Trajectory(eqx.Module):
@@ -70,7 +71,8 @@ def succeeded_now(result: RESULTS) -> bool:
     compiles two programs on first use."""
     code = _compat.result_value(result)
     return not isinstance(code, jax.core.Tracer) and bool(
-        np.all(np.asarray(code) == np.asarray(_compat.result_value(RESULTS.successful))))
+        np.all(np.asarray(code) == np.asarray(_compat.result_value(RESULTS.successful)))
+    )
 
 
 def thrown(traj: Trajectory) -> Trajectory:

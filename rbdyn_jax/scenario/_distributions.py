@@ -21,12 +21,10 @@ class AbstractDistribution(eqx.Module):
     nominal value (the scenario's nominal model, and the stand-in for a non-finite draw)."""
 
     @abc.abstractmethod
-    def sample(self, key) -> jax.Array:
-        ...
+    def sample(self, key) -> jax.Array: ...
 
     @abc.abstractmethod
-    def centre(self) -> jax.Array:
-        ...
+    def centre(self) -> jax.Array: ...
 
 
 class Fixed(AbstractDistribution):
@@ -128,8 +126,9 @@ class DispersedInertia(AbstractDistribution):
     def sample(self, key):
         theta = _inertia.to_log_cholesky(self.nominal)
         d = jnp.exp(theta[:3])
-        scale = jnp.stack([1.0, 1.0, 1.0, jnp.sqrt(d[1] * d[0]), jnp.sqrt(d[2] * d[0]),
-                           jnp.sqrt(d[2] * d[1])]).astype(theta.dtype)
+        scale = jnp.stack(
+            [1.0, 1.0, 1.0, jnp.sqrt(d[1] * d[0]), jnp.sqrt(d[2] * d[0]), jnp.sqrt(d[2] * d[1])]
+        ).astype(theta.dtype)
         z = jax.random.normal(key, (6,), theta.dtype)
         return _inertia.from_log_cholesky(theta + self.sigma * scale * z)
 

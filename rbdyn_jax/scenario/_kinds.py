@@ -56,8 +56,7 @@ def _exactly_one(**alternatives: str) -> Callable[[dict, str], None]:
 
     def check(t, path):
         if (a in t) == (b in t):
-            raise _fail(path, f"exactly one of `{a}` ({what_a}) or `{b}` ({what_b})",
-                        sorted(t))
+            raise _fail(path, f"exactly one of `{a}` ({what_a}) or `{b}` ({what_b})", sorted(t))
 
     return check
 
@@ -114,17 +113,22 @@ def _euler_angle_frame(p):
 TORQUES: dict[str, Kind] = {
     "body": Kind(BodyTorque, {"moment": _quantity_param((3,), required=True)}),
     "inertial": Kind(InertialTorque, {"moment": _quantity_param((3,), required=True)}),
-    "uniform_gravity": Kind(UniformGravity, {"weight": _quantity_param(required=True),
-                                             "com": _quantity_param((3,), required=True)}),
+    "uniform_gravity": Kind(
+        UniformGravity,
+        {"weight": _quantity_param(required=True), "com": _quantity_param((3,), required=True)},
+    ),
     "restoring_moment": Kind(
-        RestoringMoment, {"k": _quantity_param(), "coeffs": Param(_coeffs),
-                          "eps": _quantity_param()},
+        RestoringMoment,
+        {"k": _quantity_param(), "coeffs": Param(_coeffs), "eps": _quantity_param()},
         build=_restoring_moment,
-        check=_exactly_one(k="constant", coeffs="K(τ) polynomial")),
+        check=_exactly_one(k="constant", coeffs="K(τ) polynomial"),
+    ),
     "gravity_gradient": Kind(
-        GravityGradient, {"eps": _quantity_param(), "orbit_rate": _quantity_param(positive=True)},
+        GravityGradient,
+        {"eps": _quantity_param(), "orbit_rate": _quantity_param(positive=True)},
         build=_gravity_gradient,
-        check=_exactly_one(eps="3μ/R³", orbit_rate="n, ε = 3n²")),
+        check=_exactly_one(eps="3μ/R³", orbit_rate="n, ε = 3n²"),
+    ),
     "balancing_transport": Kind(BalancingTransport, relative_only=True),
 }
 """The registry of torque kinds for `[[model.torques]]`: kind → `Kind` (the class, the
@@ -134,16 +138,23 @@ fallback. Adding a torque usable from TOML is the torque class plus one entry he
 else to edit."""
 FRAMES: dict[str, Kind] = {
     "inertial": Kind(Inertial),
-    "constant_rate": Kind(ConstantRate, {"omega_e": _quantity_param((3,), required=True),
-                                         "quat0": _UNIT_QUAT}),
-    "circular_orbit": Kind(CircularOrbit, {"n": _quantity_param(required=True),
-                                           "quat0": _UNIT_QUAT}),
+    "constant_rate": Kind(
+        ConstantRate, {"omega_e": _quantity_param((3,), required=True), "quat0": _UNIT_QUAT}
+    ),
+    "circular_orbit": Kind(
+        CircularOrbit, {"n": _quantity_param(required=True), "quat0": _UNIT_QUAT}
+    ),
     "euler_angles": Kind(
         EulerAngleFrame,
-        {"seq": Param(_euler_seq, static=True),
-         **{k: _quantity_param((3,)) for k in ("offset", "rate", "amplitude", "frequency",
-                                               "phase")}},
-        build=_euler_angle_frame),
+        {
+            "seq": Param(_euler_seq, static=True),
+            **{
+                k: _quantity_param((3,))
+                for k in ("offset", "rate", "amplitude", "frequency", "phase")
+            },
+        },
+        build=_euler_angle_frame,
+    ),
 }
 """The registry of frame kinds for `[model.frame]`, as `TORQUES` is for torques: adding a
 frame usable from TOML is the frame class plus one entry here."""

@@ -110,8 +110,10 @@ class Scenario:
         if not p.exists() and (SCENARIO_DIR / f"{name_or_path}.toml").exists():
             p = SCENARIO_DIR / f"{name_or_path}.toml"
         if not p.exists():
-            raise ScenarioError(f"no scenario file {str(name_or_path)!r} and no shipped "
-                                f"scenario of that name (shipped: {list_scenarios()})")
+            raise ScenarioError(
+                f"no scenario file {str(name_or_path)!r} and no shipped "
+                f"scenario of that name (shipped: {list_scenarios()})"
+            )
         return cls.from_toml(p)
 
     @classmethod
@@ -124,13 +126,15 @@ class Scenario:
         if not isinstance(description, str):
             raise _fail("description", "a string", description)
 
-        m = _table(d["model"], "model", {"kind", "inertia", "torques", "frame"},
-                   {"kind", "inertia"})
+        m = _table(
+            d["model"], "model", {"kind", "inertia", "torques", "frame"}, {"kind", "inertia"}
+        )
         kind = m["kind"]
         if kind not in ("rigid_body", "relative_rigid_body"):
             raise _fail("model.kind", '"rigid_body" or "relative_rigid_body"', kind)
         dists: dict[str, AbstractDistribution] = {
-            "model.inertia": _inertia_spec(m["inertia"], "model.inertia")}
+            "model.inertia": _inertia_spec(m["inertia"], "model.inertia")
+        }
         static: dict[str, Any] = {}
 
         def add(prefix, kind_dists, kind_static):  # a kind's keys → key paths
@@ -148,19 +152,24 @@ class Scenario:
         frame = "inertial"
         if "frame" in m:
             if kind != "relative_rigid_body":
-                raise _fail("model.frame", 'no frame for kind = "rigid_body" (use '
-                            '"relative_rigid_body")', m["frame"])
+                raise _fail(
+                    "model.frame",
+                    'no frame for kind = "rigid_body" (use "relative_rigid_body")',
+                    m["frame"],
+                )
             frame, fdists, fstatic = _kinded(m["frame"], "model.frame", FRAMES)
             add("model.frame", fdists, fstatic)
         for tkind in kinds:
             if TORQUES[tkind].relative_only and kind != "relative_rigid_body":
-                raise _fail("model.torques", f'{tkind} only with kind = '
-                            '"relative_rigid_body"', tkind)
+                raise _fail(
+                    "model.torques", f'{tkind} only with kind = "relative_rigid_body"', tkind
+                )
 
         ini = _table(d["initial"], "initial", {"omega", "attitude"}, {"omega"})
         dists["initial.omega"] = _quantity(ini["omega"], "initial.omega", (3,))
-        dists["initial.attitude"] = _attitude(ini.get("attitude", [1.0, 0.0, 0.0, 0.0]),
-                                              "initial.attitude")
+        dists["initial.attitude"] = _attitude(
+            ini.get("attitude", [1.0, 0.0, 0.0, 0.0]), "initial.attitude"
+        )
 
         tt = _table(d["time"], "time", {"t0", "t1", "n"}, {"t1", "n"})
         t0 = float(_number(tt.get("t0", 0.0), "time.t0"))
@@ -169,11 +178,13 @@ class Scenario:
             raise _fail("time.t1", f"a time after t0 = {t0}", tt["t1"])
         n_times = int(_number(tt["n"], "time.n", integer=True))
         if n_times < 2:
-            raise _fail("time.n", "an integer ≥ 2 (output times, linspace(t0, t1, n))",
-                        tt["n"])
+            raise _fail("time.n", "an integer ≥ 2 (output times, linspace(t0, t1, n))", tt["n"])
 
-        s = _table(d.get("solver", {}), "solver",
-                   {"method", "rtol", "atol", "max_steps", "dtype", "dt", "order"})
+        s = _table(
+            d.get("solver", {}),
+            "solver",
+            {"method", "rtol", "atol", "max_steps", "dtype", "dt", "order"},
+        )
         method = s.get("method", "Tsit5")
         if method not in SOLVERS:
             raise _fail("solver.method", f"one of {list(SOLVERS)}", method)
@@ -184,11 +195,17 @@ class Scenario:
         if method in FIXED_STEP:
             for key in ("rtol", "atol"):
                 if key in s:
-                    raise _fail(f"solver.{key}", f'no tolerance with method = "{method}" '
-                                "(it takes fixed steps: give solver.dt)", s[key])
+                    raise _fail(
+                        f"solver.{key}",
+                        f'no tolerance with method = "{method}" '
+                        "(it takes fixed steps: give solver.dt)",
+                        s[key],
+                    )
             if "dt" not in s:
-                raise _fail("solver.dt", f'the fixed step of method = "{method}" (a number '
-                            "> 0, in the unit of time)")
+                raise _fail(
+                    "solver.dt",
+                    f'the fixed step of method = "{method}" (a number > 0, in the unit of time)',
+                )
             dt = float(_number(s["dt"], "solver.dt", positive=True))
             if dt > t1 - t0:
                 raise _fail("solver.dt", f"a step no longer than t1 − t0 = {t1 - t0:g}", dt)
@@ -197,32 +214,46 @@ class Scenario:
                 raise _fail("solver.order", " or ".join(map(str, SPLITTING_ORDERS)), order)
             steps = fixed_steps(t1 - t0, dt)
             # One more by default: the rounding of the step's times may leave a short last one.
-            max_steps = int(_number(s.get("max_steps", steps + 1), "solver.max_steps",
-                                    integer=True, positive=True))
+            max_steps = int(
+                _number(
+                    s.get("max_steps", steps + 1), "solver.max_steps", integer=True, positive=True
+                )
+            )
             if max_steps < steps:
-                raise _fail("solver.max_steps", f"at least the {steps} steps of dt over "
-                            "[t0, t1] (or leave it out)", max_steps)
+                raise _fail(
+                    "solver.max_steps",
+                    f"at least the {steps} steps of dt over [t0, t1] (or leave it out)",
+                    max_steps,
+                )
         else:
             for key in ("dt", "order"):
                 if key in s:
-                    raise _fail(f"solver.{key}", f"only with method = one of {list(FIXED_STEP)}"
-                                " (an adaptive method chooses its steps)", s[key])
+                    raise _fail(
+                        f"solver.{key}",
+                        f"only with method = one of {list(FIXED_STEP)}"
+                        " (an adaptive method chooses its steps)",
+                        s[key],
+                    )
             default_tol = default_tolerance(dtype)  # 1e-8, or 1e-6 in float32
             rtol = float(_number(s.get("rtol", default_tol), "solver.rtol", positive=True))
             if rtol < min_rtol(dtype):  # the step-size control would compare with rounding
-                raise _fail("solver.rtol", f"a number ≥ {min_rtol(dtype):.2g} with dtype = "
-                            f'"{dtype}" (8 machine epsilons of {dtype}: a finer tolerance is '
-                            "below its rounding)", rtol)
+                raise _fail(
+                    "solver.rtol",
+                    f"a number ≥ {min_rtol(dtype):.2g} with dtype = "
+                    f'"{dtype}" (8 machine epsilons of {dtype}: a finer tolerance is '
+                    "below its rounding)",
+                    rtol,
+                )
             atol = float(_number(s.get("atol", default_tol), "solver.atol", positive=True))
-            max_steps = int(_number(s.get("max_steps", 16384), "solver.max_steps",
-                                    integer=True, positive=True))
+            max_steps = int(
+                _number(s.get("max_steps", 16384), "solver.max_steps", integer=True, positive=True)
+            )
 
         o = _table(d.get("outputs", {}), "outputs", {"summaries", "trajectories"})
         trajectories = _trajectories(o.get("trajectories", "all"), "outputs.trajectories")
         summaries = o.get("summaries", ["max_nutation", "min_abs_omega", "max_abs_omega"])
         if not isinstance(summaries, list) or not all(isinstance(x, str) for x in summaries):
-            raise _fail("outputs.summaries", f"a list of names from {sorted(SUMMARIES)}",
-                        summaries)
+            raise _fail("outputs.summaries", f"a list of names from {sorted(SUMMARIES)}", summaries)
         for x in summaries:
             if x not in SUMMARIES:
                 raise _fail("outputs.summaries", f"names from {sorted(SUMMARIES)}", x)
@@ -230,19 +261,39 @@ class Scenario:
             raise _fail("outputs.summaries", "no repeated names", summaries)
 
         if dtype != "float64":
-            dists = {p: UniformSO3(jnp.float32) if isinstance(v, UniformSO3)
-                     else _as_dtype(v, dtype) for p, v in dists.items()}
-        sc = cls(name=name, description=description, kind=kind, torques=tuple(kinds),
-                 frame=frame, static=static, dists=dists, t0=t0, t1=t1, n_times=n_times,
-                 solver=method, rtol=rtol, atol=atol, max_steps=max_steps, dtype=dtype,
-                 summaries=tuple(summaries), trajectories=trajectories,
-                 source=json.loads(json.dumps(dict(d))), dt=dt, order=order)
+            dists = {
+                p: UniformSO3(jnp.float32) if isinstance(v, UniformSO3) else _as_dtype(v, dtype)
+                for p, v in dists.items()
+            }
+        sc = cls(
+            name=name,
+            description=description,
+            kind=kind,
+            torques=tuple(kinds),
+            frame=frame,
+            static=static,
+            dists=dists,
+            t0=t0,
+            t1=t1,
+            n_times=n_times,
+            solver=method,
+            rtol=rtol,
+            atol=atol,
+            max_steps=max_steps,
+            dtype=dtype,
+            summaries=tuple(summaries),
+            trajectories=trajectories,
+            source=json.loads(json.dumps(dict(d))),
+            dt=dt,
+            order=order,
+        )
         sc._check_solver()
         sc._check_summaries()
         return sc
 
-    def with_settings(self, *, dtype: str | None = None,
-                      trajectories: str | int | None = None) -> Scenario:
+    def with_settings(
+        self, *, dtype: str | None = None, trajectories: str | int | None = None
+    ) -> Scenario:
         """This scenario with `[solver] dtype` and/or `[outputs] trajectories` set to the
         values given (`None` keeps the scenario's): its source with those keys replaced,
         validated again, so that a bad value, or a `solver.rtol` finer than the new dtype
@@ -251,11 +302,14 @@ class Scenario:
         changes."""
         source = json.loads(json.dumps(self.source))
         changed = False
-        for table, key, value in (("solver", "dtype", dtype),
-                                  ("outputs", "trajectories", trajectories)):
+        for table, key, value in (
+            ("solver", "dtype", dtype),
+            ("outputs", "trajectories", trajectories),
+        ):
             # By type too: `True == 1`, and a bool must reach the validation (which refuses it).
-            if value is not None and (value != getattr(self, key)
-                                      or type(value) is not type(getattr(self, key))):
+            if value is not None and (
+                value != getattr(self, key) or type(value) is not type(getattr(self, key))
+            ):
                 source.setdefault(table, {})[key] = value
                 changed = True
         return Scenario.from_dict(source, default_name=self.name) if changed else self
@@ -327,8 +381,7 @@ class Scenario:
                 parts[name] = self.static[key]
         return spec.make(parts)
 
-    def sample(self, dists: Mapping[str, AbstractDistribution], key,
-               index) -> dict[str, jax.Array]:
+    def sample(self, dists: Mapping[str, AbstractDistribution], key, index) -> dict[str, jax.Array]:
         """The drawn values of trajectory `index` (traceable)."""
         k = jax.random.fold_in(key, index)
         return {path: dist.sample(_path_key(k, path)) for path, dist in dists.items()}
@@ -348,8 +401,9 @@ class Scenario:
         def nominal_run():
             model, y0 = self.build(self.nominal())
             ys = jax.tree_util.tree_map(lambda x: jnp.stack([x, x]), y0)
-            return model, Trajectory(ts=jnp.asarray(self.ts[:2]), ys=ys, stats={},
-                                     result=RESULTS.successful)
+            return model, Trajectory(
+                ts=jnp.asarray(self.ts[:2]), ys=ys, stats={}, result=RESULTS.successful
+            )
 
         # Shapes only (nothing computed or compiled): what the summaries are traced with.
         model, traj = jax.eval_shape(nominal_run)
@@ -357,8 +411,9 @@ class Scenario:
             try:
                 jax.eval_shape(lambda m, tr, f=SUMMARIES[name].fn: f(m, tr), model, traj)
             except (ValueError, AttributeError) as e:
-                raise ScenarioError(f"`outputs.summaries`: {name!r} is not defined for this "
-                                    f"model: {e}") from None
+                raise ScenarioError(
+                    f"`outputs.summaries`: {name!r} is not defined for this model: {e}"
+                ) from None
 
 
 class Structure:

@@ -43,23 +43,40 @@ class Summary(NamedTuple):
 
 
 SUMMARIES: dict[str, Summary] = {
-    "max_nutation": Summary("largest angle between body z and parent z over the output times",
-                            "rad", lambda m, tr: jnp.max(_nutation(tr.ys.quat))),
-    "final_nutation": Summary("angle between body z and parent z at the last output time",
-                              "rad", lambda m, tr: _nutation(tr.ys.quat[-1])),
-    "energy_drift": Summary("max |E - E0| / |E0| over the output times (conservative models)",
-                            "1", lambda m, tr: _relative_drift(invariants.energy(m, tr))),
+    "max_nutation": Summary(
+        "largest angle between body z and parent z over the output times",
+        "rad",
+        lambda m, tr: jnp.max(_nutation(tr.ys.quat)),
+    ),
+    "final_nutation": Summary(
+        "angle between body z and parent z at the last output time",
+        "rad",
+        lambda m, tr: _nutation(tr.ys.quat[-1]),
+    ),
+    "energy_drift": Summary(
+        "max |E - E0| / |E0| over the output times (conservative models)",
+        "1",
+        lambda m, tr: _relative_drift(invariants.energy(m, tr)),
+    ),
     "relative_energy_drift": Summary(
         "max |T_r - T_r0| / T_r0 of the relative kinetic energy "
-        "(docs/physics.md#balancing-transport-moment)", "1",
-        lambda m, tr: _relative_drift(invariants.relative_kinetic_energy(m, tr))),
+        "(docs/physics.md#balancing-transport-moment)",
+        "1",
+        lambda m, tr: _relative_drift(invariants.relative_kinetic_energy(m, tr)),
+    ),
     "first_flip_time": Summary(
-        "first sign change of omega along the intermediate principal axis (NaN: none)", "s",
-        lambda m, tr: _first_flip(tr.ts, tr.ys.omega, m.inertia)),
-    "min_abs_omega": Summary("smallest |omega| (|omega_r| in relative models) over the "
-                             "output times", "rad/s",
-                             lambda m, tr: jnp.min(jnp.linalg.norm(tr.ys.omega, axis=-1))),
-    "max_abs_omega": Summary("largest |omega| (|omega_r| in relative models) over the "
-                             "output times", "rad/s",
-                             lambda m, tr: jnp.max(jnp.linalg.norm(tr.ys.omega, axis=-1))),
+        "first sign change of omega along the intermediate principal axis (NaN: none)",
+        "s",
+        lambda m, tr: _first_flip(tr.ts, tr.ys.omega, m.inertia),
+    ),
+    "min_abs_omega": Summary(
+        "smallest |omega| (|omega_r| in relative models) over the output times",
+        "rad/s",
+        lambda m, tr: jnp.min(jnp.linalg.norm(tr.ys.omega, axis=-1)),
+    ),
+    "max_abs_omega": Summary(
+        "largest |omega| (|omega_r| in relative models) over the output times",
+        "rad/s",
+        lambda m, tr: jnp.max(jnp.linalg.norm(tr.ys.omega, axis=-1)),
+    ),
 }

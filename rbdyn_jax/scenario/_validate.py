@@ -102,8 +102,7 @@ def _quantity(x, path, shape=(), *, positive=False) -> AbstractDistribution:
     if kind == "uniform" and not np.all(np.asarray(vals["high"]) > np.asarray(vals["low"])):
         raise _fail(f"{path}.high", "values greater than `low`", x["high"])
     if positive and kind == "normal":
-        raise _fail(f"{path}.dist", "a positive distribution (fixed, uniform or lognormal)",
-                    kind)
+        raise _fail(f"{path}.dist", "a positive distribution (fixed, uniform or lognormal)", kind)
     return cls(**vals)
 
 
@@ -119,7 +118,7 @@ def _euler_seq(x, path) -> str:
     try:
         parse_seq(x)
     except (ValueError, TypeError):
-        raise _fail(path, "an Euler sequence such as \"ZXZ\" or \"xyz\"", x) from None
+        raise _fail(path, 'an Euler sequence such as "ZXZ" or "xyz"', x) from None
     return x
 
 
@@ -129,12 +128,10 @@ def _attitude(x, path) -> AbstractDistribution:
     t = _table(x, path, {"dist", "quat", "euler", "seq", "degrees"})
     given = [k for k in ("dist", "quat", "euler") if k in t]
     if len(given) != 1:
-        raise _fail(path, "exactly one of `dist = \"uniform_so3\"`, `quat` or `euler`",
-                    sorted(t))
+        raise _fail(path, 'exactly one of `dist = "uniform_so3"`, `quat` or `euler`', sorted(t))
     if "dist" in t:
         if t["dist"] != "uniform_so3" or set(t) != {"dist"}:
-            raise _fail(f"{path}.dist", '"uniform_so3" (alone; use `euler` for others)',
-                        t["dist"])
+            raise _fail(f"{path}.dist", '"uniform_so3" (alone; use `euler` for others)', t["dist"])
         return UniformSO3()
     if "quat" in t:
         if set(t) != {"quat"}:
@@ -155,8 +152,9 @@ def _trajectories(x, path) -> str | int:
         return x
     if isinstance(x, int) and not isinstance(x, bool) and x >= 1:
         return x
-    raise _fail(path, '"all", "none" or a positive integer K (the states of trajectories '
-                "0, K, 2K, …)", x)
+    raise _fail(
+        path, '"all", "none" or a positive integer K (the states of trajectories 0, K, 2K, …)', x
+    )
 
 
 def _inertia_spec(x, path) -> DispersedInertia:
@@ -172,11 +170,19 @@ def _inertia_spec(x, path) -> DispersedInertia:
         if not np.allclose(J, J.T, rtol=0, atol=1e-12 * np.abs(J).max()):
             raise _fail(key, "a symmetric 3×3 matrix", t["matrix"])
     if not bool(_inertia.is_physical(jnp.asarray(J))) or not np.all(np.linalg.eigvalsh(J) > 0):
-        raise _fail(key, "a physical inertia (positive moments obeying the triangle "
-                    "inequalities A + B ≥ C, docs/physics.md#physical-consistency) with no "
-                    "zero moment", x.get("principal", x.get("matrix")))
+        raise _fail(
+            key,
+            "a physical inertia (positive moments obeying the triangle "
+            "inequalities A + B ≥ C, docs/physics.md#physical-consistency) with no "
+            "zero moment",
+            x.get("principal", x.get("matrix")),
+        )
     sigma = _number(t.get("log_cholesky_sigma", 0.0), f"{path}.log_cholesky_sigma", nonneg=True)
     if sigma > 0 and not np.all(np.linalg.eigvalsh(np.asarray(_inertia.planar(J))) > 0):
-        raise _fail(f"{path}.log_cholesky_sigma", "0 for a flat body (a zero planar moment, "
-                    "A + B = C, has no log-Cholesky coordinates to disperse)", sigma)
+        raise _fail(
+            f"{path}.log_cholesky_sigma",
+            "0 for a flat body (a zero planar moment, "
+            "A + B = C, has no log-Cholesky coordinates to disperse)",
+            sigma,
+        )
     return DispersedInertia(jnp.asarray(J), jnp.asarray(float(sigma)))

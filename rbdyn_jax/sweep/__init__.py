@@ -77,7 +77,22 @@ from ._verify import (
     verify as verify,
 )
 
-__all__ = ["Damage", "IncompleteStoreWarning", "Progress", "StoreDamagedError",
-           "Verification", "check", "chunking", "open_dataset", "plots_dir", "reading", "run",
-           "solve_chunk", "status_meanings", "summarize", "to_netcdf", "trajectory_bytes",
-           "verify"]
+__all__ = [
+    "Damage",
+    "IncompleteStoreWarning",
+    "Progress",
+    "StoreDamagedError",
+    "Verification",
+    "check",
+    "chunking",
+    "open_dataset",
+    "plots_dir",
+    "reading",
+    "run",
+    "solve_chunk",
+    "status_meanings",
+    "summarize",
+    "to_netcdf",
+    "trajectory_bytes",
+    "verify",
+]

@@ -46,11 +46,17 @@ def _solve_block(scenario: Scenario, dists, key, idx, lanes):
     models, y0s = jax.vmap(scenario.build)(values)
     # The scenario's times and tolerances are constants of the trace: the solve is then
     # traced with its checks as NaN (its inputs validated), and its loops can be stored.
-    traj = simulate_batch(models, y0s, scenario.ts, model_axes=0,
-                          solver=scenario.diffrax_solver,
-                          stepsize_controller=scenario.stepsize_controller,
-                          dt0=scenario.dt, max_steps=scenario.max_steps,
-                          batching=_batching(scenario, models, y0s, lanes))
+    traj = simulate_batch(
+        models,
+        y0s,
+        scenario.ts,
+        model_axes=0,
+        solver=scenario.diffrax_solver,
+        stepsize_controller=scenario.stepsize_controller,
+        dt0=scenario.dt,
+        max_steps=scenario.max_steps,
+        batching=_batching(scenario, models, y0s, lanes),
+    )
     status = jnp.where(ok, result_code(traj.result), result_code(RESULTS.nonfinite_state))
 
     def summaries(m, tr):
@@ -59,8 +65,10 @@ def _solve_block(scenario: Scenario, dists, key, idx, lanes):
     summ = jax.vmap(summaries)(models, traj)
     good = status == 0
     out = {"omega": traj.ys.omega, "quat": traj.ys.quat, "inertia": models.inertia}
-    out = {k: jnp.where(lane(v) if k == "inertia" else good[:, None, None], v, jnp.nan)
-           for k, v in out.items()}
+    out = {
+        k: jnp.where(lane(v) if k == "inertia" else good[:, None, None], v, jnp.nan)
+        for k, v in out.items()
+    }
     return {
         **out,
         "status": status.astype(jnp.int32),
@@ -79,8 +87,9 @@ def _batching(scenario: Scenario, models, y0s, lanes):
     lanes hold, so a sweep's bits do not depend on its chunking either way."""
     if scenario.fixed_step:
         return Vmap()
-    chosen = default_batching(scenario.diffrax_solver, scenario.stepsize_controller, None,
-                              models, y0s, model_axes=0)
+    chosen = default_batching(
+        scenario.diffrax_solver, scenario.stepsize_controller, None, models, y0s, model_axes=0
+    )
     return chosen if isinstance(chosen, Kernel) else Lanes(lanes, devices=1)
 
 
@@ -122,18 +131,25 @@ def _chunk_program(sc: Scenario, lanes: int, mesh, idx, key) -> dict:
         # XLA runtime (all threads asleep) that one loop over a large share (2048 on 2
         # XLA:CPU host devices) runs into. On an accelerator, one block: the device's
         # whole share through `lanes` lanes, refilled.
-        out = jax.lax.map(lambda b: _solve_block(sc, dists, key, b, lanes),
-                          idx.reshape(-1, block))
+        out = jax.lax.map(lambda b: _solve_block(sc, dists, key, b, lanes), idx.reshape(-1, block))
         return jax.tree_util.tree_map(lambda x: x.reshape((-1,) + x.shape[2:]), out)
 
     # No collectives inside the solver loop: each device runs its own while loops.
-    sharded = jax.shard_map(per_device, mesh=mesh, in_specs=(P("batch"), P(), P()),
-                            out_specs=P("batch"), check_vma=False)
+    sharded = jax.shard_map(
+        per_device,
+        mesh=mesh,
+        in_specs=(P("batch"), P(), P()),
+        out_specs=P("batch"),
+        check_vma=False,
+    )
     # A float32 sweep's matrix products (the energies' `einsum`s, …) in full float32: at
     # JAX's default precision, NVIDIA GPUs since Ampere take them in TF32 (a 10-bit
     # mantissa), errors of 1e-4 in a float32 sweep's energy drifts where float32 gives 1e-6.
-    precision = (jax.default_matmul_precision("highest") if sc.dtype == "float32"
-                 else contextlib.nullcontext())
+    precision = (
+        jax.default_matmul_precision("highest")
+        if sc.dtype == "float32"
+        else contextlib.nullcontext()
+    )
     with precision:
         return sharded(idx, dists, key)
 
@@ -185,7 +201,8 @@ class _Runner:
         full = np.concatenate([idx, np.full(self.size - n, idx[-1], idx.dtype)])
         full = full.astype(_index_dtype())
         arr = jax.make_array_from_callback(
-            (self.size,), NamedSharding(self.mesh, P("batch")), lambda i: full[i])
+            (self.size,), NamedSharding(self.mesh, P("batch")), lambda i: full[i]
+        )
         out = dict(_solve_chunk(self.solved, self.lanes, self.mesh, arr, key))
         states = [out.pop(k) for k in _STATES]
         if self.scenario.trajectories == "all":
@@ -194,16 +211,16 @@ class _Runner:
             # At most ceil(size / K) multiples of K among ≤ size consecutive indices: a
             # fixed number of rows, so the gather compiles once.
             pos = np.flatnonzero(idx % self.every == 0)
-            pos = np.concatenate([pos, np.zeros(-(-self.size // self.every) - pos.size,
-                                                pos.dtype)]).astype(_index_dtype())
+            pos = np.concatenate(
+                [pos, np.zeros(-(-self.size // self.every) - pos.size, pos.dtype)]
+            ).astype(_index_dtype())
             out.update(zip(_STATES, _take(states, pos)))
         return out
 
     def collect(self, out: dict, idx: np.ndarray) -> dict[str, np.ndarray]:
         """The outputs of `launch` for its trajectories `idx` (waits for them)."""
         sampled = idx.size if self.every is None else int(np.sum(idx % self.every == 0))
-        return {k: np.asarray(v)[:sampled if k in _STATES else idx.size]
-                for k, v in out.items()}
+        return {k: np.asarray(v)[: sampled if k in _STATES else idx.size] for k, v in out.items()}
 
 
 _RUNNERS: dict[tuple, _Runner] = {}

@@ -56,9 +56,17 @@ def _power_of_two(x: int, up: bool = False) -> int:
     return 1 << (x - 1).bit_length() if up else 1 << (x.bit_length() - 1)
 
 
-def chunking(n: int, *, platform: str, devices: int, memory: int | None,
-             trajectory_bytes: tuple[int, int], chunk: int | None = None,
-             lanes: int | None = None, every: int | None = None) -> tuple[int, int]:
+def chunking(
+    n: int,
+    *,
+    platform: str,
+    devices: int,
+    memory: int | None,
+    trajectory_bytes: tuple[int, int],
+    chunk: int | None = None,
+    lanes: int | None = None,
+    every: int | None = None,
+) -> tuple[int, int]:
     """The `(chunk, lanes)` a sweep of `n` trajectories runs with on `devices` devices of
     `platform` with `memory` bytes each (`None`: not known), given the `chunk` and `lanes`
     asked for (`None`: chosen here) and `trajectory_bytes` (`trajectory_bytes(scenario)`).
@@ -85,15 +93,17 @@ def chunking(n: int, *, platform: str, devices: int, memory: int | None,
         if platform == "cpu":
             chunk = CPU_CHUNK
         else:
-            fits = min(MAX_SHARE, int(MEMORY_SHARE * (memory or FALLBACK_MEMORY)) // device,
-                       MAX_STORED_CHUNK // (stored * devices))
+            fits = min(
+                MAX_SHARE,
+                int(MEMORY_SHARE * (memory or FALLBACK_MEMORY)) // device,
+                MAX_STORED_CHUNK // (stored * devices),
+            )
             share = min(_power_of_two(max(1, fits)), _power_of_two(-(-n // devices), up=True))
             chunk = share * devices
     if every is not None and every < chunk:
         chunk -= chunk % every
     if lanes is None:
-        lanes = CPU_LANES if platform == "cpu" else default_lanes(-(-chunk // devices), 1,
-                                                                   platform)
+        lanes = CPU_LANES if platform == "cpu" else default_lanes(-(-chunk // devices), 1, platform)
     return chunk, lanes
 
 

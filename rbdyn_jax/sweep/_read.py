@@ -24,8 +24,13 @@ def open_dataset(store: str | pathlib.Path, *, storage_options: dict | None = No
 _EXACT_ROWS = 1 << 25  # quantiles exact (in memory, 8 bytes a row) up to this many values
 
 
-def summarize(store: str | pathlib.Path, quantiles=(0.05, 0.5, 0.95), *,
-              rows: int = 1 << 20, storage_options: dict | None = None) -> dict:
+def summarize(
+    store: str | pathlib.Path,
+    quantiles=(0.05, 0.5, 0.95),
+    *,
+    rows: int = 1 << 20,
+    storage_options: dict | None = None,
+) -> dict:
     """Counts per status and, for every summary, count/mean/std/min/quantiles/max over the
     successful trajectories (finite values).
 
@@ -62,8 +67,13 @@ def _summarize(store, quantiles, rows, storage_options) -> dict:
         x = ds[name].data
         good[name] = ok & da.isfinite(x)
         xs = da.where(good[name], x, np.nan)
-        lazy[name] = [da.sum(good[name]), da.nanmean(xs), da.nanstd(xs, ddof=1),
-                      da.nanmin(xs), da.nanmax(xs)]
+        lazy[name] = [
+            da.sum(good[name]),
+            da.nanmean(xs),
+            da.nanstd(xs, ddof=1),
+            da.nanmin(xs),
+            da.nanmax(xs),
+        ]
     with np.errstate(invalid="ignore", divide="ignore"), warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN columns: handled below
         (computed,) = dask.compute(lazy)
@@ -78,16 +88,27 @@ def _summarize(store, quantiles, rows, storage_options) -> dict:
                 qs = np.quantile(x.compute(), quantiles)
             else:
                 qs = da.percentile(x.compute_chunk_sizes(), 100 * np.asarray(quantiles)).compute()
-            row.update(mean=float(mean), std=float(std) if count > 1 else 0.0,
-                       min=float(lo), max=float(hi))
+            row.update(
+                mean=float(mean), std=float(std) if count > 1 else 0.0, min=float(lo), max=float(hi)
+            )
             row.update({f"q{round(100 * q):02d}": float(v) for q, v in zip(quantiles, qs)})
         stats[name] = row
-    return {"n": int(status.size), "status": counts, "summaries": stats,
-            "scenario": ds.attrs["scenario_name"], "complete": bool(ds.attrs["complete"])}
+    return {
+        "n": int(status.size),
+        "status": counts,
+        "summaries": stats,
+        "scenario": ds.attrs["scenario_name"],
+        "complete": bool(ds.attrs["complete"]),
+    }
 
 
-def to_netcdf(store: str | pathlib.Path, path: str | pathlib.Path, *,
-              overwrite: bool = False, storage_options: dict | None = None) -> pathlib.Path:
+def to_netcdf(
+    store: str | pathlib.Path,
+    path: str | pathlib.Path,
+    *,
+    overwrite: bool = False,
+    storage_options: dict | None = None,
+) -> pathlib.Path:
     """Write the sweep `store` (a path or a URL) to the local netCDF-4 file `path` (engine netCDF4,
     zlib-compressed), streamed chunk by chunk through Dask; `xarray.open_dataset(path)` reads it
     back equal to `open_dataset(store)`, attributes included.
@@ -119,5 +140,3 @@ def to_netcdf(store: str | pathlib.Path, path: str | pathlib.Path, *,
     finally:
         tmp.unlink(missing_ok=True)
     return path
-
-

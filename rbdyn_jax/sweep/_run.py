@@ -40,14 +40,15 @@ def _scan(g, chunk: int, block: int = 1 << 22) -> tuple[int, int, list[tuple[int
     done = failed = 0
     todo = []
     for b in range(0, n, block):
-        status = g["status"][b:b + block]
+        status = g["status"][b : b + block]
         done += int(np.sum(status >= 0))
         failed += int(np.sum(status > 0))
         for start in range(0, status.size, chunk):
-            s = status[start:start + chunk]
+            s = status[start : start + chunk]
             if np.any(s < 0):
-                todo.append((b + start, b + start + s.size, int(np.sum(s >= 0)),
-                             int(np.sum(s > 0))))
+                todo.append(
+                    (b + start, b + start + s.size, int(np.sum(s >= 0)), int(np.sum(s > 0)))
+                )
     return done, failed, todo
 
 
@@ -89,8 +90,7 @@ def _check_types(dtype: str, n: int, where: str, x64: bool | None = None) -> Non
     if dtype == "float64":
         raise ValueError(f"a float64 sweep needs 64-bit types (`jax_enable_x64`) {where}.")
     if n > np.iinfo(np.int32).max:
-        raise ValueError(f"`n` = {n} trajectories need 64-bit indices (`jax_enable_x64`) "
-                         f"{where}.")
+        raise ValueError(f"`n` = {n} trajectories need 64-bit indices (`jax_enable_x64`) {where}.")
 
 
 def _check_workers(client, dtype: str, n: int) -> None:
@@ -99,15 +99,30 @@ def _check_workers(client, dtype: str, n: int) -> None:
     off = sorted(w for w, x64 in on.items() if not x64)
     if off:
         shown = ", ".join(off[:3]) + (", …" if len(off) > 3 else "")
-        _check_types(dtype, n, f"on every worker ({len(off)} of {len(on)} lack them: "
-                     f"{shown}): start the workers with JAX_ENABLE_X64=1 in their environment "
-                     "(`LocalCluster(..., env={'JAX_ENABLE_X64': '1'})`, or exported before "
-                     "`dask worker`)", x64=False)
+        _check_types(
+            dtype,
+            n,
+            f"on every worker ({len(off)} of {len(on)} lack them: "
+            f"{shown}): start the workers with JAX_ENABLE_X64=1 in their environment "
+            "(`LocalCluster(..., env={'JAX_ENABLE_X64': '1'})`, or exported before "
+            "`dask worker`)",
+            x64=False,
+        )
 
 
-def solve_chunk(store: str, source: dict, name: str, start: int, stop: int, *, seed: int,
-                lanes: int, chunk: int, devices: int | None = None,
-                storage_options: dict | None = None) -> tuple[int, int]:
+def solve_chunk(
+    store: str,
+    source: dict,
+    name: str,
+    start: int,
+    stop: int,
+    *,
+    seed: int,
+    lanes: int,
+    chunk: int,
+    devices: int | None = None,
+    storage_options: dict | None = None,
+) -> tuple[int, int]:
     """Solve the trajectories `start:stop` of a sweep still marked not run, and write them
     into its `store` (`status` last): the task `run(..., client=...)` sends to a Dask worker
     for each store chunk.
@@ -128,13 +143,13 @@ def solve_chunk(store: str, source: dict, name: str, start: int, stop: int, *, s
     many of them failed, once it has finished (the same for a task run again).
     """
     sc = Scenario.from_dict(source, default_name=name)
-    _check_types(sc.dtype, stop, "on this worker: start its process with JAX_ENABLE_X64=1 "
-                 "in its environment")
+    _check_types(
+        sc.dtype, stop, "on this worker: start its process with JAX_ENABLE_X64=1 in its environment"
+    )
     local = jax.local_devices()
     devices = len(local) if devices is None else devices
     if not 1 <= devices <= len(local):
-        raise ValueError(f"`devices` must be in 1..{len(local)} on this worker, "
-                         f"got {devices!r}.")
+        raise ValueError(f"`devices` must be in 1..{len(local)} on this worker, got {devices!r}.")
     runner = _runner(sc, lanes, tuple(local[:devices]), chunk)
     g = _Location.of(store, storage_options).group("r+")
     return _solve_region(g, runner, jax.random.key(seed), start, stop)
@@ -224,13 +239,15 @@ def run(
     if isinstance(seed, bool) or not isinstance(seed, int | np.integer) or seed < 0:
         raise ValueError(f"`seed` must be a non-negative integer, got {seed!r}.")
     if client is None:
-        _check_types(sc.dtype, n, "in this process: call "
-                     "`jax.config.update('jax_enable_x64', True)` first")
+        _check_types(
+            sc.dtype, n, "in this process: call `jax.config.update('jax_enable_x64', True)` first"
+        )
         all_devices = jax.devices()
         devices = len(all_devices) if devices is None else devices
         if isinstance(devices, bool) or not 1 <= devices <= len(all_devices):
-            raise ValueError(f"`devices` must be in 1..{len(all_devices)} (jax.devices()), "
-                             f"got {devices!r}.")
+            raise ValueError(
+                f"`devices` must be in 1..{len(all_devices)} (jax.devices()), got {devices!r}."
+            )
     else:
         if devices is not None and (isinstance(devices, bool) or devices < 1):
             raise ValueError(f"`devices` must be a positive integer, got {devices!r}.")
@@ -245,9 +262,16 @@ def run(
         else:
             info = ("cpu", devices or 1, None)  # both given: only a K rounds the chunk
         platform, count, memory = info
-        return chunking(n, platform=platform, devices=count, memory=memory,
-                        trajectory_bytes=trajectory_bytes(sc), chunk=chunk, lanes=lanes,
-                        every=sc.trajectories if isinstance(sc.trajectories, int) else None)
+        return chunking(
+            n,
+            platform=platform,
+            devices=count,
+            memory=memory,
+            trajectory_bytes=trajectory_bytes(sc),
+            chunk=chunk,
+            lanes=lanes,
+            every=sc.trajectories if isinstance(sc.trajectories, int) else None,
+        )
 
     loc = _Location.of(out, storage_options)
     lanes = _prepare_store(loc, sc, n, seed, resume, overwrite, layout, lanes)
@@ -283,8 +307,18 @@ def run(
         if solving is not None:
             report(solving[0], _finish_region(g, solving[1]))
     else:
-        _run_on_dask(client, todo, report, loc.url, sc, seed=seed, lanes=lanes, chunk=chunk,
-                     devices=devices, storage_options=loc.options or None)
+        _run_on_dask(
+            client,
+            todo,
+            report,
+            loc.url,
+            sc,
+            seed=seed,
+            lanes=lanes,
+            chunk=chunk,
+            devices=devices,
+            storage_options=loc.options or None,
+        )
     g.attrs["complete"] = 1
     _consolidate(g)
     return loc.url if loc.is_url else pathlib.Path(loc.url)
@@ -295,9 +329,19 @@ def _run_on_dask(client, todo, report, store, sc, **kw) -> None:
     from distributed import as_completed
 
     token = uuid.uuid4().hex[:8]
-    futures = {client.submit(solve_chunk, store, sc.source, sc.name, *region[:2], **kw,
-                             key=f"rbdyn_jax-sweep-{token}-{region[0]}", pure=False): region
-               for region in todo}
+    futures = {
+        client.submit(
+            solve_chunk,
+            store,
+            sc.source,
+            sc.name,
+            *region[:2],
+            **kw,
+            key=f"rbdyn_jax-sweep-{token}-{region[0]}",
+            pure=False,
+        ): region
+        for region in todo
+    }
     try:
         for future in as_completed(futures):
             report(futures[future], future.result())

@@ -30,35 +30,63 @@ CONVENTIONS = (
 
 # name: (dims, units, long_name, description); the summaries add theirs from SUMMARIES.
 _VARIABLES = {
-    "omega": (("trajectory", "time", "axis"), "rad/s", "body angular velocity",
-              "angular velocity in body axes (relative to the transport frame O1 for "
-              "relative_rigid_body); NaN where the trajectory failed"),
-    "quat": (("trajectory", "time", "quat_component"), "1", "attitude quaternion",
-             "unit quaternion [w, x, y, z] rotating body components into the parent frame; "
-             "NaN where the trajectory failed"),
-    "inertia": (("trajectory", "row", "col"), "kg m2", "inertia tensor",
-                "the sampled inertia tensor in body axes"),
-    "status": (("trajectory",), "1", "solver status",
-               "result of the solve: 0 successful, -1 not run yet, otherwise the failure "
-               "named by flag_meanings"),
-    "num_steps": (("trajectory",), "1", "solver steps",
-                  "steps the solver took (accepted and rejected)"),
+    "omega": (
+        ("trajectory", "time", "axis"),
+        "rad/s",
+        "body angular velocity",
+        "angular velocity in body axes (relative to the transport frame O1 for "
+        "relative_rigid_body); NaN where the trajectory failed",
+    ),
+    "quat": (
+        ("trajectory", "time", "quat_component"),
+        "1",
+        "attitude quaternion",
+        "unit quaternion [w, x, y, z] rotating body components into the parent frame; "
+        "NaN where the trajectory failed",
+    ),
+    "inertia": (
+        ("trajectory", "row", "col"),
+        "kg m2",
+        "inertia tensor",
+        "the sampled inertia tensor in body axes",
+    ),
+    "status": (
+        ("trajectory",),
+        "1",
+        "solver status",
+        "result of the solve: 0 successful, -1 not run yet, otherwise the failure "
+        "named by flag_meanings",
+    ),
+    "num_steps": (
+        ("trajectory",),
+        "1",
+        "solver steps",
+        "steps the solver took (accepted and rejected)",
+    ),
 }
 _COORDS = {
     "time": ("s", "time", "output time"),
-    "trajectory": ("1", "trajectory index",
-                   "index i of the trajectory, drawn from fold_in(key(seed), i)"),
-    "sampled_trajectory": ("1", "sampled trajectory index",
-                           "index i of a trajectory whose states are stored (every K-th: i = "
-                           "0, K, 2K, ...); its other variables are at trajectory = i"),
+    "trajectory": (
+        "1",
+        "trajectory index",
+        "index i of the trajectory, drawn from fold_in(key(seed), i)",
+    ),
+    "sampled_trajectory": (
+        "1",
+        "sampled trajectory index",
+        "index i of a trajectory whose states are stored (every K-th: i = "
+        "0, K, 2K, ...); its other variables are at trajectory = i",
+    ),
 }
 _LABELS = {
     "axis": (["x", "y", "z"], "body axis", "component along a body axis"),
-    "quat_component": (["w", "x", "y", "z"], "quaternion component",
-                       "component of the quaternion, scalar first"),
+    "quat_component": (
+        ["w", "x", "y", "z"],
+        "quaternion component",
+        "component of the quaternion, scalar first",
+    ),
     "row": (["x", "y", "z"], "inertia tensor row", "row of the inertia tensor (body axis)"),
-    "col": (["x", "y", "z"], "inertia tensor column",
-            "column of the inertia tensor (body axis)"),
+    "col": (["x", "y", "z"], "inertia tensor column", "column of the inertia tensor (body axis)"),
 }
 _NOT_RUN = -1
 
@@ -93,8 +121,12 @@ class _Location:
     def group(self, mode: str):
         import zarr
 
-        return zarr.open_group(self.url, mode=mode, zarr_format=3,
-                               storage_options=self.options if self.is_url else None)
+        return zarr.open_group(
+            self.url,
+            mode=mode,
+            zarr_format=3,
+            storage_options=self.options if self.is_url else None,
+        )
 
     def fs(self):
         """(fsspec filesystem, root path in it)."""
@@ -140,28 +172,48 @@ def _create_store(loc: _Location, sc: Scenario, n: int, chunk: int, seed: int, l
             dims, units, long_name, description = _VARIABLES[name]
         else:
             summary = SUMMARIES[name]
-            dims, units, long_name, description = (("trajectory",), summary.units, name,
-                                                   summary.description)
+            dims, units, long_name, description = (
+                ("trajectory",),
+                summary.units,
+                name,
+                summary.description,
+            )
         length, chunk_rows = rows.get(name, n), chunk
         if every is not None and name in _STATES:
             # A chunk of trajectories holds chunk / K sampled ones (`chunking` makes the
             # chunk a multiple of K, or K is larger and it holds at most one).
             dims, chunk_rows = ("sampled_trajectory", *dims[1:]), max(1, chunk // every)
-            description += (f"; stored for one trajectory in {every}: trajectories 0, "
-                            f"{every}, {2 * every}, ... (the coordinate sampled_trajectory)")
+            description += (
+                f"; stored for one trajectory in {every}: trajectories 0, "
+                f"{every}, {2 * every}, ... (the coordinate sampled_trajectory)"
+            )
         shape = (length, *shapes.get(name, ()))
         dtype = dtypes.get(name, sc.dtype)
-        a = _create_array(g, name, shape, (min(chunk_rows, length),) + shape[1:], dtype,
-                          np.nan if dtype == sc.dtype else _NOT_RUN, dims)
+        a = _create_array(
+            g,
+            name,
+            shape,
+            (min(chunk_rows, length),) + shape[1:],
+            dtype,
+            np.nan if dtype == sc.dtype else _NOT_RUN,
+            dims,
+        )
         a.attrs.update({"units": units, "long_name": long_name, "description": description})
-    g["status"].attrs.update({"flag_values": list(meanings),
-                              "flag_meanings": " ".join(meanings.values())})
+    g["status"].attrs.update(
+        {"flag_values": list(meanings), "flag_meanings": " ".join(meanings.values())}
+    )
     # The indices (their lengths here) are written a block at a time below.
     indices = {"trajectory": n, **({"sampled_trajectory": sampled} if every else {})}
-    labels = {k: v for k, v in _LABELS.items()  # those of the variables it holds
-              if sc.trajectories != "none" or k not in ("axis", "quat_component")}
-    coords = {"time": sc.ts, **{k: None for k in indices},
-              **{k: np.asarray(v[0]) for k, v in labels.items()}}
+    labels = {
+        k: v
+        for k, v in _LABELS.items()  # those of the variables it holds
+        if sc.trajectories != "none" or k not in ("axis", "quat_component")
+    }
+    coords = {
+        "time": sc.ts,
+        **{k: None for k in indices},
+        **{k: np.asarray(v[0]) for k, v in labels.items()},
+    }
     for name, values in coords.items():
         if values is None:
             shape, dtype, fill = (indices[name],), np.int64, _NOT_RUN
@@ -169,34 +221,42 @@ def _create_store(loc: _Location, sc: Scenario, n: int, chunk: int, seed: int, l
             shape, dtype = values.shape, (str if values.dtype.kind == "U" else values.dtype)
             fill = "" if dtype is str else np.nan
         a = _create_array(g, name, shape, (min(shape[0], _COORD_CHUNK),), dtype, fill, (name,))
-        units, long_name, description = (_COORDS[name] if name in _COORDS
-                                         else (None, *_LABELS[name][1:]))
-        a.attrs.update({"long_name": long_name, "description": description,
-                        **({"units": units} if units else {})})
+        units, long_name, description = (
+            _COORDS[name] if name in _COORDS else (None, *_LABELS[name][1:])
+        )
+        a.attrs.update(
+            {
+                "long_name": long_name,
+                "description": description,
+                **({"units": units} if units else {}),
+            }
+        )
     _write_coordinates(g, sc)
     # status −1 (not run) written, so that every status chunk is in the store.
     for start in range(0, n, _COORD_CHUNK):
-        _filled(g, "status")[start:start + _COORD_CHUNK] = _NOT_RUN
+        _filled(g, "status")[start : start + _COORD_CHUNK] = _NOT_RUN
     # Attribute values are strings and numbers only, so that netCDF can hold them too.
-    g.attrs.update({
-        "title": f"rbdyn_jax Monte Carlo sweep: {sc.name}",
-        "Conventions": "CF-1.11",
-        "source": f"rbdyn_jax {__version__} (jax {jax.__version__})",
-        "scenario_name": sc.name,
-        "scenario": json.dumps(sc.source),
-        "model_kind": sc.kind,
-        "seed": seed,
-        "n_trajectories": n,
-        "chunk": chunk,
-        "lanes": lanes,
-        "trajectories": sc.trajectories,
-        "dtype": sc.dtype,
-        "summaries": " ".join(sc.summaries),
-        "rbdyn_jax_conventions": CONVENTIONS,
-        "rbdyn_jax_version": __version__,
-        "jax_version": jax.__version__,
-        "complete": 0,
-    })
+    g.attrs.update(
+        {
+            "title": f"rbdyn_jax Monte Carlo sweep: {sc.name}",
+            "Conventions": "CF-1.11",
+            "source": f"rbdyn_jax {__version__} (jax {jax.__version__})",
+            "scenario_name": sc.name,
+            "scenario": json.dumps(sc.source),
+            "model_kind": sc.kind,
+            "seed": seed,
+            "n_trajectories": n,
+            "chunk": chunk,
+            "lanes": lanes,
+            "trajectories": sc.trajectories,
+            "dtype": sc.dtype,
+            "summaries": " ".join(sc.summaries),
+            "rbdyn_jax_conventions": CONVENTIONS,
+            "rbdyn_jax_version": __version__,
+            "jax_version": jax.__version__,
+            "complete": 0,
+        }
+    )
     _consolidate(g)
     return g
 
@@ -210,9 +270,15 @@ def _create_array(g, name: str, shape: tuple, chunks: tuple, dtype, fill, dims: 
     found by `verify` and fails when read."""
     from zarr.codecs import BloscCodec, Crc32cCodec
 
-    return g.create_array(name, shape=shape, chunks=chunks, dtype=dtype, fill_value=fill,
-                          dimension_names=list(dims),
-                          compressors=[BloscCodec(cname="zstd", clevel=5), Crc32cCodec()])
+    return g.create_array(
+        name,
+        shape=shape,
+        chunks=chunks,
+        dtype=dtype,
+        fill_value=fill,
+        dimension_names=list(dims),
+        compressors=[BloscCodec(cname="zstd", clevel=5), Crc32cCodec()],
+    )
 
 
 def _filled(g, name: str):
@@ -246,19 +312,25 @@ def _consolidate(g) -> None:
     import zarr
 
     with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", message="Consolidated metadata is currently not",
-                                category=UserWarning)
+        warnings.filterwarnings(
+            "ignore", message="Consolidated metadata is currently not", category=UserWarning
+        )
         zarr.consolidate_metadata(g.store)
 
 
-def _check_resumable(loc: _Location, sc: Scenario, n: int, seed: int,
-                     lanes: int | None) -> int:
+def _check_resumable(loc: _Location, sc: Scenario, n: int, seed: int, lanes: int | None) -> int:
     """Refuse a store this run cannot continue; the lanes to continue it with: the store's,
     which `lanes` must equal when given."""
     attrs = loc.group("r").attrs
     lanes = attrs.get("lanes") if lanes is None else lanes
-    want = {"trajectories": sc.trajectories, "dtype": sc.dtype, "n_trajectories": n,
-            "seed": seed, "lanes": lanes, "scenario": sc.source}
+    want = {
+        "trajectories": sc.trajectories,
+        "dtype": sc.dtype,
+        "n_trajectories": n,
+        "seed": seed,
+        "lanes": lanes,
+        "scenario": sc.source,
+    }
     for k, v in want.items():
         have = attrs.get(k)
         if k == "scenario":  # compared as data (the order of its keys does not matter)
@@ -266,14 +338,23 @@ def _check_resumable(loc: _Location, sc: Scenario, n: int, seed: int,
         else:
             same = have == v
         if not same:
-            raise ValueError(f"cannot resume {loc.url}: its {k} is {have!r}, this run's is "
-                             f"{v!r}; use a new --out or drop --resume.")
+            raise ValueError(
+                f"cannot resume {loc.url}: its {k} is {have!r}, this run's is "
+                f"{v!r}; use a new --out or drop --resume."
+            )
     return lanes
 
 
-def _prepare_store(loc: _Location, sc: Scenario, n: int, seed: int, resume: bool,
-                   overwrite: bool, layout: Callable[[], tuple[int, int]],
-                   lanes: int | None) -> int:
+def _prepare_store(
+    loc: _Location,
+    sc: Scenario,
+    n: int,
+    seed: int,
+    resume: bool,
+    overwrite: bool,
+    layout: Callable[[], tuple[int, int]],
+    lanes: int | None,
+) -> int:
     """Check a store to resume, or make a new one with the `(chunk, lanes)` of `layout()`;
     the lanes the run solves with. An existing store is replaced only when asked. A local
     store is built beside its path and renamed into place, so a store at the path is always
@@ -283,15 +364,18 @@ def _prepare_store(loc: _Location, sc: Scenario, n: int, seed: int, resume: bool
     if resume and overwrite:
         raise ValueError("give at most one of `resume` and `overwrite`.")
     if resume and not loc.is_store():
-        raise FileNotFoundError(f"there is no sweep store at {loc.url} to resume: drop "
-                                "--resume (resume=False) to start one.")
+        raise FileNotFoundError(
+            f"there is no sweep store at {loc.url} to resume: drop "
+            "--resume (resume=False) to start one."
+        )
     if loc.is_store():
         if resume:
             return _check_resumable(loc, sc, n, seed, lanes)
         if not overwrite:
             raise FileExistsError(
                 f"{loc.url} already holds a sweep store: pass --overwrite (overwrite=True) "
-                f"to replace it and its plots, or --resume (resume=True) to finish it.")
+                f"to replace it and its plots, or --resume (resume=True) to finish it."
+            )
     elif not loc.is_empty():
         raise ValueError(f"{loc.url} exists and is not a sweep store; choose another --out.")
     chunk, lanes = layout()
@@ -320,4 +404,4 @@ def _write(g, idx: np.ndarray, out: dict[str, np.ndarray], every: int | None) ->
         if not rows.size:
             continue
         for r in np.split(np.arange(rows.size), np.nonzero(np.diff(rows) != 1)[0] + 1):
-            _filled(g, name)[int(rows[r[0]]):int(rows[r[-1]]) + 1] = out[name][r[0]:r[-1] + 1]
+            _filled(g, name)[int(rows[r[0]]) : int(rows[r[-1]]) + 1] = out[name][r[0] : r[-1] + 1]

@@ -30,10 +30,14 @@ class Damage:
 
     def __str__(self) -> str:
         t = self.trajectories
-        held = (f"trajectories {t.start}..{t[-1]}" + (f" every {t.step}" if t.step > 1 else "")
-                if len(t) else "no trajectory's results")
-        return (f"{self.variable} chunk {self.chunk}: {self.problem} ({held})"
-                + (f": {self.error}" if self.error else ""))
+        held = (
+            f"trajectories {t.start}..{t[-1]}" + (f" every {t.step}" if t.step > 1 else "")
+            if len(t)
+            else "no trajectory's results"
+        )
+        return f"{self.variable} chunk {self.chunk}: {self.problem} ({held})" + (
+            f": {self.error}" if self.error else ""
+        )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -70,14 +74,18 @@ class Verification:
         for d in (*self.missing, *self.damaged):
             lines.append(f"  {d}")
         if not self.whole:
-            lines.append(f"damaged: {len(self.missing)} missing and {len(self.damaged)} "
-                         f"damaged chunk(s), holding the results of "
-                         f"{self.trajectories.size} trajectories; `rbdyn sweep ... --resume` "
-                         "(run(..., resume=True)) solves those again and rewrites the "
-                         "chunks")
+            lines.append(
+                f"damaged: {len(self.missing)} missing and {len(self.damaged)} "
+                f"damaged chunk(s), holding the results of "
+                f"{self.trajectories.size} trajectories; `rbdyn sweep ... --resume` "
+                "(run(..., resume=True)) solves those again and rewrites the "
+                "chunks"
+            )
         elif self.not_run:
-            lines.append(f"whole, incomplete: {self.not_run} of {self.n} trajectories not "
-                         "solved yet; finish with `rbdyn sweep ... --resume`")
+            lines.append(
+                f"whole, incomplete: {self.not_run} of {self.n} trajectories not "
+                "solved yet; finish with `rbdyn sweep ... --resume`"
+            )
         else:
             lines.append("whole and complete: every chunk present and intact")
         return "\n".join(lines)
@@ -104,7 +112,7 @@ def _inspect(loc: _Location, g, read: bool = True) -> Verification:
     chunk is there (a listing and `status`), without reading the others."""
     fs, root = loc.fs()
     prefix = root.rstrip("/") + "/"
-    present = {f[len(prefix):] if f.startswith(prefix) else f for f in fs.find(root)}
+    present = {f[len(prefix) :] if f.startswith(prefix) else f for f in fs.find(root)}
     status_array = g["status"]
     n, every = status_array.shape[0], g.attrs.get("trajectories")
     every = every if isinstance(every, int) else None
@@ -131,13 +139,11 @@ def _inspect(loc: _Location, g, read: bool = True) -> Verification:
                 try:
                     block = a.blocks[i]
                 except Exception as e:  # a failed checksum, a truncated or garbled chunk
-                    damaged.append(Damage(name, i, "damaged", held,
-                                          f"{type(e).__name__}: {e}"))
+                    damaged.append(Damage(name, i, "damaged", held, f"{type(e).__name__}: {e}"))
                     continue
                 if name == "status":
                     status[held] = block
-    return Verification(loc.url, n, tuple(missing), tuple(damaged),
-                        int(np.sum(status < 0)))
+    return Verification(loc.url, n, tuple(missing), tuple(damaged), int(np.sum(status < 0)))
 
 
 def verify(store: str | pathlib.Path, *, storage_options: dict | None = None) -> Verification:
@@ -169,14 +175,19 @@ def _refuse_damaged(found: Verification) -> None:
             f"{found.store} is damaged: {len(found.missing)} missing and {len(found.damaged)} "
             f"damaged chunk(s), holding the results of {found.trajectories.size} "
             f"trajectories (first: {(*found.missing, *found.damaged)[0]}). List them with "
-            f"`rbdyn verify {found.store}`; `rbdyn sweep ... --resume` repairs the store.")
+            f"`rbdyn verify {found.store}`; `rbdyn sweep ... --resume` repairs the store."
+        )
 
 
 def _warn_incomplete(found: Verification) -> None:
     if found.not_run:
-        warnings.warn(f"{found.store} is incomplete: {found.not_run} of {found.n} trajectories "
-                      "not solved yet (NaN, status -1); finish with `rbdyn sweep ... "
-                      "--resume`.", IncompleteStoreWarning, stacklevel=3)
+        warnings.warn(
+            f"{found.store} is incomplete: {found.not_run} of {found.n} trajectories "
+            "not solved yet (NaN, status -1); finish with `rbdyn sweep ... "
+            "--resume`.",
+            IncompleteStoreWarning,
+            stacklevel=3,
+        )
 
 
 class IncompleteStoreWarning(UserWarning):
@@ -229,17 +240,22 @@ def _repair(loc: _Location, g, sc: Scenario) -> Verification:
         return found
     if any(d.chunk < 0 for d in found.missing):
         names = ", ".join(d.variable for d in found.missing if d.chunk < 0)
-        raise StoreDamagedError(f"cannot resume {loc.url}: the metadata of {names} are "
-                                "missing; run the sweep again with --overwrite.")
+        raise StoreDamagedError(
+            f"cannot resume {loc.url}: the metadata of {names} are "
+            "missing; run the sweep again with --overwrite."
+        )
     g.attrs["complete"] = 0
     _consolidate(g)
     fs, root = loc.fs()
     for d in found.damaged:
         a = g[d.variable]
-        fs.rm(f"{root}/{d.variable}/"
-              f"{a.metadata.encode_chunk_key((d.chunk,) + (0,) * (a.ndim - 1))}")
-    if any(not len(d.trajectories) or d.variable in ("trajectory", "sampled_trajectory")
-           for d in (*found.missing, *found.damaged)):
+        fs.rm(
+            f"{root}/{d.variable}/{a.metadata.encode_chunk_key((d.chunk,) + (0,) * (a.ndim - 1))}"
+        )
+    if any(
+        not len(d.trajectories) or d.variable in ("trajectory", "sampled_trajectory")
+        for d in (*found.missing, *found.damaged)
+    ):
         _write_coordinates(g, sc)
     idx = found.trajectories
     if idx.size:
