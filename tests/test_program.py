@@ -77,3 +77,17 @@ def test_two_threads_compiling_at_once_keep_their_modes():
         t.join()
     assert failures == []
     assert _compat.error_mode() == "raise"
+
+
+def test_a_trace_inside_a_nan_program_is_not_reused_by_a_raising_one():
+    """A program traced with its checks as NaN (a fit) calls another program on traced
+    inputs (its solves): that inner trace takes the NaN mode. A later caller's own trace of
+    the inner program, in the raising mode, must trace anew and raise, not reuse it."""
+    inner = program()
+    outer = Program(lambda x, s: inner(x, s * 1.0))  # `s * 1.0`: traced inside
+    assert np.isnan(np.asarray(outer(jnp.array([-1.0, 4.0]), jnp.asarray(2.0)))).all()
+    under_jit = jax.jit(lambda x, s: inner(x, s))
+    with pytest.raises(Exception, match="must be non-negative"):
+        jax.block_until_ready(under_jit(jnp.array([-1.0, 4.0]), 2.0))
+    # and the other order: the raising trace is not taken into the NaN program either
+    assert np.isnan(np.asarray(outer(jnp.array([-1.0, 9.0]), jnp.asarray(3.0)))).all()

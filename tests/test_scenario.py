@@ -460,3 +460,29 @@ def test_with_settings_sets_the_dtype_and_the_states_kept():
     d["solver"].update(rtol=1e-6, atol=1e-6)
     single = Scenario.from_dict(d).with_settings(dtype="float32")
     assert single.dtype == "float32" and single.source["solver"]["dtype"] == "float32"
+
+
+def test_a_scenario_is_a_pytree_of_its_distributions_leaves():
+    """A `Scenario` flattens to its distributions' arrays; its structure is static and one
+    for sources that differ only in naming a default `dtype` or `trajectories` (a sweep's
+    stores keeping all, some or no states run one chunk program), and differs where a
+    setting differs."""
+    sc = Scenario.load("torque_free_flip")
+    leaves, treedef = jax.tree_util.tree_flatten(sc)
+    assert leaves and all(isinstance(x, jax.Array) for x in leaves)
+    assert len(leaves) == len(jax.tree_util.tree_leaves(sc.dists))
+    again = jax.tree_util.tree_unflatten(treedef, [x + 0 for x in leaves])
+    assert again.source == sc.source and again.name == sc.name and again.ts.shape == sc.ts.shape
+    back = sc.with_settings(trajectories="none").with_settings(trajectories="all")
+    assert back.source != sc.source  # names the default now
+    assert jax.tree_util.tree_structure(back) == treedef
+    assert jax.tree_util.tree_structure(sc.with_settings(dtype="float64")) == treedef
+    d = dict(sc.source)  # a copy: "solver" replaced below, not changed
+    d["solver"] = {**d.get("solver", {}), "rtol": 1e-6, "atol": 1e-6}
+    loose = Scenario.from_dict(d)
+    for other in (
+        sc.with_settings(trajectories="none"),
+        loose,
+        loose.with_settings(dtype="float32"),
+    ):
+        assert jax.tree_util.tree_structure(other) != treedef

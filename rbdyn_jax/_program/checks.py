@@ -9,9 +9,9 @@ reported per trajectory (`RESULTS.nonfinite_state`), and the program can be stor
 
 Equinox reads its check mode from a process-wide setting (its error mode) when a check is
 traced, and diffrax's own checks take no other: `as_nan` sets it for the duration of one
-trace only, under a lock that every `Program`'s trace takes (`raising` for the others), so
-two threads never trace rbdyn_jax's programs in different modes at once (a trace of your
-own in another thread, outside rbdyn_jax's programs, is not covered), and drops
+trace only, under a lock that every `Program` call takes (`exclusive`) before JAX looks up
+its trace, so two threads never trace rbdyn_jax's programs in different modes at once (a
+trace of your own in another thread, outside rbdyn_jax's programs, is not covered), and drops
 the cached traces that depend on it on the way in and out (`_compat.error_mode_set`): the
 `eqx.filter_jit` functions JAX traces once per input structure (`diffrax.diffeqsolve`,
 and those registered by `mode_dependent`), whose cache is keyed by their inputs, not the mode.
@@ -26,17 +26,17 @@ _LOCK = threading.RLock()
 _MODE_DEPENDENT: list = []  # jitted functions whose traces to drop on a switch
 
 
-def mode_dependent(jitted):
-    """Register the `eqx.filter_jit` function `jitted`, traced inside programs: its cached
-    traces are dropped when `as_nan` switches the check mode. Returns it."""
-    _MODE_DEPENDENT.append(jitted)
-    return jitted
+def mode_dependent(*jitted):
+    """Register the `eqx.filter_jit` functions `jitted`, traced inside programs: their
+    cached traces are dropped when `as_nan` switches the check mode. Returns the first."""
+    _MODE_DEPENDENT.extend(jitted)
+    return jitted[0]
 
 
 @contextlib.contextmanager
-def raising():
-    """While the block traces a program, `eqx.error_if` checks raise as equinox's mode
-    says (no other thread in `as_nan` meanwhile)."""
+def exclusive():
+    """The block runs while no other thread runs a `Program` (which may trace in either
+    mode): every `Program` call takes this lock, before JAX looks up its trace."""
     with _LOCK:
         yield
 

@@ -8,15 +8,18 @@ times or tolerances reuse the compiled program. What `Program` decides per call:
 - **Checks.** Where the inputs a function's checks read were validated before tracing
   (`validated(*args)` holds no tracer: concrete values, checked in NumPy), the function is
   traced with its runtime checks as NaN (`checks.as_nan`): its program holds no host
-  callback. Otherwise (a caller's traced times, say) the checks raise at run time.
+  callback. Otherwise the call is part of a caller's trace (its times traced, say) and
+  takes the caller's mode: its checks raise at run time, or give NaN inside a program
+  itself traced with its checks as NaN (a fit's solves). Such a trace is dropped whenever
+  the mode switches, so a trace made in one mode is never reused in the other.
 - **Storing.** A program traced with its checks as NaN, called at the top level, is stored
   by the on-disk cache of traced programs (`traces.cached`, where JAX's persistent
   compilation cache is configured) and loaded by a later process instead of traced.
 - **Compiler options.** Called at the top level, the program compiles with `options`;
   inside a caller's transformation it is part of the caller's program (`xla.filter_jit`).
 
-The two kinds of trace (checks raising, checks as NaN) are two jits, so they never share
-a cache entry.
+Every call takes one lock (`checks.exclusive`) before JAX looks up its trace, so two threads
+never trace rbdyn_jax's programs in different modes at once.
 """
 
 import functools
@@ -67,12 +70,11 @@ class Program:
             with checks.as_nan():
                 return fn(*args)
 
-        @functools.wraps(fn)
-        def checks_raising(*args):
-            with checks.raising():
-                return fn(*args)
-
-        self._checked = filter_jit(checks_raising, options)
+        # A call whose validated inputs are traced is part of a caller's trace, which may
+        # itself be traced with its checks as NaN (a fit's solves): its trace depends on
+        # the mode, so it is dropped when the mode switches, like diffeqsolve's.
+        self._checked = filter_jit(fn, options)
+        checks.mode_dependent(*self._checked.jitted)
         self._as_nan = (
             traces.cached(checks_nan, options) if store else filter_jit(checks_nan, options)
         )
@@ -83,7 +85,11 @@ class Program:
         return self.validated is None or concrete(self.validated(*args))
 
     def __call__(self, *args):
-        return (self._as_nan if self.checks_nan(*args) else self._checked)(*args)
+        run = self._as_nan if self.checks_nan(*args) else self._checked
+        # The lock before JAX looks up or claims a trace: a thread never waits for the lock
+        # while it holds a trace another thread may be waiting for.
+        with checks.exclusive():
+            return run(*args)
 
 
 def program(

@@ -73,6 +73,7 @@ def _dispatch(jitter, fn, options):
     def call(*args, **kwargs):
         return (own if top_level() else nested)(*args, **kwargs)
 
+    call.jitted = (own, nested)  # the two jits, whose cached traces may be dropped
     return call
 
 

@@ -418,14 +418,19 @@ class Scenario:
 
 class Structure:
     """The static part of a `Scenario`'s pytree (all but its distributions' leaves): equal
-    and hashed by the JSON text of the scenario's source, which is also its `repr` (an
-    exact description, which the cache of traced programs keys a stored program by)."""
+    and hashed by the JSON text of the scenario's source with the settings `with_settings`
+    changes written out (a source that leaves `dtype` or `trajectories` to its default and
+    one that names the default are one structure); the text is also its `repr` (an exact
+    description, which the cache of traced programs keys a stored program by)."""
 
     __slots__ = ("scenario", "text")
 
     def __init__(self, scenario: Scenario):
         self.scenario = scenario
-        self.text = json.dumps(scenario.source, sort_keys=True)
+        source = json.loads(json.dumps(scenario.source))
+        source.setdefault("solver", {})["dtype"] = scenario.dtype
+        source.setdefault("outputs", {})["trajectories"] = scenario.trajectories
+        self.text = json.dumps(source, sort_keys=True)
 
     def __eq__(self, other) -> bool:
         return isinstance(other, Structure) and self.text == other.text
