@@ -48,6 +48,7 @@ import jax
 import numpy as np
 
 from .. import _compat
+from .devices import WHOLE, mesh
 from .xla import COMPILER_OPTIONS, export, filter_jit, jit, top_level
 
 # The modules whose classes and functions a key may name: their code is versioned by
@@ -304,8 +305,7 @@ def _placement(exported):
     devices, as `jit` placed them when it was traced."""
     if exported.nr_devices == 1:
         return lambda arrays: arrays
-    mesh = jax.sharding.Mesh(np.asarray(jax.devices()[: exported.nr_devices]), ("devices",))
-    replicated = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
+    replicated = jax.sharding.NamedSharding(mesh(jax.devices()[: exported.nr_devices]), WHOLE)
     return lambda arrays: [jax.device_put(x, replicated) for x in arrays]
 
 

@@ -10,15 +10,20 @@ import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
-from jax.sharding import PartitionSpec
 
 from .._program import traces
+from .._program.devices import mesh as device_mesh, over_devices
 from .._program.flags import loops_compiled_whole
 from .._program.program import Program, concrete
 from ._diffeqsolve import solve_vmapped
 from ._field import checked_before_tracing, checked_times, finish, promoted
-from ._kernel import field_refuse, kernel_block, kernel_refuse, kernel_solved
+from ._kernel import (
+    field_refuse,
+    kernel_block,
+    kernel_compiled,
+    kernel_interpreted,
+    kernel_refuse,
+)
 from ._lanes import LAYOUTS, Plain, lane_loop
 from ._sensitivity import lane_jvp
 from ._solution import Trajectory, as_result
@@ -182,9 +187,8 @@ class Kernel(AbstractBatching):
         gpu = jax.default_backend() == "gpu"
         interpret = (not gpu) if self.interpret is None else self.interpret
         block = kernel_block(self.block, jax.tree_util.tree_leaves(y0s)[0].shape[0], gpu)
-        return kernel_solved[interpret](
-            model, y0s, ts, solver, controller, max_steps, dt0, model_axes, block, interpret
-        )
+        run = kernel_interpreted if interpret else kernel_compiled
+        return run(model, y0s, ts, solver, controller, max_steps, dt0, model_axes, block, interpret)
 
 
 def _lanes_refuse(solver, controller, adjoint) -> str | None:
@@ -295,7 +299,7 @@ def _mesh(devices) -> jax.sharding.Mesh:
             f"`devices` must be an int in [1, {len(available)}] (the local "
             f"devices), got {devices!r}."
         )
-    return jax.sharding.Mesh(np.asarray(available[:devices]), ("batch",))
+    return device_mesh(available[:devices])
 
 
 def lane_solve(
@@ -394,18 +398,11 @@ def _sharded(run, system, y0s, ts, tols, cstatic, batched, mesh):
     dyn, static = eqx.partition(system, eqx.is_array)
     if batched:
         dyn = jax.tree_util.tree_map(padded, dyn)
-    spec = PartitionSpec("batch") if batched else PartitionSpec()
 
     def local(dyn, y0s, ts, tols):
         return run(eqx.combine(dyn, static), y0s, ts, eqx.combine(tols, cstatic))
 
-    out = jax.shard_map(
-        local,
-        mesh=mesh,
-        in_specs=(spec, PartitionSpec("batch"), PartitionSpec(), PartitionSpec()),
-        out_specs=PartitionSpec("batch"),
-        check_vma=False,
-    )(dyn, y0s, ts, tols)
+    out = over_devices(local, mesh, (batched, True, False, False))(dyn, y0s, ts, tols)
     return jax.tree_util.tree_map(collected, out)
 
 

@@ -546,16 +546,10 @@ def _undifferentiated(call):
 # In interpret mode (a CPU: for checking, not for speed) the kernel is thousands of
 # operations on rows, which XLA compiles markedly faster at its backend optimisation level
 # 1 than at its default. Level 0 would be faster still, but rounds some float32 operations
-# otherwise than `Vmap`'s program, and the steps would then differ.
-# `kernel_solved[interpret]`; a Pallas program is not stored by the cache of traced programs
-# (`jax.export` does not serialize it).
+# otherwise than `Vmap`'s program, and the steps would then differ. A Pallas program is not
+# stored by the cache of traced programs (`jax.export` does not serialize it).
 INTERPRET_OPTIONS = {**COMPILER_OPTIONS, "xla_backend_optimization_level": 1}
-kernel_solved = {
-    interpret: Program(
-        kernel_solve,
-        validated=checked_before_tracing,
-        options=INTERPRET_OPTIONS if interpret else COMPILER_OPTIONS,
-        store=False,
-    )
-    for interpret in (False, True)
-}
+kernel_compiled = Program(kernel_solve, validated=checked_before_tracing, store=False)
+kernel_interpreted = Program(
+    kernel_solve, validated=checked_before_tracing, options=INTERPRET_OPTIONS, store=False
+)

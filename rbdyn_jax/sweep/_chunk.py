@@ -12,8 +12,9 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.sharding import NamedSharding, PartitionSpec as P
+from jax.sharding import NamedSharding
 
+from .._program.devices import BATCH, mesh as device_mesh, over_devices
 from .._program.program import Program
 from .._program.xla import jit
 from ..integrate import (
@@ -135,13 +136,7 @@ def _chunk_program(sc: Scenario, lanes: int, mesh, idx, key) -> dict:
         return jax.tree_util.tree_map(lambda x: x.reshape((-1,) + x.shape[2:]), out)
 
     # No collectives inside the solver loop: each device runs its own while loops.
-    sharded = jax.shard_map(
-        per_device,
-        mesh=mesh,
-        in_specs=(P("batch"), P(), P()),
-        out_specs=P("batch"),
-        check_vma=False,
-    )
+    sharded = over_devices(per_device, mesh, (True, False, False))
     # A float32 sweep's matrix products (the energies' `einsum`s, …) in full float32: at
     # JAX's default precision, NVIDIA GPUs since Ampere take them in TF32 (a 10-bit
     # mantissa), errors of 1e-4 in a float32 sweep's energy drifts where float32 gives 1e-6.
@@ -176,7 +171,7 @@ class _Runner:
     solved: Scenario = dataclasses.field(init=False)  # what the chunk program solves
 
     def __post_init__(self):
-        self.mesh = jax.sharding.Mesh(np.asarray(self.devices), ("batch",))
+        self.mesh = device_mesh(self.devices)
         # Which states a store keeps is chosen after the solve: stores keeping all, some or
         # none of them run one program, and hold the same bits.
         self.solved = self.scenario.with_settings(trajectories="all")
@@ -201,7 +196,7 @@ class _Runner:
         full = np.concatenate([idx, np.full(self.size - n, idx[-1], idx.dtype)])
         full = full.astype(_index_dtype())
         arr = jax.make_array_from_callback(
-            (self.size,), NamedSharding(self.mesh, P("batch")), lambda i: full[i]
+            (self.size,), NamedSharding(self.mesh, BATCH), lambda i: full[i]
         )
         out = dict(_solve_chunk(self.solved, self.lanes, self.mesh, arr, key))
         states = [out.pop(k) for k in _STATES]

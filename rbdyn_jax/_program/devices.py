@@ -1,0 +1,30 @@
+"""The devices a program runs on: one mesh, and one way to split a batch over it.
+
+A batch is split along its leading axis, named `"batch"`, over a one-dimensional mesh of
+local devices; each device runs the same function on its share, with no collective
+inside it (a solver's while loops run on each device at its own pace), and the outputs
+are its shares concatenated in the devices' order. The lane solver and a sweep's chunk
+program both run over devices so.
+"""
+
+from collections.abc import Callable, Sequence
+
+import jax
+import numpy as np
+from jax.sharding import PartitionSpec
+
+BATCH = PartitionSpec("batch")  # split along the leading axis
+WHOLE = PartitionSpec()  # every device holds all of it
+
+
+def mesh(devices: Sequence) -> jax.sharding.Mesh:
+    """The one-dimensional mesh (axis `"batch"`) of `devices`."""
+    return jax.sharding.Mesh(np.asarray(devices), ("batch",))
+
+
+def over_devices(fn: Callable, on: jax.sharding.Mesh, split: Sequence[bool]) -> Callable:
+    """`fn` on each device of `on`, its arguments split along the leading axis where
+    `split` is true (else given whole to every device), its outputs concatenated along the
+    leading axis: `jax.shard_map` with no collective inside."""
+    specs = tuple(BATCH if s else WHOLE for s in split)
+    return jax.shard_map(fn, mesh=on, in_specs=specs, out_specs=BATCH, check_vma=False)
