@@ -32,7 +32,6 @@ expensive part of that trace, are stored alone (`embedded`) and called by `jax.e
 `RBDYN_JAX_TRACE_CACHE=0` in the environment turns the cache off.
 """
 
-import contextvars
 import enum
 import functools
 import hashlib
@@ -85,8 +84,6 @@ _LOADED: dict[str, tuple] = {}  # key -> (jitted exported call, output treedef)
 _KEYS: dict[tuple, str | None] = {}  # `_memo_key`'s memo
 _UNEXPORTABLE: set[str] = set()  # keys whose trace `jax.export` refused
 _EMBEDDED: dict[str, tuple] = {}  # key -> (exported program, output treedef), for `embedded`
-# Set while a cached solve is traced inside a caller's transformation: `embedded` is on.
-_EMBEDDING = contextvars.ContextVar("rbdyn_jax_embedding", default=False)
 
 
 class _Unsafe(Exception):
@@ -314,28 +311,16 @@ def cached(fn, options: dict = COMPILER_OPTIONS):
     by later processes where `directory()` is set, the call is made at the top level with
     concrete arrays, and `key` can describe it (a loaded program is compiled with the same
     XLA `options`). `fn` must be traced with no host callback (rbdyn_jax's checks-as-NaN
-    programs), or it cannot be exported. Inside a caller's transformation (with
-    `directory()` set) `fn` is traced by a jit of its own with `embedded` on."""
+    programs), or it cannot be exported. Inside a caller's transformation `fn` is part of
+    the caller's program (which may call `embedded` programs of its own)."""
     name = f"{fn.__module__}.{fn.__qualname__}"
     jitted = filter_jit(fn, options)
 
     @functools.wraps(fn)
-    def embedding(*args):
-        token = _EMBEDDING.set(True)
-        try:
-            return fn(*args)
-        finally:
-            _EMBEDDING.reset(token)
-
-    nested = filter_jit(embedding)  # its own jit: its traces hold stored programs
-
-    @functools.wraps(fn)
     def call(*args):
         where = directory()
-        if where is None:
+        if where is None or not top_level():  # not cached, or a caller's program
             return jitted(*args)
-        if not top_level():  # inside a caller's transformation: `embedded` is on
-            return nested(*args)
         leaves, treedef = jax.tree_util.tree_flatten(args)
         arrays = [x for x in leaves if eqx.is_array(x)]
         if any(isinstance(x, jax.core.Tracer) for x in arrays):
@@ -356,21 +341,11 @@ def cached(fn, options: dict = COMPILER_OPTIONS):
     return call
 
 
-def embedder():
-    """`embedded` where a cached solve is being traced inside a caller's transformation
-    (`cached`), else a plain call. Read it while the solve is traced, and keep it for the
-    solve's derivative rules, which JAX traces later (outside `cached`'s call)."""
-    return embedded if _EMBEDDING.get() and directory() is not None else _plain
-
-
-def _plain(fn, *args):
-    return fn(*args)
-
-
 def embedded(fn, *args):
     """`fn(*args)` with `fn`'s program stored on disk alone (where `directory()` is set),
     and called as the stored program by a later process instead of tracing `fn`: inside a
-    caller's trace (`embedder`), which then holds it as one `call_exported`.
+    caller's trace, which then holds it as one `call_exported` (the lane solver's loop, when
+    its solve is traced inside a caller's transformation: `integrate/_batching.py`).
 
     Its key describes the call as `key` does (shapes and dtypes of the arrays, traced or
     not; every static value), with equinox's error mode, which changes the trace. The

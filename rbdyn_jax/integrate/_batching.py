@@ -15,6 +15,7 @@ from .._program import traces
 from .._program.devices import mesh as device_mesh, over_devices
 from .._program.flags import loops_compiled_whole
 from .._program.program import Program, concrete
+from .._program.xla import top_level
 from ._diffeqsolve import solve_vmapped
 from ._field import checked_before_tracing, checked_times, finish, promoted
 from ._kernel import (
@@ -136,8 +137,23 @@ class Lanes(AbstractBatching):
             )
         else:
             lanes = int(self.lanes)
+        # Traced inside a caller's transformation with its checks as NaN (the Program's choice
+        # for concrete times and tolerances), with the cache of traced programs on: the
+        # loop is stored alone, and the caller's trace holds the stored program.
+        stored = concrete(ts, controller) and not top_level() and traces.directory() is not None
         return _lane_solved(
-            model, y0s, ts, solver, controller, max_steps, dt0, model_axes, lanes, mesh, layout
+            model,
+            y0s,
+            ts,
+            solver,
+            controller,
+            max_steps,
+            dt0,
+            model_axes,
+            lanes,
+            mesh,
+            layout,
+            stored,
         )
 
 
@@ -303,7 +319,18 @@ def _mesh(devices) -> jax.sharding.Mesh:
 
 
 def lane_solve(
-    model, y0s, ts, solver, controller, max_steps, dt0, model_axes, lanes, mesh=None, layout="cpu"
+    model,
+    y0s,
+    ts,
+    solver,
+    controller,
+    max_steps,
+    dt0,
+    model_axes,
+    lanes,
+    mesh=None,
+    layout="cpu",
+    stored=False,
 ) -> Trajectory:
     """The lane loop (`_lanes.lane_loop`; on each device of `mesh`, `_sharded`) and its
     `Trajectory`s.
@@ -315,7 +342,11 @@ def lane_solve(
     tangents share the one solve; the tangents never enter the loop. The derivative is
     that of the discrete solve (the step sizes are not differentiated, as in
     `diffeqsolve`). The rule is outside the devices' `shard_map`, which the
-    sensitivities' solve enters as the forward solve does."""
+    sensitivities' solve enters as the forward solve does.
+
+    `stored`: the loop (and the rule's) is stored alone by the cache of traced programs and
+    called as the stored program (`traces.embedded`): for a solve traced inside a caller's
+    transformation, whose program rbdyn_jax cannot store."""
     ts = checked_times(ts)
     batched = model_axes is not None
     if batched:  # every array leaf with a leading trajectory axis
@@ -324,10 +355,10 @@ def lane_solve(
     y0s = promoted(dyn, y0s, ts)  # before the loop's buffers take its dtype
     tols, cstatic = eqx.partition(controller, eqx.is_array)
 
-    stored = traces.embedder()  # inside a caller's transformation, stored programs
+    call = traces.embedded if stored else _called
 
     def loop(system, y0s, ts, tols):
-        return stored(
+        return call(
             lane_run,
             system,
             y0s,
@@ -356,6 +387,10 @@ def lane_solve(
     return eqx.filter_vmap(finished, in_axes=(0 if batched else None, 0, 0, 0, 0))(
         model, ys, ok0, result, counts
     )
+
+
+def _called(fn, *args):
+    return fn(*args)
 
 
 def lane_run(
