@@ -14,7 +14,7 @@ import jax.numpy as jnp
 from .._program import traces
 from .._program.devices import mesh as device_mesh, over_devices
 from .._program.flags import loops_compiled_whole
-from .._program.program import Program, concrete
+from .._program.program import Program
 from .._program.xla import top_level
 from ._diffeqsolve import solve_vmapped
 from ._field import checked_before_tracing, checked_times, finish, promoted
@@ -126,7 +126,8 @@ class Lanes(AbstractBatching):
             )
         # A solve whose times or tolerances are traced checks them at run time: on one
         # device, since a check raising on one of several devices aborts the process.
-        mesh = _mesh(self.devices if concrete(ts, controller) else 1)
+        as_nan = _lane_solved.checks_nan(model, y0s, ts, solver, controller)
+        mesh = _mesh(self.devices if as_nan else 1)
         platform = mesh.devices.flat[0].platform
         layout = self.layout or default_layout(platform)
         n = jax.tree_util.tree_leaves(y0s)[0].shape[0]
@@ -140,7 +141,7 @@ class Lanes(AbstractBatching):
         # Traced inside a caller's transformation with its checks as NaN (the Program's choice
         # for concrete times and tolerances), with the cache of traced programs on: the
         # loop is stored alone, and the caller's trace holds the stored program.
-        stored = concrete(ts, controller) and not top_level() and traces.directory() is not None
+        stored = as_nan and not top_level() and traces.directory() is not None
         return _lane_solved(
             model,
             y0s,
