@@ -170,8 +170,16 @@ def planar(J: MatrixLike) -> Matrix:
     diagonal, products `Σ m x y`, … with a plus sign off it).
     """
     J = check_trailing(J, (3, 3), "J")
-    if not isinstance(J, jax.core.Tracer):
-        return jnp.asarray(_planar(np.asarray(J), np))  # concrete: compiles nothing
+    if isinstance(J, jax.core.Tracer):
+        return _planar_program(J)
+    with jax.ensure_compile_time_eval():  # concrete, also in a caller's trace: now
+        return _planar_program(J)
+
+
+@jit
+def _planar_program(J):
+    """`J'` of `J`: one compiled program for a concrete `J`, part of the caller's for a
+    traced one (as `_log_cholesky`)."""
     return _planar(J)
 
 
