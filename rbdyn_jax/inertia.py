@@ -328,9 +328,17 @@ def is_physical(J: MatrixLike) -> BoolArray:
     A boolean array of shape `(*batch,)`.
     """
     J = check_trailing(J, (3, 3), "J")
-    if not isinstance(J, jax.core.Tracer) and np.all(np.isfinite(J)):
-        return jnp.asarray(_physical(np.asarray(J), np))  # concrete: compiles nothing
-    return _physical(jax.lax.stop_gradient(J))
+    if isinstance(J, jax.core.Tracer):
+        return _physical_program(jax.lax.stop_gradient(J))
+    with jax.ensure_compile_time_eval():  # concrete, also in a caller's trace: now
+        return _physical_program(J)
+
+
+@jit
+def _physical_program(J):
+    """`is_physical` of `J`: one compiled program for a concrete `J`, part of the caller's
+    for a traced one (as `_log_cholesky`)."""
+    return _physical(J)
 
 
 def check_inertia(J: MatrixLike, name: str = "inertia") -> Matrix:

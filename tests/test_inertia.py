@@ -351,13 +351,18 @@ def test_log_cholesky_of_random_physical_round_trips(rng):
 
 
 def test_planar_eager_equals_jitted_bit_for_bit(rng):
-    """A concrete `planar` computes as a traced one does, in one JAX program: eager, jitted
-    and closed-over calls give the same J' bit for bit, in the input's dtype."""
+    """A concrete `planar` (and `is_physical`) computes as a traced one does, in one JAX
+    program: eager, jitted and closed-over calls give the same J' bit for bit, in the
+    input's dtype."""
     for dtype in (np.float64, np.float32):
         J = jnp.asarray(random_physical(rng, batch=(N,)), dtype)
         Jp = inertia.planar(J)
         assert Jp.dtype == dtype
         np.testing.assert_array_equal(Jp, jax.jit(inertia.planar)(J))
+        # is_physical alike, at its tolerance's edge: J' with smallest eigenvalue ≈ −√eps·max|J|
+        edge = J - jnp.asarray(np.sqrt(np.finfo(dtype).eps), dtype) * jnp.abs(J).max()
+        for K in (J, edge):
+            np.testing.assert_array_equal(inertia.is_physical(K), jax.jit(inertia.is_physical)(K))
         seen = []
 
         def f(x, J=J, seen=seen):
