@@ -168,13 +168,13 @@ def test_matrix_products_ask_for_full_precision(monkeypatch):
     from rbdyn_jax.identify import _fit
 
     traced = []
-    run = _fit._run
+    run = _fit.run
 
     def recording(*args):
         traced.append(eqx.filter_make_jaxpr(run.fn)(*args)[0])
         return run(*args)
 
-    monkeypatch.setattr(_fit, "_run", recording)
+    monkeypatch.setattr(_fit, "run", recording)
     ts = jnp.linspace(0.0, 1.0, 6)
     y0 = rb.State(jnp.array([0.3, -0.2, 1.5]), jnp.array([1.0, 0.0, 0.0, 0.0]))
     observed = rb.simulate(rb.RigidBody(jnp.asarray(J)), y0, ts).ys.omega

@@ -27,7 +27,7 @@ from scipy.spatial.transform import Rotation
 
 import rbdyn_jax as rb
 from rbdyn_jax import identify as idf
-from rbdyn_jax.identify import _fit
+from rbdyn_jax.identify import _problem
 
 _R = Rotation.from_euler("ZYX", [0.4, -0.3, 0.7]).as_matrix()
 J_TRUE = _R @ np.diag([2.0, 3.0, 4.0]) @ _R.T
@@ -335,7 +335,9 @@ def test_stepsize_controller_is_the_tolerance_shorthand(gravity_truth, monkeypat
     by_tol = idf.fit(guess, data, optimizer=LM12, rtol=1e-9, atol=1e-11)
     traced = []
     residuals = idf.residuals
-    monkeypatch.setattr(_fit, "residuals", lambda *a, **k: traced.append(1) or residuals(*a, **k))
+    monkeypatch.setattr(
+        _problem, "residuals", lambda *a, **k: traced.append(1) or residuals(*a, **k)
+    )
     controller = diffrax.PIDController(rtol=3e-9, atol=3e-11)
     idf.fit(guess, data, optimizer=LM12, stepsize_controller=controller)
     by_controller = idf.fit(
