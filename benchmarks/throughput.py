@@ -21,9 +21,9 @@ same tolerances; the error columns show what each delivers. XLA runs a while loo
 core, so the script starts XLA with one host device per core and its while loops compiled
 whole (`rb.configure_xla(host_devices=<cores>)`, as docs/performance.md advises; a count already in
 XLA_FLAGS is kept) and the lane solver splits the batch over them; numba uses its default
-thread count (the cores). The scipy loop is timed on at most `--scipy-max` trajectories and
-the plain vmapped solve on batches up to `--plain-max` (its lockstep cost grows with the
-batch). Compilation is excluded from the rates (a first call is made per shape and
+thread count (the cores). The scipy loop is timed on at most `--scipy-max` trajectories (0:
+not run) and the plain vmapped solve on batches up to `--plain-max` (its lockstep cost grows
+with the batch). Compilation is excluded from the rates (a first call is made per shape and
 reported). The `lanes` column runs `--lanes` lanes per device (64 by default, as
 `rbdyn sweep` does); the `default` column lets `simulate_batch` choose.
 
@@ -190,9 +190,12 @@ def main(sizes, models, lanes, scipy_max, plain_max, ref_max, out):
             if n <= plain_max:
                 row["plain"] = record(run_rbdyn(name, w0, ts, rb.Vmap(), repeats), n, ref)
             k = min(n, scipy_max)
-            row["scipy"] = record(
-                run_baseline(_baselines.scipy_solve, name, w0[:k], ts, 1, method="RK45"), k, ref
-            )
+            if k:
+                row["scipy"] = record(
+                    run_baseline(_baselines.scipy_solve, name, w0[:k], ts, 1, method="RK45"),
+                    k,
+                    ref,
+                )
             rows.append(row)
             print_row(row)
     meta = {"rtol": TOL, "t_end": T_END, "n_out": N_OUT, "lanes": lanes, "scipy_max": scipy_max}
@@ -215,8 +218,10 @@ def print_row(r, _printed=[]):  # noqa: B006 (print the header once)
         print(HEAD)
         print("-" * len(HEAD))
         _printed.append(True)
-    de, la, nu, sp, eq = r["default"], r["lanes"], r["numba"], r["scipy"], r["numba_equal"]
-    pl = r.get("plain")
+    de, la, nu, eq = r["default"], r["lanes"], r["numba"], r["numba_equal"]
+    pl, sp = r.get("plain"), r.get("scipy")
+    scipy = f"{sp['traj_per_s']:>6.1f} {sp['max_error']:>7.1e}" if sp else f"{'—':>6} {'':>7}"
+    ratio_scipy = f"{la['traj_per_s'] / sp['traj_per_s']:>10.0f}x" if sp else f"{'—':>11}"
     plain = f"{pl['traj_per_s']:>7.0f} {pl['max_error']:>7.1e}" if pl else f"{'—':>7} {'':>7}"
     ratio_plain = f"{la['traj_per_s'] / pl['traj_per_s']:>10.1f}x" if pl else f"{'—':>11}"
     print(
@@ -226,11 +231,11 @@ def print_row(r, _printed=[]):  # noqa: B006 (print the header once)
         f"{plain} | {nu['traj_per_s']:>7.0f} {nu['mean_steps']:>5.0f} "
         f"{nu['max_error']:>7.1e} {nu['median_error']:>7.1e} | {eq['traj_per_s']:>7.0f} "
         f"{eq['tol']:>7.1e} {eq['median_error']:>7.1e} | "
-        f"{sp['traj_per_s']:>6.1f} {sp['max_error']:>7.1e} | "
+        f"{scipy} | "
         f"{de['traj_per_s'] / nu['traj_per_s']:>12.2f}x "
         f"{la['traj_per_s'] / nu['traj_per_s']:>10.2f}x "
         f"{la['traj_per_s'] / eq['traj_per_s']:>11.2f}x "
-        f"{la['traj_per_s'] / sp['traj_per_s']:>10.0f}x {ratio_plain}",
+        f"{ratio_scipy} {ratio_plain}",
         flush=True,
     )
 
