@@ -2,11 +2,11 @@
 
 The order is the layer table of the developer docs, bottom layer first. Private helpers
 (`_x.py`) sit below everything and import no public module; `__init__` only re-exports, and
-nothing imports from it. `integrate/`, `analytic/`, `scenario/`, `sweep/`, `identify/`,
-`cli/` and the private compile layer `_program/` are packages: a package's files import
-each other (their private names too: they are one module) and the layers below it. No
-module imports another's private name, and diffrax is used only where its objects are
-built or run (see `DIFFRAX`).
+nothing imports from it. `rotation/`, `integrate/`, `analytic/`, `scenario/`, `sweep/`,
+`identify/`, `cli/` and the private compile layer `_program/` are packages: a package's
+files import each other (their private names too: they are one module) and the layers
+below it. No module imports another's private name, and diffrax is used only where its
+objects are built or run (see `DIFFRAX`).
 """
 
 import ast
@@ -201,6 +201,7 @@ def test_checker_allows_private_names_only_between_a_packages_files(tmp_path, mo
     "init",
     [
         "__init__.py",
+        "rotation/__init__.py",
         "integrate/__init__.py",
         "analytic/__init__.py",
         "scenario/__init__.py",

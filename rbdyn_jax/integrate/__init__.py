@@ -20,8 +20,11 @@ The modules, one idea each:
 - `_sensitivity`: forward sensitivities, the derivative rule of the lane loop and the kernel;
 - `_dependencies`: which state leaves a derivative must carry;
 - `_lie_poisson`: `LiePoissonSplitting`, the structure-preserving solver of the rigid body
-  (exact flows of the kinetic energy's terms, potential torques as kicks), and
-  `_composition`, the symmetric compositions that raise it to orders 4 and 6;
+  (exact flows of the kinetic energy's terms, potential torques as kicks), with
+  `_splittable`, the models, torques and fixed steps it takes; `_exact_flows`, the
+  principal frame and the exact flows as compensated increments; `_splitting_step`, one
+  composed step (`Stepper`); and `_composition`, the symmetric compositions that raise it
+  to orders 4 and 6;
 - `_cheapest`: the equation that runs the cheapest program giving what is read.
 
 Each solve is compiled as a `Program` of the compile layer (`rbdyn_jax/_program/`): once
@@ -49,11 +52,7 @@ from ._batching import (
     default_lanes as default_lanes,
     device_memory as device_memory,
 )
-from ._lie_poisson import (
-    ORDERS as SPLITTING_ORDERS,
-    LiePoissonSplitting as LiePoissonSplitting,
-    fixed_steps as fixed_steps,
-)
+from ._lie_poisson import ORDERS as SPLITTING_ORDERS, LiePoissonSplitting as LiePoissonSplitting
 from ._simulate import (
     default_tolerance as default_tolerance,
     make_controller as make_controller,
@@ -67,6 +66,7 @@ from ._solution import (
     result_code as result_code,
     result_names as result_names,
 )
+from ._splittable import fixed_steps as fixed_steps
 
 __all__ = [
     "COMPILER_OPTIONS",

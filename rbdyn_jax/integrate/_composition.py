@@ -53,7 +53,7 @@ class Scheme(typing.NamedTuple):
         """The flows of one composed step in the order they run, merged at the stages'
         seams, as `(name, coefficient, elapsed)`: run for `coefficient` × the step when
         `elapsed` × the step of the time has passed (the unrolled form of the loop over the
-        stages that `_lie_poisson` runs)."""
+        stages that `_splitting_step.Stepper` runs)."""
         name, c = self.edge
         g = self.gammas
         out, elapsed = [(name, g[0] * c, 0.0)], 0.0

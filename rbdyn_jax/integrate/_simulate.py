@@ -17,8 +17,9 @@ from ..models import AbstractRigidBody
 from ._batching import AbstractBatching, Lanes, default_batching
 from ._diffeqsolve import solve
 from ._field import checked_before_tracing, solve_dtype
-from ._lie_poisson import LiePoissonSplitting, fixed_step_controller
+from ._lie_poisson import LiePoissonSplitting
 from ._solution import Trajectory, thrown
+from ._splittable import fixed_step_controller
 
 DEFAULT_TOL = 1e-8  # rtol and atol of the default PIDController
 # The smallest relative tolerance a solve takes, in units of its dtype's machine epsilon:
