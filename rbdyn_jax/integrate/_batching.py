@@ -25,7 +25,8 @@ from ._kernel import (
     kernel_interpreted,
     kernel_refuse,
 )
-from ._lanes import LAYOUTS, Plain, lane_loop
+from ._lane_loop import LAYOUTS, lane_loop
+from ._lane_system import Plain
 from ._sensitivity import lane_jvp
 from ._solution import Trajectory, as_result
 
@@ -333,7 +334,7 @@ def lane_solve(
     layout="cpu",
     stored=False,
 ) -> Trajectory:
-    """The lane loop (`_lanes.lane_loop`; on each device of `mesh`, `_sharded`) and its
+    """The lane loop (`_lane_loop.lane_loop`; on each device of `mesh`, `_sharded`) and its
     `Trajectory`s.
 
     Differentiable in both modes by forward sensitivities: the rule of its `custom_jvp`

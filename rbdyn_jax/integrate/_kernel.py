@@ -10,7 +10,7 @@ interpolant of its last accepted step: one row of the output a component. A lane
 exactly as `diffeqsolve` would; waiting at an output time for the block's slowest lane
 changes none of its steps.
 
-The arithmetic per lane is the lane solver's (`_lanes`): `unrolled_step` (the solver's
+The arithmetic per lane is the lane solver's (`_lane_step`): `unrolled_step` (the solver's
 Butcher tableau, its stages unrolled), `lane_control` (diffrax's controller, the clip at
 t1), `lane_first` (the start and first step), and the solver's own interpolant. Each runs
 on rows by `_rows.rowwise`, which evaluates the function traced for one trajectory
@@ -40,7 +40,8 @@ from ._field import (
     promoted,
     unit_time,
 )
-from ._lanes import Plain, clip_floor, guarded_term, lane_control, lane_first, unrolled_step
+from ._lane_step import clip_floor, guarded_term, lane_control, lane_first, unrolled_step
+from ._lane_system import Plain
 from ._rows import objects, rowwise, trace, unsupported
 from ._sensitivity import lane_jvp
 from ._solution import RESULTS, Trajectory, as_result, result_code
@@ -250,11 +251,11 @@ def kernel_solve(
 
 
 def kernel_run(system, y0s, ts, controller, solver, max_steps, dt0, batched, block, interpret):
-    """The kernel over the batch `y0s` of what `system` integrates (`_lanes.
+    """The kernel over the batch `y0s` of what `system` integrates (`_lane_system.
     AbstractLaneSystem`: the model, or the model and its sensitivities; a leading
     trajectory axis on its array leaves when `batched`): the raw saved states `(N, n, …)`
     (+inf where never saved), the start flags, result codes and step counts, in the
-    batch's order, as `_lanes.lane_loop` gives them. The steps are the model's own: the
+    batch's order, as `_lane_loop.lane_loop` gives them. The steps are the model's own: the
     controller sees the model's state alone (`system.primal`)."""
     from jax.experimental import pallas as pl  # imported with the first kernel solve
     from jax.experimental.pallas import triton as pltriton
