@@ -21,7 +21,10 @@ The modules, one idea each:
   the lane loop and the kernel;
 - `_lane_arrays`: per-lane selects, takes and writes on the lane loop's arrays, and the
   interpolant of every lane's last step;
-- `_kernel`: the Pallas kernel that integrates a block of trajectories per program;
+- `_kernel_solve`: the kernel strategy's solve, its derivative and its two programs;
+- `_kernel_run`: the Pallas kernel that integrates a block of trajectories per program;
+- `_kernel_layout`: the kernel's blocks of lanes and its pytrees as rows of lanes;
+- `_kernel_refusal`: the solves and models the kernel cannot run, by name;
 - `_rows`: a one-trajectory function run on rows of lanes (the kernel's arithmetic);
 - `_sensitivity`: forward sensitivities, the derivative rule of the lane loop and the kernel;
 - `_dependencies`: which state leaves a derivative must carry;

@@ -18,13 +18,9 @@ from .._program.program import Program
 from .._program.xla import top_level
 from ._diffeqsolve import solve_vmapped
 from ._field import checked_before_tracing, checked_times, finish, promoted
-from ._kernel import (
-    field_refuse,
-    kernel_block,
-    kernel_compiled,
-    kernel_interpreted,
-    kernel_refuse,
-)
+from ._kernel_layout import kernel_block
+from ._kernel_refusal import field_refuse, kernel_refuse
+from ._kernel_solve import kernel_compiled, kernel_interpreted
 from ._lane_loop import LAYOUTS, lane_loop
 from ._lane_system import Plain
 from ._sensitivity import lane_jvp
