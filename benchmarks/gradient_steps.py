@@ -6,7 +6,7 @@ The lane solver's gradient (`simulate_batch(..., batching=rb.Lanes(…))` under 
 (`integrate._sensitivity.Sensitivity`). `gradients.py` times whole solves; this script
 times one Tsit5
 step as the lane loop takes it (diffrax's `solver.step` on the lanes' batched state,
-`integrate._lanes.LaneField`: the lane axis last on every leaf of the state, of the
+`integrate._lane_system.LaneField`: the lane axis last on every leaf of the state, of the
 sensitivities and of a per-lane model, the lanes' times of shape `(lanes,)`, NumPy's rank
 promotion allowed around the step), for
 
@@ -62,7 +62,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 from rbdyn_jax import _compat  # noqa: E402  (the term the lane loop hands its solver)
-from rbdyn_jax.integrate._lanes import LaneField, Plain  # noqa: E402
+from rbdyn_jax.integrate._lane_system import LaneField, Plain  # noqa: E402
 from rbdyn_jax.integrate._sensitivity import SYMMETRIC, Sensitivity  # noqa: E402
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))

@@ -242,20 +242,20 @@ def test_the_fields_verdict_is_kept_per_structure():
     """`field_refuse` decides once per structure, static values, shapes and dtypes: the
     same verdict for another model of that structure, its own for another structure, and
     a verdict traced anew where a static value cannot be compared."""
-    from rbdyn_jax.integrate import _kernel
+    from rbdyn_jax.integrate import _kernel_refusal
 
     y0s = initial_states(4)
-    _kernel._VERDICTS.clear()
-    assert _kernel.field_refuse(rb.RigidBody(J), y0s, None) is None
-    assert _kernel.field_refuse(rb.RigidBody(2.0 * J), y0s, None) is None
-    assert len(_kernel._VERDICTS) == 1
-    assert "while" in _kernel.field_refuse(rb.RigidBody(J, _Looped()), y0s, None)
-    assert len(_kernel._VERDICTS) == 2
+    _kernel_refusal._VERDICTS.clear()
+    assert _kernel_refusal.field_refuse(rb.RigidBody(J), y0s, None) is None
+    assert _kernel_refusal.field_refuse(rb.RigidBody(2.0 * J), y0s, None) is None
+    assert len(_kernel_refusal._VERDICTS) == 1
+    assert "while" in _kernel_refusal.field_refuse(rb.RigidBody(J, _Looped()), y0s, None)
+    assert len(_kernel_refusal._VERDICTS) == 2
     with warnings.catch_warnings():  # equinox warns of an array as a static value
         warnings.simplefilter("ignore")
         table = _Tabulated(rb.RigidBody(J), np.arange(3.0))
     for _ in range(2):  # the second lookup compares the arrays (ambiguous): traced again
-        assert _kernel.field_refuse(table, y0s, None) is None
+        assert _kernel_refusal.field_refuse(table, y0s, None) is None
 
 
 def test_the_default_takes_the_kernel_only_on_a_gpu_backend():
@@ -287,7 +287,7 @@ def test_the_kernel_lowers_to_triton_for_a_gpu(dtype):
     (rows of lanes, the loops, the stores of one output row, the scalar read of an output
     time) has a Triton lowering, and the kernel is a Triton call, not Mosaic GPU (JAX's
     default for `pallas_call` on a GPU). Compiling the Triton IR needs a GPU."""
-    from rbdyn_jax.integrate._kernel import kernel_solve
+    from rbdyn_jax.integrate._kernel_solve import kernel_solve
 
     y0s = initial_states(16, dtype=dtype)
     ts = np.linspace(0.0, 3.0, 7, dtype=dtype)

@@ -36,7 +36,7 @@ from helpers import cheapest_call, equations, host_callbacks
 import rbdyn_jax as rb
 from rbdyn_jax import _compat as rb_compat
 from rbdyn_jax.integrate._dependencies import closed_groups
-from rbdyn_jax.integrate._lanes import Plain
+from rbdyn_jax.integrate._lane_system import Plain
 
 
 def batching(lanes, layout=None):
@@ -151,7 +151,7 @@ def test_clip_floor_is_diffrax_clip_floor(dtype):
     (ε⁻ the spacing of the floats just below 1), in the solve's dtype."""
     from equinox.internal import prevbefore
 
-    from rbdyn_jax.integrate._lanes import clip_floor
+    from rbdyn_jax.integrate._lane_step import clip_floor
 
     want = jnp.ones((), dtype)
     for _ in range(100):
@@ -595,13 +595,14 @@ ERK_SOLVERS = [
 
 @pytest.mark.parametrize("solver", ERK_SOLVERS, ids=lambda s: type(s).__name__)
 def test_unrolled_step_is_diffrax_step(solver):
-    """The array layout's step (`_lanes.unrolled_step`: the stages unrolled from the
+    """The array layout's step (`_lane_step.unrolled_step`: the stages unrolled from the
     solver's Butcher tableau) against diffrax's own `solver.step` on a time-dependent field
     (a relative body in a turning frame, whose torque reads t at each stage's cᵢ) over a
     lane axis: the same solution, error estimate, dense output (every key, the stages'
     increments included) and FSAL stage, to round-off (the stages are summed in another
     order, `ROUND_OFF_STEP`)."""
-    from rbdyn_jax.integrate._lanes import LaneField, unrolled_step
+    from rbdyn_jax.integrate._lane_step import unrolled_step
+    from rbdyn_jax.integrate._lane_system import LaneField
 
     model = rb.RelativeRigidBody(
         J,

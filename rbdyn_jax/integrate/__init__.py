@@ -14,8 +14,17 @@ The modules, one idea each:
 - `_simulate`: the public `simulate` and `simulate_batch` and their input checks;
 - `_diffeqsolve`: one trajectory by `diffrax.diffeqsolve`, and its vmapped batch;
 - `_batching`: the strategies `Vmap`, `Lanes` and `Kernel`, and the default;
-- `_lanes`: the lane loop and its typed state;
-- `_kernel`: the Pallas kernel that integrates a block of trajectories per program;
+- `_lane_loop`: the lane loop and its typed state;
+- `_lane_system`: what the lane loop and the kernel integrate (the model, or the model and
+  its sensitivities), and its field over a set of lanes;
+- `_lane_step`: one trajectory's start, Runge–Kutta step and step-size control, shared by
+  the lane loop and the kernel;
+- `_lane_arrays`: per-lane selects, takes and writes on the lane loop's arrays, and the
+  interpolant of every lane's last step;
+- `_kernel_solve`: the kernel strategy's solve, its derivative and its two programs;
+- `_kernel_run`: the Pallas kernel that integrates a block of trajectories per program;
+- `_kernel_layout`: the kernel's blocks of lanes and its pytrees as rows of lanes;
+- `_kernel_refusal`: the solves and models the kernel cannot run, by name;
 - `_rows`: a one-trajectory function run on rows of lanes (the kernel's arithmetic);
 - `_sensitivity`: forward sensitivities, the derivative rule of the lane loop and the kernel;
 - `_dependencies`: which state leaves a derivative must carry;

@@ -18,14 +18,11 @@ from .._program.program import Program
 from .._program.xla import top_level
 from ._diffeqsolve import solve_vmapped
 from ._field import checked_before_tracing, checked_times, finish, promoted
-from ._kernel import (
-    field_refuse,
-    kernel_block,
-    kernel_compiled,
-    kernel_interpreted,
-    kernel_refuse,
-)
-from ._lanes import LAYOUTS, Plain, lane_loop
+from ._kernel_layout import kernel_block
+from ._kernel_refusal import field_refuse, kernel_refuse
+from ._kernel_solve import kernel_compiled, kernel_interpreted
+from ._lane_loop import LAYOUTS, lane_loop
+from ._lane_system import Plain
 from ._sensitivity import lane_jvp
 from ._solution import Trajectory, as_result
 
@@ -333,7 +330,7 @@ def lane_solve(
     layout="cpu",
     stored=False,
 ) -> Trajectory:
-    """The lane loop (`_lanes.lane_loop`; on each device of `mesh`, `_sharded`) and its
+    """The lane loop (`_lane_loop.lane_loop`; on each device of `mesh`, `_sharded`) and its
     `Trajectory`s.
 
     Differentiable in both modes by forward sensitivities: the rule of its `custom_jvp`

@@ -13,7 +13,8 @@ from ..models import AbstractRigidBody
 from ._cheapest import cheapest
 from ._dependencies import closed_groups
 from ._field import where_tree
-from ._lanes import AbstractLaneSystem, Plain, take
+from ._lane_arrays import take
+from ._lane_system import AbstractLaneSystem, Plain
 
 SYMMETRIC = ((0, 0), (1, 1), (2, 2), (1, 0), (2, 0), (2, 1))  # an inertia's 6 elements
 

@@ -1,16 +1,16 @@
-"""The kernel strategy: one Pallas kernel (`jax.experimental.pallas`) whose every program
-integrates a block of trajectories from start to end.
+"""The Pallas kernel (`jax.experimental.pallas`) whose every program integrates a block of
+trajectories from start to end: `kernel_run`.
 
 A program holds its block's lanes in rows: each scalar of a trajectory's state (and of
 its model's parameters, the controller's state, the last step's dense output) is a row of
-`block` lanes. For each output time in turn, the lanes that have not reached it step
-(`lax.while_loop` until none needs to: each lane's own step size, accepted or rejected by
-diffrax's `PIDController`), and then every lane saves its value there by the solver's
-interpolant of its last accepted step: one row of the output a component. A lane steps
-exactly as `diffeqsolve` would; waiting at an output time for the block's slowest lane
-changes none of its steps.
+`block` lanes (`_kernel_layout`). For each output time in turn, the lanes that have not
+reached it step (`lax.while_loop` until none needs to: each lane's own step size, accepted
+or rejected by diffrax's `PIDController`), and then every lane saves its value there by
+the solver's interpolant of its last accepted step: one row of the output a component. A
+lane steps exactly as `diffeqsolve` would; waiting at an output time for the block's
+slowest lane changes none of its steps.
 
-The arithmetic per lane is the lane solver's (`_lanes`): `unrolled_step` (the solver's
+The arithmetic per lane is the lane solver's (`_lane_step`): `unrolled_step` (the solver's
 Butcher tableau, its stages unrolled), `lane_control` (diffrax's controller, the clip at
 t1), `lane_first` (the start and first step), and the solver's own interpolant. Each runs
 on rows by `_rows.rowwise`, which evaluates the function traced for one trajectory
@@ -19,7 +19,8 @@ a model whose field has an operation with no form on rows is refused by name.
 
 Trajectories are handed to blocks longest-first (as to the lane solver's lanes), so that
 a block's lanes finish nearly together; the batch is padded to a multiple of the block by
-repeating its last trajectory.
+repeating its last trajectory. The kernel's call is not differentiated
+(`_undifferentiated`): a solve's derivative is `_kernel_solve.kernel_solve`'s rule.
 """
 
 import functools
@@ -30,231 +31,27 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._program.program import Program
-from .._program.xla import COMPILER_OPTIONS
-from ._field import (
-    checked_before_tracing,
-    checked_times,
-    controller_in_unit_time,
-    finish,
-    promoted,
-    unit_time,
+from ._field import controller_in_unit_time, unit_time
+from ._kernel_layout import (
+    TRITON_WARPS,
+    _elements,
+    _flat_rows,
+    _select,
+    _unflat_rows,
+    _with_elements,
+    next_power_of_two,
 )
-from ._lanes import Plain, clip_floor, guarded_term, lane_control, lane_first, unrolled_step
+from ._lane_step import clip_floor, guarded_term, lane_control, lane_first, unrolled_step
 from ._rows import objects, rowwise, trace, unsupported
-from ._sensitivity import lane_jvp
-from ._solution import RESULTS, Trajectory, as_result, result_code
-
-# The block on a GPU: 128 lanes a program (a Pallas kernel of this form solved 5.6 M
-# trajectories/s on an H100 with blocks of 128; other widths are untuned); elsewhere
-# (interpret mode, where a program's cost hardly depends on its width) the whole batch in
-# one program, up to `MAX_INTERPRET_BLOCK` lanes.
-GPU_BLOCK, MAX_INTERPRET_BLOCK = 128, 1024
-TRITON_WARPS = 4  # 128 threads: a lane a thread at the GPU block
-
-
-def next_power_of_two(n: int) -> int:
-    return 1 << max(0, int(n) - 1).bit_length()
-
-
-def kernel_refuse(model, solver, controller, adjoint) -> str | None:
-    """Why `Kernel` cannot run this solve's solver, controller or adjoint, or `None`: it
-    needs an explicit Runge–Kutta solver, a `PIDController` and no adjoint. (Whether the
-    model's field runs on rows of lanes is `field_refuse`'s question.)"""
-    if not isinstance(solver, diffrax.AbstractERK):
-        return (
-            "needs an explicit Runge–Kutta solver (a `diffrax.AbstractERK`: Tsit5, "
-            f"Dopri5, Dopri8, Bosh3, …), got {type(solver).__name__}"
-        )
-    if not isinstance(controller, diffrax.PIDController):
-        return f"needs a `diffrax.PIDController`, got {type(controller).__name__}"
-    if adjoint is not None:
-        return f"takes no `adjoint`, got {type(adjoint).__name__}"
-    return None
-
-
-def field_refuse(model, y0s, model_axes) -> str | None:
-    """Why the kernel cannot evaluate `model`'s vector field on rows of lanes (the
-    operations it cannot run, by name), or `None`. Traces the field for one trajectory
-    from the shapes of `model` (mapped by `model_axes`) and `y0s` (a leading batch axis);
-    the verdict is kept for the next call with the same structure, static values, shapes
-    and dtypes (the default's choice on a GPU then costs no trace per call)."""
-    key = _signature(model, y0s, model_axes)
-    try:
-        verdict = _VERDICTS.get(key, _MISSING) if key is not None else _MISSING
-    except (TypeError, ValueError):  # a static value that cannot be compared (an array)
-        key, verdict = None, _MISSING
-    if verdict is _MISSING:
-        verdict = _field_refuse(model, y0s, model_axes)
-        if key is not None:
-            _VERDICTS[key] = verdict
-            while len(_VERDICTS) > 256:  # the oldest first
-                del _VERDICTS[next(iter(_VERDICTS))]
-    return verdict
-
-
-_VERDICTS: dict = {}
-_MISSING = object()
-
-
-def _signature(model, y0s, model_axes):
-    """What `field_refuse`'s verdict depends on: the pytrees' structure (static fields
-    included), each array's shape and dtype and each other leaf's value; `None` where a
-    value is unhashable."""
-    leaves, tree = jax.tree_util.tree_flatten((model, y0s, model_axes))
-    key = (
-        tree,
-        tuple((type(x), x.shape, x.dtype) if hasattr(x, "dtype") else (type(x), x) for x in leaves),
-    )
-    try:
-        hash(key)
-    except (TypeError, ValueError):
-        return None
-    return key
-
-
-def _field_refuse(model, y0s, model_axes) -> str | None:
-    def one(x):
-        return jax.ShapeDtypeStruct(x.shape[1:], x.dtype)
-
-    if model_axes is not None:
-        model = eqx.filter_eval_shape(
-            lambda m: eqx.filter_vmap(lambda x: x, in_axes=(model_axes,))(m), model
-        )
-        model = jax.tree_util.tree_map(one, model)
-    dyn, static = eqx.partition(
-        model, lambda x: eqx.is_array(x) or isinstance(x, jax.ShapeDtypeStruct)
-    )
-    dyn = jax.tree_util.tree_map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), dyn)
-    y = jax.tree_util.tree_map(one, y0s)
-    t = jax.ShapeDtypeStruct((), jax.tree_util.tree_leaves(y)[0].dtype)
-    closed, _ = trace(lambda d, t, y: eqx.combine(d, static).vector_field(t, y, None), dyn, t, y)
-    bad = unsupported(closed.jaxpr)
-    if not bad:
-        return None
-    return (
-        f"cannot run this model on rows of lanes: its vector field uses {sorted(bad)}, "
-        "which have no form on rows (write the field on vector components)"
-    )
-
-
-def kernel_block(block, n: int, gpu: bool) -> int:
-    """The block `Kernel(block)` takes for `n` trajectories: `block`, or 128 on a GPU,
-    else the batch to the next power of two, at most 1024."""
-    if block is not None:
-        return int(block)
-    return GPU_BLOCK if gpu else min(next_power_of_two(n), MAX_INTERPRET_BLOCK)
-
-
-def _flat_rows(tree):
-    """The leaves of `tree` (a leading trajectory axis on each) as rows `(N,)`, and how to
-    rebuild them (`_unflat_rows`)."""
-    leaves, treedef = jax.tree_util.tree_flatten(tree)
-    rows, spec = [], []
-    for x in leaves:
-        shape = x.shape[1:]
-        spec.append((shape, x.dtype))
-        flat = x.reshape(x.shape[:1] + (-1,))
-        if flat.dtype == jnp.bool_:
-            flat = flat.astype(jnp.int32)
-        rows += [flat[:, i] for i in range(flat.shape[1])]
-    return rows, (treedef, spec)
-
-
-def _unflat_rows(layout, rows):
-    """`_flat_rows`'s pytree back, each leaf an object array of rows (`_rows`)."""
-    treedef, spec = layout
-    leaves, at = [], 0
-    for shape, dtype in spec:
-        k = int(np.prod(shape, dtype=int))
-        chunk = rows[at : at + k]
-        at += k
-        if dtype == jnp.bool_:
-            chunk = [r != 0 for r in chunk]
-        leaves.append(
-            objects(
-                shape,
-                lambda idx, c=chunk, s=shape: c[int(np.ravel_multi_index(idx, s)) if s else 0],
-            )
-        )
-    return jax.tree_util.tree_unflatten(treedef, leaves)
-
-
-def _elements(tree):
-    """Every row of a pytree of object arrays, in order."""
-    return [e for x in jax.tree_util.tree_leaves(tree) for e in x.flat]
-
-
-def _with_elements(tree, rows):
-    """`tree` (of object arrays) with its rows replaced by `rows`, in order."""
-    leaves, treedef = jax.tree_util.tree_flatten(tree)
-    it = iter(rows)
-    return jax.tree_util.tree_unflatten(
-        treedef, [objects(x.shape, lambda idx: next(it)) for x in leaves]
-    )
-
-
-def _select(mask, new, old):
-    """Per lane `where` on pytrees of object arrays of rows."""
-    return _with_elements(
-        old, [jnp.where(mask, a, b) for a, b in zip(_elements(new), _elements(old))]
-    )
-
-
-def kernel_solve(
-    model, y0s, ts, solver, controller, max_steps, dt0, model_axes, block, interpret
-) -> Trajectory:
-    """The kernel (`Kernel`) over the batch, and its `Trajectory`s.
-
-    Differentiable in both modes by forward sensitivities, by the lane solver's rule
-    (`_sensitivity.lane_jvp`, see `_batching.lane_solve`): the kernel integrates the model
-    extended by the variational equations (`_sensitivity.Sensitivity`, whose field is one
-    `jax.jvp` of the model's, run on rows as the field is) by the same steps, for the
-    state leaves the caller reads only, and the rule contracts them with the tangents. A
-    derivative of that derivative is refused."""
-    ts = checked_times(ts)
-    batched = model_axes is not None
-    if batched:  # every array leaf with a leading trajectory axis
-        model = eqx.filter_vmap(lambda m: m, in_axes=(model_axes,))(model)
-    dyn, static = eqx.partition(model, eqx.is_array)
-    y0s = promoted(dyn, y0s, ts)
-    tols, cstatic = eqx.partition(controller, eqx.is_array)
-
-    def loop(system, y0s, ts, tols):
-        return kernel_run(
-            system,
-            y0s,
-            ts,
-            eqx.combine(tols, cstatic),
-            solver,
-            max_steps,
-            dt0,
-            batched,
-            block,
-            interpret,
-        )
-
-    @jax.custom_jvp
-    def solve(dyn, y0s, ts, tols):
-        return loop(Plain(eqx.combine(dyn, static)), y0s, ts, tols)
-
-    solve.defjvp(functools.partial(lane_jvp, loop, static, batched), symbolic_zeros=True)
-    ys, ok0, result, counts = solve(dyn, y0s, ts, tols)
-
-    def finished(m, ys, ok, result, counts):
-        return finish(m, ts, ys, ok, as_result(result), list(counts))
-
-    return eqx.filter_vmap(finished, in_axes=(0 if batched else None, 0, 0, 0, 0))(
-        model, ys, ok0, result, counts
-    )
+from ._solution import RESULTS, result_code
 
 
 def kernel_run(system, y0s, ts, controller, solver, max_steps, dt0, batched, block, interpret):
-    """The kernel over the batch `y0s` of what `system` integrates (`_lanes.
+    """The kernel over the batch `y0s` of what `system` integrates (`_lane_system.
     AbstractLaneSystem`: the model, or the model and its sensitivities; a leading
     trajectory axis on its array leaves when `batched`): the raw saved states `(N, n, …)`
     (+inf where never saved), the start flags, result codes and step counts, in the
-    batch's order, as `_lanes.lane_loop` gives them. The steps are the model's own: the
+    batch's order, as `_lane_loop.lane_loop` gives them. The steps are the model's own: the
     controller sees the model's state alone (`system.primal`)."""
     from jax.experimental import pallas as pl  # imported with the first kernel solve
     from jax.experimental.pallas import triton as pltriton
@@ -541,15 +338,3 @@ def _undifferentiated(call):
 
     run.defjvp(refused)
     return run
-
-
-# In interpret mode (a CPU: for checking, not for speed) the kernel is thousands of
-# operations on rows, which XLA compiles markedly faster at its backend optimisation level
-# 1 than at its default. Level 0 would be faster still, but rounds some float32 operations
-# otherwise than `Vmap`'s program, and the steps would then differ. A Pallas program is not
-# stored by the cache of traced programs (`jax.export` does not serialize it).
-INTERPRET_OPTIONS = {**COMPILER_OPTIONS, "xla_backend_optimization_level": 1}
-kernel_compiled = Program(kernel_solve, validated=checked_before_tracing, store=False)
-kernel_interpreted = Program(
-    kernel_solve, validated=checked_before_tracing, options=INTERPRET_OPTIONS, store=False
-)

@@ -23,7 +23,6 @@ The loop has two layouts of the same iteration (`LAYOUTS`), chosen by the backen
 Both take the same steps and save the same values to round-off (tested).
 """
 
-import abc
 import dataclasses
 import functools
 
@@ -31,80 +30,26 @@ import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array, Bool, Float, Int, PyTree
 
 from .. import _compat
-from ..models import AbstractRigidBody
-from ._field import (
-    Guarded,
-    controller_in_unit_time,
-    per_unit_time,
-    start,
-    unit_time,
-    where_tree,
+from ._field import Guarded, controller_in_unit_time, unit_time
+from ._lane_arrays import (
+    _interpolate,
+    first_select,
+    lane_select,
+    lanes_first,
+    lanes_last,
+    scatter_rows,
+    take,
+    take_last,
+    write_rows,
 )
+from ._lane_step import clip_floor, lane_control, lane_first, unrolled_step
+from ._lane_system import AbstractLaneSystem, LaneField
 from ._solution import RESULTS, result_code
 
-
-class AbstractLaneSystem(eqx.Module):
-    """What the lane loop integrates: a rigid-body `model`'s state, possibly extended (by
-    its sensitivities, say). The loop's start checks, step-size controller and ordering
-    see the model's own state alone (`primal`), so the steps are those of the model's own
-    solve."""
-
-    model: eqx.AbstractVar[AbstractRigidBody]
-
-    @abc.abstractmethod
-    def vector_field(self, t, y, args):
-        """The rate of the whole (extended) state."""
-
-    @abc.abstractmethod
-    def primal(self, y):
-        """The model's own state within the state `y`."""
-
-    @abc.abstractmethod
-    def extend(self, ok, y, f, y0, t):
-        """The state integrated and its rate at the start `t`, from the model's checked
-        start `y` (finite where `ok`), its rate `f` and the given initial state `y0`."""
-
-
-class Plain(AbstractLaneSystem):
-    """The model's own trajectories."""
-
-    model: AbstractRigidBody
-
-    def vector_field(self, t, y, args):
-        return self.model.vector_field(t, y, args)
-
-    def primal(self, y):
-        return y
-
-    def extend(self, ok, y, f, y0, t):
-        return y, f
-
-
-class LaneField(eqx.Module):
-    """The vector field of `lanes` trajectories as one batched state (the lane axis last on
-    every leaf), each lane with its own unit time `s` (`unit_time`) and `ok` flag. diffrax's
-    solver step then runs on whole `(…, lanes)` arrays: its stage loop combines contiguous
-    blocks instead of a vmapped loop of tiny ones (bitwise the same arithmetic), and each
-    component of the state is a contiguous row of lanes, which XLA vectorises across lanes
-    (with the lanes first, a component is a strided column). `system` carries a lane axis
-    last when `batched`."""
-
-    system: AbstractLaneSystem
-    batched: bool = eqx.field(static=True)
-    t0: Array
-    span: Array
-
-    def __call__(self, s, y, ok):  # `Guarded` per lane: the vmapped path's arithmetic
-        axis = -1 if self.batched else None
-        return eqx.filter_vmap(
-            lambda m, s, x, ok: Guarded(m, self.t0, self.span)(s, x, ok),
-            in_axes=(axis, 0, -1, 0),
-            out_axes=-1,
-        )(self.system, s, y, ok)
+LAYOUTS = ("cpu", "array")
 
 
 class LaneState(eqx.Module):
@@ -132,195 +77,6 @@ class LaneState(eqx.Module):
     ys: PyTree  # (N, n, …) the saved outputs; +inf where never saved
     out_counts: Int[Array, "N 3"]  # each trajectory's `counts`, once finished
     out_result: Int[Array, " N"]  # each trajectory's code, once finished
-
-
-def lane_select(mask, new, old):
-    """Per-lane `where` on pytrees whose lane axis is the last."""
-    return jax.tree_util.tree_map(
-        lambda a, b: jnp.where(jnp.broadcast_to(mask, b.shape), a, b), new, old
-    )
-
-
-def first_select(mask, new, old):
-    """Per-lane `where` on pytrees whose lane axis is the first."""
-    return jax.tree_util.tree_map(
-        lambda a, b: jnp.where(mask.reshape(mask.shape + (1,) * (b.ndim - 1)), a, b), new, old
-    )
-
-
-def clip_floor(dtype) -> np.floating:
-    """diffeqsolve's end-of-interval threshold (a step ending above it ends at t1) for the
-    unit time's t1 = 1 (`unit_time`): 1 moved down by 100 floats, as its 100 calls of
-    equinox's `prevbefore` move t1, i.e. 1 − 100·ε⁻ (ε⁻ the spacing of the floats just
-    below 1; exact in the dtype). A NumPy constant."""
-    dtype = np.dtype(dtype)
-    return dtype.type(1) - dtype.type(100) * np.finfo(dtype).epsneg
-
-
-def take(tree, i):
-    return jax.tree_util.tree_map(lambda x: x[i], tree)
-
-
-def take_last(tree, i):
-    return jax.tree_util.tree_map(lambda x: x[..., i], tree)
-
-
-def lanes_last(tree):
-    """A table of trajectories, `(N, …)` on every leaf, as `(…, N)`."""
-    return jax.tree_util.tree_map(lambda x: jnp.moveaxis(x, 0, -1), tree)
-
-
-def lanes_first(tree):
-    """`(…, L)` on every leaf as `(L, …)`."""
-    return jax.tree_util.tree_map(lambda x: jnp.moveaxis(x, -1, 0), tree)
-
-
-LAYOUTS = ("cpu", "array")
-
-
-def scatter_rows(buf, index, vals, write):
-    """`buf` with `vals[l]` written at `buf[index[0][l], index[1][l], …]` for each lane l
-    where `write[l]`: one scatter. A lane that writes nothing aims past the buffer's end,
-    at a row of its own, which the scatter drops; the indices are then unique, and XLA
-    writes without atomics."""
-    lane = jnp.arange(vals.shape[0], dtype=jnp.int32)
-    rows = jnp.where(write, index[0].astype(jnp.int32), buf.shape[0] + lane)
-    idx = (rows, *(i.astype(jnp.int32) for i in index[1:]))
-    return buf.at[idx].set(vals, mode="drop", unique_indices=True)
-
-
-def write_rows(buf, index, vals):
-    """`buf` with `vals[l]` written at `buf[index[0][l], index[1][l], …]` for each lane l,
-    in turn (a loop of `dynamic_update_slice`s, not a scatter: XLA:CPU compiles a while
-    loop holding a scatter as a sequence of kernels its runtime dispatches one by one at
-    every iteration, and one without as a single function, `_program.flags.LOOP_OPTION`)."""
-
-    def one(l, buf):
-        start = tuple(i[l].astype(jnp.int32) for i in index)
-        start += (jnp.zeros((), jnp.int32),) * (buf.ndim - len(index))
-        v = vals[l]
-        return jax.lax.dynamic_update_slice(buf, v.reshape((1,) * len(index) + v.shape), start)
-
-    return jax.lax.fori_loop(0, vals.shape[0], one, buf)
-
-
-def unrolled_step(solver, term, t0, t1, y0, args, f0):
-    """One step of the explicit Runge–Kutta `solver` from `y0` at `t0` to `t1`, its stages
-    unrolled from its Butcher tableau; `(y1, y_error, dense, f1)` as `solver.step` gives
-    them (`f1` the FSAL stage, or `None`). `f0` is f(t0, y0) for an FSAL method.
-
-    The arithmetic of diffrax's step (`diffrax.AbstractRungeKutta`): the increments
-    kᵢ = f(tᵢ, yᵢ)·Δt with yᵢ = y0 + Σⱼ aᵢⱼ kⱼ and tᵢ = t0 + cᵢΔt (t1 where cᵢ = 1),
-    y1 = y0 + Σ bⱼ kⱼ (the last stage's yᵢ for a method whose last stage is its solution),
-    y_error = Σ eⱼ kⱼ, and the dense output `{y0, y1, k}` its interpolant reads. diffrax
-    runs the stages as a loop over a buffer, each a dot with a row of the tableau padded
-    by zeros; here each stage is a fixed sum over the stages before it, so the two round
-    differently in the last bits."""
-    tab = solver.tableau
-    control = term.contr(t0, t1)
-    dt = t1 - t0
-    c = (tab.c1, *(float(x) for x in tab.c))
-
-    def combine(out, weights, ks):  # out + Σ wⱼ kⱼ over the nonzero weights
-        for w, k in zip(weights, ks):
-            if w != 0:
-                out = jax.tree_util.tree_map(lambda o, x, w=float(w): o + w * x, out, k)
-        return out
-
-    ks = []
-    fi = None
-    y_stage = y0
-    for i in range(tab.num_stages):
-        if i == 0 and tab.fsal:
-            fi = f0
-        else:
-            y_stage = y0 if i == 0 else combine(y0, tab.a_lower[i - 1], ks)
-            ti = t1 if c[i] == 1 else t0 + c[i] * dt
-            fi = term.vf(ti, y_stage, args)
-        ks.append(term.prod(fi, control))
-    y1 = y_stage if tab.ssal else combine(y0, tab.b_sol, ks)
-    y_error = combine(jax.tree_util.tree_map(jnp.zeros_like, y0), tab.b_error, ks)
-    k = jax.tree_util.tree_map(lambda *x: jnp.stack(x), *ks)
-    return y1, y_error, dict(y0=y0, y1=y1, k=k), fi if tab.fsal else None
-
-
-def guarded_term(model, t0, span):
-    return _compat.wrapped_term(diffrax.ODETerm(Guarded(model, t0, span)))
-
-
-def _interpolate(solver, tprev, tnext, dense, t):
-    """The solver's interpolant of each lane's last step at the unit time `t`.
-
-    diffrax's Runge–Kutta interpolants are linear in the step's dense information (y0, y1
-    and the stage increments k), with weights depending on θ = (t − t0)/(t1 − t0) only.
-    The weights come from the solver's own interpolant evaluated on unit vectors (one row
-    per lane: a plain matrix product); the lanes' states are then combined elementwise,
-    where the interpolant vmapped over lanes would make one tiny batched dot per lane."""
-    dt = tnext - tprev
-    theta = jnp.where(dt > 0, (t - tprev) / jnp.where(dt > 0, dt, 1.0), 0.0)
-    keys = sorted(k for k in dense if k != "k")
-    stages = jax.tree_util.tree_leaves(dense["k"])[0].shape[0]
-    eye = jnp.eye(len(keys) + stages, dtype=theta.dtype)
-    probe = dict(zip(keys, eye), k=eye[len(keys) :])
-    zero, one = jnp.zeros((), theta.dtype), jnp.ones((), theta.dtype)
-    w = jax.vmap(lambda th: solver.interpolation_cls(t0=zero, t1=one, **probe).evaluate(th))(
-        theta
-    ).T  # (keys + stages, lanes)
-
-    def combine(*leaves):  # unrolled: XLA:CPU's reductions over a few rows are slow
-        *ys, k = leaves
-        terms = [(w[i], y) for i, y in enumerate(ys)]
-        terms += [(w[len(keys) + j], k[j]) for j in range(stages)]
-        out = None
-        for wi, x in terms:
-            term = jnp.broadcast_to(wi, x.shape) * x  # the lane axis last
-            out = term if out is None else out + term
-        return out
-
-    return jax.tree_util.tree_map(combine, *[dense[k] for k in keys], dense["k"])
-
-
-def lane_first(m: AbstractLaneSystem, y0, *, controller, solver, start_time, span, dt0):
-    """One trajectory's start in the unit time (`unit_time`): its `ok` flag, the state
-    integrated, the first step's end, the FSAL stage f(t0, y0) in the unit time (`None`
-    for a method without one), the controller's state, and how long the trajectory will
-    take (|f(t0, y0)| in the controller's tolerance scale; −1 for a bad start, which goes
-    first only where the rate overflowed)."""
-    t0, t1 = jnp.zeros((), span.dtype), jnp.ones((), span.dtype)
-    ok, y, f = start(m.model, m.primal(y0), start_time)  # f at y: the stand-in if not ok
-    y_run, f_run = m.extend(ok, y, f, y0, start_time)
-    term = guarded_term(m.model, start_time, span)
-    tnext, cstate = controller.init(term, t0, t1, y, dt0, ok, solver.func, solver.error_order(term))
-    tnext = jnp.minimum(tnext, t1)
-    # An FSAL step starts from f(t0, y0), the last stage of the step before: give it
-    # now, so that a refilled lane needs no extra evaluation of the field. (Another
-    # method evaluates its first stage in the step.)
-    sstate = per_unit_time(span, where_tree(ok, f_run, 0.0)) if solver.tableau.fsal else None
-    # How long the trajectory will take: |f(t0, y0)| in the controller's tolerance
-    # scale. An ordering only: no tangents through it.
-    f, y_ = jax.lax.stop_gradient((f, y))
-    d = sum(
-        jnp.sum((a / (controller.atol + controller.rtol * jnp.abs(b))) ** 2)
-        for a, b in zip(jax.tree_util.tree_leaves(f), jax.tree_util.tree_leaves(y_))
-    )
-    d = jnp.where(ok & ~jnp.isnan(d), d, -1.0)  # an overflow to inf goes first
-    return ok, y_run, tnext, sstate, jax.tree_util.tree_map(jnp.asarray, cstate), d
-
-
-def lane_control(controller, error_order, t1_floor, tprev, tnext, y, y1, y_error, cstate):
-    """diffrax's step-size `controller` on one trajectory's step in the unit time: whether
-    the step is kept, the next step's start and end (clipped to t1 = 1 as diffeqsolve clips
-    them, `clip_floor`), the controller's state and the `RESULTS` code. A NaN error
-    estimate counts as an infinite one (the step is rejected)."""
-    t1 = jnp.ones((), t1_floor.dtype)
-    y_error = jax.tree_util.tree_map(lambda x: jnp.where(jnp.isnan(x), jnp.inf, x), y_error)
-    keep, tp, tn, _, cstate, result = controller.adapt_step_size(
-        tprev, tnext, y, y1, None, y_error, error_order, cstate
-    )
-    tp = jnp.minimum(tp, t1)
-    tn = jnp.where(tn > t1_floor, jnp.where(keep, t1, tp + 0.5 * (t1 - tp)), tn)
-    cstate = jax.tree_util.tree_map(jnp.asarray, cstate)
-    return keep, tp, tn, cstate, result_code(result)
 
 
 def lane_loop(

@@ -1,0 +1,96 @@
+"""What the kernel cannot run, by name: `kernel_refuse` (a solver, controller or adjoint
+it does not take) and `field_refuse` (a model whose vector field has an operation with no
+form on rows of lanes, `_rows.unsupported`).
+
+`Kernel.solve` refuses a solve by `kernel_refuse` before it compiles anything; the default
+strategy on a GPU asks `field_refuse`, which traces the field for one trajectory and keeps
+its verdict per structure, static values, shapes and dtypes, so that choosing costs no
+trace on the next call of the same kind.
+"""
+
+import diffrax
+import equinox as eqx
+import jax
+
+from ._rows import trace, unsupported
+
+
+def kernel_refuse(model, solver, controller, adjoint) -> str | None:
+    """Why `Kernel` cannot run this solve's solver, controller or adjoint, or `None`: it
+    needs an explicit Runge–Kutta solver, a `PIDController` and no adjoint. (Whether the
+    model's field runs on rows of lanes is `field_refuse`'s question.)"""
+    if not isinstance(solver, diffrax.AbstractERK):
+        return (
+            "needs an explicit Runge–Kutta solver (a `diffrax.AbstractERK`: Tsit5, "
+            f"Dopri5, Dopri8, Bosh3, …), got {type(solver).__name__}"
+        )
+    if not isinstance(controller, diffrax.PIDController):
+        return f"needs a `diffrax.PIDController`, got {type(controller).__name__}"
+    if adjoint is not None:
+        return f"takes no `adjoint`, got {type(adjoint).__name__}"
+    return None
+
+
+def field_refuse(model, y0s, model_axes) -> str | None:
+    """Why the kernel cannot evaluate `model`'s vector field on rows of lanes (the
+    operations it cannot run, by name), or `None`. Traces the field for one trajectory
+    from the shapes of `model` (mapped by `model_axes`) and `y0s` (a leading batch axis);
+    the verdict is kept for the next call with the same structure, static values, shapes
+    and dtypes (the default's choice on a GPU then costs no trace per call)."""
+    key = _signature(model, y0s, model_axes)
+    try:
+        verdict = _VERDICTS.get(key, _MISSING) if key is not None else _MISSING
+    except (TypeError, ValueError):  # a static value that cannot be compared (an array)
+        key, verdict = None, _MISSING
+    if verdict is _MISSING:
+        verdict = _field_refuse(model, y0s, model_axes)
+        if key is not None:
+            _VERDICTS[key] = verdict
+            while len(_VERDICTS) > 256:  # the oldest first
+                del _VERDICTS[next(iter(_VERDICTS))]
+    return verdict
+
+
+_VERDICTS: dict = {}
+_MISSING = object()
+
+
+def _signature(model, y0s, model_axes):
+    """What `field_refuse`'s verdict depends on: the pytrees' structure (static fields
+    included), each array's shape and dtype and each other leaf's value; `None` where a
+    value is unhashable."""
+    leaves, tree = jax.tree_util.tree_flatten((model, y0s, model_axes))
+    key = (
+        tree,
+        tuple((type(x), x.shape, x.dtype) if hasattr(x, "dtype") else (type(x), x) for x in leaves),
+    )
+    try:
+        hash(key)
+    except (TypeError, ValueError):
+        return None
+    return key
+
+
+def _field_refuse(model, y0s, model_axes) -> str | None:
+    def one(x):
+        return jax.ShapeDtypeStruct(x.shape[1:], x.dtype)
+
+    if model_axes is not None:
+        model = eqx.filter_eval_shape(
+            lambda m: eqx.filter_vmap(lambda x: x, in_axes=(model_axes,))(m), model
+        )
+        model = jax.tree_util.tree_map(one, model)
+    dyn, static = eqx.partition(
+        model, lambda x: eqx.is_array(x) or isinstance(x, jax.ShapeDtypeStruct)
+    )
+    dyn = jax.tree_util.tree_map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), dyn)
+    y = jax.tree_util.tree_map(one, y0s)
+    t = jax.ShapeDtypeStruct((), jax.tree_util.tree_leaves(y)[0].dtype)
+    closed, _ = trace(lambda d, t, y: eqx.combine(d, static).vector_field(t, y, None), dyn, t, y)
+    bad = unsupported(closed.jaxpr)
+    if not bad:
+        return None
+    return (
+        f"cannot run this model on rows of lanes: its vector field uses {sorted(bad)}, "
+        "which have no form on rows (write the field on vector components)"
+    )
