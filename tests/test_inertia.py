@@ -19,6 +19,7 @@ import scipy.linalg
 from helpers import random_rotation_matrices
 from hypothesis import given, settings
 from jax.test_util import check_grads
+from scipy.spatial.transform import Rotation
 
 from rbdyn_jax import inertia
 from rbdyn_jax._checks import holds_now
@@ -359,10 +360,6 @@ def test_planar_eager_equals_jitted_bit_for_bit(rng):
         Jp = inertia.planar(J)
         assert Jp.dtype == dtype
         np.testing.assert_array_equal(Jp, jax.jit(inertia.planar)(J))
-        # is_physical alike, at its tolerance's edge: J' with smallest eigenvalue ≈ −√eps·max|J|
-        edge = J - jnp.asarray(np.sqrt(np.finfo(dtype).eps), dtype) * jnp.abs(J).max()
-        for K in (J, edge):
-            np.testing.assert_array_equal(inertia.is_physical(K), jax.jit(inertia.is_physical)(K))
         seen = []
 
         def f(x, J=J, seen=seen):
@@ -372,6 +369,26 @@ def test_planar_eager_equals_jitted_bit_for_bit(rng):
         jax.make_jaxpr(f)(1.0)
         assert not isinstance(seen[0], jax.core.Tracer)
         np.testing.assert_array_equal(seen[0], Jp)
+
+
+def test_is_physical_eager_equals_jitted_at_the_edge(rng):
+    """A concrete `is_physical` decides as a traced one does, also about its tolerance's
+    edge: J' with planar moments (a, b, −k·tol), tol = √eps·max|J|, in random axes, for k
+    across 1, where both answers occur."""
+    R = Rotation.random(N, random_state=rng).as_matrix()
+    moments = np.concatenate([rng.uniform(0.5, 2.0, (N, 2)), np.zeros((N, 1))], axis=1)
+    flat = np.einsum("nij,nj,nkj->nik", R, moments, R)  # J' ⪰ 0, singular along R[:, :, 2]
+    vvT = R[:, :, 2, None] * R[:, None, :, 2]
+    size = np.abs(np.asarray(inertia.from_planar(flat))).max(axis=(-2, -1))[:, None, None]
+    for dtype in (np.float64, np.float32):
+        tol = np.sqrt(np.finfo(dtype).eps) * size
+        answers = set()
+        for k in np.linspace(0.5, 2.0, 16):
+            K = jnp.asarray(inertia.from_planar(flat - k * tol * vvT), dtype)
+            eager = inertia.is_physical(K)
+            np.testing.assert_array_equal(eager, jax.jit(inertia.is_physical)(K))
+            answers |= set(np.asarray(eager).tolist())
+        assert answers == {True, False}
 
 
 def test_log_cholesky_eager_equals_jitted_bit_for_bit(rng):
