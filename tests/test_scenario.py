@@ -6,6 +6,8 @@ SO(3)), `first_flip_time` against the elliptic solution.
 """
 
 import dataclasses
+import subprocess
+import sys
 
 import diffrax
 import jax
@@ -163,6 +165,43 @@ def test_shipped_scenarios_validate(name):
     assert isinstance(model, rb.AbstractRigidBody)
     assert sc.ts[0] == sc.t0 and sc.ts[-1] == sc.t1
     assert len(list_scenarios()) >= 5
+
+
+def test_loading_a_scenario_compiles_no_inertia_program():
+    """Every shipped scenario loads with its inertia checked in NumPy: no program of
+    rbdyn_jax's inertia (nor an eigenvalue program) is compiled, so a new process, or a
+    Dask worker, loads one at once (JAX's staging of arrays aside). In a new process, since
+    a program compiled by another test would hide a compilation here."""
+    code = (
+        "import logging, jax\n"
+        "jax.config.update('jax_enable_x64', True)\n"
+        "from rbdyn_jax.scenario import Scenario, list_scenarios\n"
+        "logs = []\n"
+        "class H(logging.Handler):\n"
+        "    def emit(self, r): logs.append(r.getMessage())\n"
+        "logging.getLogger('jax').addHandler(H())\n"
+        "with jax.log_compiles():\n"
+        "    jax.jit(lambda x: x + 1)(1.0)  # the logging itself seen\n"
+        "    n = len(logs)\n"
+        "    for name in list_scenarios():\n"
+        "        Scenario.load(name)\n"
+        "compiled = [m for m in logs[n:] if m.startswith('Compiling')]\n"
+        "print(n > 0, len(compiled) > 0)\n"
+        "print([m for m in compiled if any(w in m for w in ('program', 'eigh', 'planar'))])\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.split("\n")[:2] == ["True True", "[]"], out.stdout + out.stderr
+
+
+def test_a_flat_body_is_not_dispersed():
+    """A flat body (A + B = C, a zero planar moment) is physical, but has no log-Cholesky
+    coordinates to disperse: refused with a positive `log_cholesky_sigma`, taken with 0."""
+    d = minimal()
+    d["model"]["inertia"] = {"principal": [1.0, 2.0, 3.0], "log_cholesky_sigma": 0.05}
+    with pytest.raises(ScenarioError, match="flat body"):
+        Scenario.from_dict(d)
+    d["model"]["inertia"]["log_cholesky_sigma"] = 0.0
+    Scenario.from_dict(d)
 
 
 # --------------------------------------------------------------------------------------

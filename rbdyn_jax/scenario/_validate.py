@@ -9,6 +9,7 @@ import math
 from collections.abc import Mapping
 from typing import Any
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -157,6 +158,16 @@ def _trajectories(x, path) -> str | int:
     )
 
 
+def _physical(J: np.ndarray) -> bool:
+    """Whether the symmetric `J` is physical (`inertia.check_inertia`, which checks a
+    physical `J` in NumPy: loading a scenario compiles nothing)."""
+    try:
+        _inertia.check_inertia(J)
+    except eqx.EquinoxRuntimeError:
+        return False
+    return True
+
+
 def _inertia_spec(x, path) -> DispersedInertia:
     t = _table(x, path, {"principal", "matrix", "log_cholesky_sigma"})
     if ("principal" in t) == ("matrix" in t):
@@ -169,7 +180,7 @@ def _inertia_spec(x, path) -> DispersedInertia:
         key = f"{path}.matrix"
         if not np.allclose(J, J.T, rtol=0, atol=1e-12 * np.abs(J).max()):
             raise _fail(key, "a symmetric 3×3 matrix", t["matrix"])
-    if not bool(_inertia.is_physical(jnp.asarray(J))) or not np.all(np.linalg.eigvalsh(J) > 0):
+    if not _physical(J) or not np.all(np.linalg.eigvalsh(J) > 0):
         raise _fail(
             key,
             "a physical inertia (positive moments obeying the triangle "
@@ -178,7 +189,8 @@ def _inertia_spec(x, path) -> DispersedInertia:
             x.get("principal", x.get("matrix")),
         )
     sigma = _number(t.get("log_cholesky_sigma", 0.0), f"{path}.log_cholesky_sigma", nonneg=True)
-    if sigma > 0 and not np.all(np.linalg.eigvalsh(np.asarray(_inertia.planar(J))) > 0):
+    planar = 0.5 * np.trace(J) * np.eye(3) - J  # J' (docs/physics.md#planar-inertia-tensor)
+    if sigma > 0 and not np.all(np.linalg.eigvalsh(planar) > 0):
         raise _fail(
             f"{path}.log_cholesky_sigma",
             "0 for a flat body (a zero planar moment, "
