@@ -190,7 +190,7 @@ def main(sizes, models, lanes, scipy_max, plain_max, ref_max, out):
             if n <= plain_max:
                 row["plain"] = record(run_rbdyn(name, w0, ts, rb.Vmap(), repeats), n, ref)
             k = min(n, scipy_max)
-            if k:
+            if k > 0:
                 row["scipy"] = record(
                     run_baseline(_baselines.scipy_solve, name, w0[:k], ts, 1, method="RK45"),
                     k,

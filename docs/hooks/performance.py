@@ -87,7 +87,7 @@ def _throughput() -> str:
         ["numba", *rate("numba")],
         ["numba, same accuracy", *rate("numba_equal")],
         ["its tolerance", *[f"{r['numba_equal']['tol']:.1e}" for r in cols]],
-        ["scipy", *[f"{r['scipy']['traj_per_s']:.1f}" for r in cols]],
+        ["scipy", *[f"{r['scipy']['traj_per_s']:.1f}" if "scipy" in r else "—" for r in cols]],
         ["default ÷ numba", *ratio("numba")],
         ["default ÷ numba, same accuracy", *ratio("numba_equal")],
         ["median error, default", *[_e(r["default"]["median_error"]) for r in cols]],

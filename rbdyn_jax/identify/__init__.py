@@ -36,8 +36,9 @@ The modules, one idea each:
   inertia rescaled onto one;
 - `_optimizers`: `AbstractOptimizer`, `LevenbergMarquardt` and `Optax`, the loops the fit
   runs on its objective;
-- `_fit`: `fit` and its `FitResult`, and the compiled program from the starting point to
-  the covariance at the optimum.
+- `_problem`: the fit's compiled program, from the starting point through the optimiser
+  to the covariance at the optimum;
+- `_fit`: `fit`, which checks its arguments and runs that program, and its `FitResult`.
 """
 
 from ._fit import FitResult as FitResult, fit as fit
