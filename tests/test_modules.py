@@ -6,6 +6,8 @@
   what is abstract and adds its own, so a call means one thing up the whole hierarchy.
 - An abstract class declares no field (only `eqx.AbstractVar`s) and writes no `__init__`:
   a final class's fields and initialisation are all in one place.
+- A dependency's module is subclassed only where it is abstract (diffrax's
+  `AbstractSolver`, …).
 """
 
 import abc
@@ -65,21 +67,38 @@ def violations(classes: list[type]) -> list[str]:
             out.append(f"{c.__name__} is abstract but not named Abstract…")
         if below and not abstract:
             out.append(f"{c.__name__} is concrete and subclassed by {[s.__name__ for s in below]}")
+        for base in c.__mro__[1:]:
+            outside = base not in classes  # a dependency's (diffrax's solver, …)
+            if outside and issubclass(base, eqx.Module) and base is not eqx.Module:
+                if not is_abstract(base):
+                    out.append(f"{c.__name__} subclasses the concrete {base.__name__}")
         if not abstract:
             continue
-        abstract_vars = set(getattr(c, "__abstractvars__", ()))
-        fields = set(vars(c).get("__annotations__", {})) - abstract_vars
+        annotations = vars(c).get("__annotations__", {})
+        fields = {
+            name
+            for name, kind in annotations.items()
+            if "AbstractVar" not in str(kind) and "ClassVar" not in str(kind)
+        }
         if fields:
             out.append(f"{c.__name__} is abstract and declares fields {sorted(fields)}")
         if written_init(c):
             out.append(f"{c.__name__} is abstract and writes an __init__")
         for name, v in vars(c).items():
-            if name.startswith("__") or not callable(v) or getattr(v, "__isabstractmethod__", 0):
+            if name in _RUN_BY_EVERY_CLASS or (name.startswith("__") and name != "__call__"):
+                continue
+            method = isinstance(v, property | classmethod | staticmethod) or callable(v)
+            if not method or getattr(v, "__isabstractmethod__", False):
                 continue
             over = [s.__name__ for s in below if name in vars(s)]
             if over:
                 out.append(f"{c.__name__}.{name} is concrete and overridden by {over}")
     return out
+
+
+# Equinox runs every class's `__check_init__` up the hierarchy: a subclass's adds checks,
+# it does not replace its parent's.
+_RUN_BY_EVERY_CLASS = {"__check_init__"}
 
 
 def test_every_module_is_abstract_or_final():
@@ -107,7 +126,15 @@ def test_every_module_is_abstract_or_final():
 
 @pytest.mark.parametrize(
     "case",
-    ["concrete subclassed", "abstract named concrete", "override", "abstract field", "init"],
+    [
+        "concrete subclassed",
+        "abstract named concrete",
+        "override",
+        "property override",
+        "abstract field",
+        "init",
+        "dependency's concrete",
+    ],
 )
 def test_violations_are_found(case):
     """The checker itself: each way of breaking the pattern is reported."""
@@ -146,6 +173,25 @@ def test_violations_are_found(case):
                 return 2
 
         classes = [AbstractBase, Overrides]
+    elif case == "property override":
+
+        class AbstractWithProperty(eqx.Module):
+            @abc.abstractmethod
+            def f(self): ...
+
+            @property
+            def p(self):
+                return 1
+
+        class Overrides(AbstractWithProperty):
+            def f(self):
+                return 0
+
+            @property
+            def p(self):
+                return 2
+
+        classes = [AbstractWithProperty, Overrides]
     elif case == "abstract field":
 
         class AbstractWithField(eqx.Module):
@@ -155,6 +201,12 @@ def test_violations_are_found(case):
             def f(self): ...
 
         classes = [AbstractWithField]
+    elif case == "dependency's concrete":
+
+        class Wider(eqx.nn.Identity):
+            pass
+
+        classes = [Wider]
     else:
 
         class AbstractWithInit(eqx.Module):
