@@ -17,14 +17,14 @@ from .._program.flags import loops_compiled_whole
 from .._program.program import Program
 from .._program.xla import top_level
 from ._diffeqsolve import solve_vmapped
-from ._field import checked_before_tracing, checked_times, finish, promoted
+from ._field import checked_before_tracing
 from ._kernel_layout import kernel_block
-from ._kernel_refusal import field_refuse, kernel_refuse
+from ._kernel_refusal import field_refuse
 from ._kernel_solve import kernel_compiled, kernel_interpreted
 from ._lane_loop import LAYOUTS, lane_loop
-from ._lane_system import Plain
-from ._sensitivity import lane_jvp
-from ._solution import Trajectory, as_result
+from ._lane_step import step_refuse
+from ._sensitivity import sensitivity_solve
+from ._solution import Trajectory
 
 
 class AbstractBatching(eqx.Module):
@@ -115,7 +115,7 @@ class Lanes(AbstractBatching):
     def solve(
         self, model, y0s, ts, *, solver, controller, adjoint, max_steps, dt0, model_axes
     ) -> Trajectory:
-        reason = _lanes_refuse(solver, controller, adjoint)
+        reason = step_refuse(solver, controller, adjoint)
         if reason is not None:
             raise ValueError(
                 f"`Lanes` {reason}; `batching=Vmap()` takes any solver, "
@@ -195,7 +195,7 @@ class Kernel(AbstractBatching):
     def solve(
         self, model, y0s, ts, *, solver, controller, adjoint, max_steps, dt0, model_axes
     ) -> Trajectory:
-        reason = kernel_refuse(model, solver, controller, adjoint)
+        reason = step_refuse(solver, controller, adjoint)
         if reason is not None:
             raise ValueError(f"`Kernel` {reason}; `batching=Lanes()` or `Vmap()` takes it.")
         gpu = jax.default_backend() == "gpu"
@@ -203,23 +203,6 @@ class Kernel(AbstractBatching):
         block = kernel_block(self.block, jax.tree_util.tree_leaves(y0s)[0].shape[0], gpu)
         run = kernel_interpreted if interpret else kernel_compiled
         return run(model, y0s, ts, solver, controller, max_steps, dt0, model_axes, block, interpret)
-
-
-def _lanes_refuse(solver, controller, adjoint) -> str | None:
-    """Why `Lanes` cannot run this solve, or `None`."""
-    if not isinstance(solver, diffrax.AbstractERK):
-        return (
-            "needs an explicit Runge–Kutta solver (a `diffrax.AbstractERK`: Tsit5, "
-            f"Dopri5, Dopri8, Bosh3, Heun, …), got {type(solver).__name__}"
-        )
-    if not isinstance(controller, diffrax.PIDController):
-        return f"needs a `diffrax.PIDController`, got {type(controller).__name__}"
-    if adjoint is not None:
-        return (
-            "differentiates by forward sensitivities and takes no `adjoint`, got "
-            f"{type(adjoint).__name__}"
-        )
-    return None
 
 
 # Lanes per CPU device: about two trajectories per lane, so that lanes refill and finish
@@ -297,11 +280,11 @@ def default_batching(
         backend == "gpu"
         and model is not None
         and y0s is not None
-        and kernel_refuse(model, solver, controller, adjoint) is None
+        and step_refuse(solver, controller, adjoint) is None
         and field_refuse(model, y0s, model_axes) is None
     ):
         return Kernel()
-    return Vmap() if _lanes_refuse(solver, controller, adjoint) is not None else Lanes()
+    return Vmap() if step_refuse(solver, controller, adjoint) is not None else Lanes()
 
 
 def _mesh(devices) -> jax.sharding.Mesh:
@@ -331,31 +314,17 @@ def lane_solve(
     stored=False,
 ) -> Trajectory:
     """The lane loop (`_lane_loop.lane_loop`; on each device of `mesh`, `_sharded`) and its
-    `Trajectory`s.
-
-    Differentiable in both modes by forward sensitivities: the rule of its `custom_jvp`
-    (`_sensitivity.lane_jvp`) integrates, once, the variational equations for every input
-    element with a tangent by the same steps as the solve, and contracts them with the
-    tangents. That contraction is linear, so `jax.grad` transposes it, and `jax.jacfwd`'s
-    tangents share the one solve; the tangents never enter the loop. The derivative is
-    that of the discrete solve (the step sizes are not differentiated, as in
-    `diffeqsolve`). The rule is outside the devices' `shard_map`, which the
-    sensitivities' solve enters as the forward solve does.
+    `Trajectory`s, differentiable by forward sensitivities (`_sensitivity.sensitivity_solve`;
+    the rule is outside the devices' `shard_map`, which the sensitivities' solve enters as
+    the forward solve does).
 
     `stored`: the loop (and the rule's) is stored alone by the cache of traced programs and
     called as the stored program (`traces.embedded`): for a solve traced inside a caller's
     transformation, whose program rbdyn_jax cannot store."""
-    ts = checked_times(ts)
-    batched = model_axes is not None
-    if batched:  # every array leaf with a leading trajectory axis
-        model = eqx.filter_vmap(lambda m: m, in_axes=(model_axes,))(model)
-    dyn, static = eqx.partition(model, eqx.is_array)
-    y0s = promoted(dyn, y0s, ts)  # before the loop's buffers take its dtype
-    tols, cstatic = eqx.partition(controller, eqx.is_array)
-
     call = traces.embedded if stored else _called
+    batched = model_axes is not None
 
-    def loop(system, y0s, ts, tols):
+    def loop(system, y0s, ts, tols, cstatic):
         return call(
             lane_run,
             system,
@@ -372,19 +341,7 @@ def lane_solve(
             layout,
         )
 
-    @jax.custom_jvp
-    def solve(dyn, y0s, ts, tols):
-        return loop(Plain(eqx.combine(dyn, static)), y0s, ts, tols)
-
-    solve.defjvp(functools.partial(lane_jvp, loop, static, batched), symbolic_zeros=True)
-    ys, ok0, result, counts = solve(dyn, y0s, ts, tols)
-
-    def finished(m, ys, ok, result, counts):
-        return finish(m, ts, ys, ok, as_result(result), list(counts))
-
-    return eqx.filter_vmap(finished, in_axes=(0 if batched else None, 0, 0, 0, 0))(
-        model, ys, ok0, result, counts
-    )
+    return sensitivity_solve(loop, model, y0s, ts, controller, model_axes)
 
 
 def _called(fn, *args):

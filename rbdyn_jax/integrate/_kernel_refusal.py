@@ -1,34 +1,17 @@
-"""What the kernel cannot run, by name: `kernel_refuse` (a solver, controller or adjoint
-it does not take) and `field_refuse` (a model whose vector field has an operation with no
-form on rows of lanes, `_rows.unsupported`).
+"""What the kernel cannot run, by name, beside the solvers, controllers and adjoints the
+lane loop refuses too (`_lane_step.step_refuse`): `field_refuse`, a model whose vector
+field has an operation with no form on rows of lanes (`_rows.unsupported`).
 
-`Kernel.solve` refuses a solve by `kernel_refuse` before it compiles anything; the default
+`Kernel.solve` refuses a solve by `step_refuse` before it compiles anything; the default
 strategy on a GPU asks `field_refuse`, which traces the field for one trajectory and keeps
 its verdict per structure, static values, shapes and dtypes, so that choosing costs no
 trace on the next call of the same kind.
 """
 
-import diffrax
 import equinox as eqx
 import jax
 
 from ._rows import trace, unsupported
-
-
-def kernel_refuse(model, solver, controller, adjoint) -> str | None:
-    """Why `Kernel` cannot run this solve's solver, controller or adjoint, or `None`: it
-    needs an explicit Runge–Kutta solver, a `PIDController` and no adjoint. (Whether the
-    model's field runs on rows of lanes is `field_refuse`'s question.)"""
-    if not isinstance(solver, diffrax.AbstractERK):
-        return (
-            "needs an explicit Runge–Kutta solver (a `diffrax.AbstractERK`: Tsit5, "
-            f"Dopri5, Dopri8, Bosh3, …), got {type(solver).__name__}"
-        )
-    if not isinstance(controller, diffrax.PIDController):
-        return f"needs a `diffrax.PIDController`, got {type(controller).__name__}"
-    if adjoint is not None:
-        return f"takes no `adjoint`, got {type(adjoint).__name__}"
-    return None
 
 
 def field_refuse(model, y0s, model_axes) -> str | None:

@@ -1,22 +1,18 @@
 """The kernel strategy's entry: `kernel_solve`, the kernel (`_kernel_run.kernel_run`) over
-a batch and its `Trajectory`s, differentiable once by forward sensitivities
-(`_sensitivity.lane_jvp`, the lane solver's rule), and the two `Program`s `Kernel.solve`
+a batch and its `Trajectory`s, differentiable once by forward sensitivities (the lane
+solver's rule, `_sensitivity.sensitivity_solve`), and the two `Program`s `Kernel.solve`
 calls: `kernel_compiled` (the kernel lowered for a GPU) and `kernel_interpreted` (Pallas's
 interpret mode, compiled at a lower XLA optimisation level).
 """
 
-import functools
-
 import equinox as eqx
-import jax
 
 from .._program.program import Program
 from .._program.xla import COMPILER_OPTIONS
-from ._field import checked_before_tracing, checked_times, finish, promoted
+from ._field import checked_before_tracing
 from ._kernel_run import kernel_run
-from ._lane_system import Plain
-from ._sensitivity import lane_jvp
-from ._solution import Trajectory, as_result
+from ._sensitivity import sensitivity_solve
+from ._solution import Trajectory
 
 
 def kernel_solve(
@@ -25,20 +21,14 @@ def kernel_solve(
     """The kernel (`Kernel`) over the batch, and its `Trajectory`s.
 
     Differentiable in both modes by forward sensitivities, by the lane solver's rule
-    (`_sensitivity.lane_jvp`, see `_batching.lane_solve`): the kernel integrates the model
-    extended by the variational equations (`_sensitivity.Sensitivity`, whose field is one
-    `jax.jvp` of the model's, run on rows as the field is) by the same steps, for the
-    state leaves the caller reads only, and the rule contracts them with the tangents. A
-    derivative of that derivative is refused."""
-    ts = checked_times(ts)
+    (`_sensitivity.sensitivity_solve`): the kernel integrates the model extended by the
+    variational equations (`_sensitivity.Sensitivity`, whose field is one `jax.jvp` of the
+    model's, run on rows as the field is) by the same steps, for the state leaves the
+    caller reads only, and the rule contracts them with the tangents. A derivative of that
+    derivative is refused."""
     batched = model_axes is not None
-    if batched:  # every array leaf with a leading trajectory axis
-        model = eqx.filter_vmap(lambda m: m, in_axes=(model_axes,))(model)
-    dyn, static = eqx.partition(model, eqx.is_array)
-    y0s = promoted(dyn, y0s, ts)
-    tols, cstatic = eqx.partition(controller, eqx.is_array)
 
-    def loop(system, y0s, ts, tols):
+    def loop(system, y0s, ts, tols, cstatic):
         return kernel_run(
             system,
             y0s,
@@ -52,19 +42,7 @@ def kernel_solve(
             interpret,
         )
 
-    @jax.custom_jvp
-    def solve(dyn, y0s, ts, tols):
-        return loop(Plain(eqx.combine(dyn, static)), y0s, ts, tols)
-
-    solve.defjvp(functools.partial(lane_jvp, loop, static, batched), symbolic_zeros=True)
-    ys, ok0, result, counts = solve(dyn, y0s, ts, tols)
-
-    def finished(m, ys, ok, result, counts):
-        return finish(m, ts, ys, ok, as_result(result), list(counts))
-
-    return eqx.filter_vmap(finished, in_axes=(0 if batched else None, 0, 0, 0, 0))(
-        model, ys, ok0, result, counts
-    )
+    return sensitivity_solve(loop, model, y0s, ts, controller, model_axes)
 
 
 # In interpret mode (a CPU: for checking, not for speed) the kernel is thousands of

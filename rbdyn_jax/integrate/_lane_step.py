@@ -22,6 +22,25 @@ from ._lane_system import AbstractLaneSystem
 from ._solution import result_code
 
 
+def step_refuse(solver, controller, adjoint) -> str | None:
+    """Why the lane loop and the kernel cannot run this solver, controller or adjoint, or
+    `None`: they step an explicit Runge–Kutta solver by its tableau under a
+    `PIDController`, and differentiate by forward sensitivities."""
+    if not isinstance(solver, diffrax.AbstractERK):
+        return (
+            "needs an explicit Runge–Kutta solver (a `diffrax.AbstractERK`: Tsit5, "
+            f"Dopri5, Dopri8, Bosh3, Heun, …), got {type(solver).__name__}"
+        )
+    if not isinstance(controller, diffrax.PIDController):
+        return f"needs a `diffrax.PIDController`, got {type(controller).__name__}"
+    if adjoint is not None:
+        return (
+            "differentiates by forward sensitivities and takes no `adjoint`, got "
+            f"{type(adjoint).__name__}"
+        )
+    return None
+
+
 def clip_floor(dtype) -> np.floating:
     """diffeqsolve's end-of-interval threshold (a step ending above it ends at t1) for the
     unit time's t1 = 1 (`unit_time`): 1 moved down by 100 floats, as its 100 calls of

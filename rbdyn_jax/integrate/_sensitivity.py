@@ -12,9 +12,10 @@ import numpy as np
 from ..models import AbstractRigidBody
 from ._cheapest import cheapest
 from ._dependencies import closed_groups
-from ._field import where_tree
+from ._field import checked_times, finish, promoted, where_tree
 from ._lane_arrays import take
 from ._lane_system import AbstractLaneSystem, Plain
+from ._solution import Trajectory, as_result
 
 SYMMETRIC = ((0, 0), (1, 1), (2, 2), (1, 0), (2, 0), (2, 1))  # an inertia's 6 elements
 
@@ -113,8 +114,8 @@ class Sensitivity(AbstractLaneSystem):
 
 
 def lane_jvp(loop, static, batched, primals, tangents):
-    """The `custom_jvp` rule of the lane solve (`_batching.lane_solve`). The tolerances take no
-    tangent."""
+    """The `custom_jvp` rule of a lane or kernel solve (`sensitivity_solve`). The tolerances
+    take no tangent."""
     dyn, y0s, ts, tols = primals
     tdyn, ty0s, tts, _ = tangents
     zero = jax.custom_derivatives.SymbolicZero
@@ -241,3 +242,41 @@ def lane_jvp(loop, static, batched, primals, tangents):
     dys = jax.tree_util.tree_unflatten(treedef, dys)
     out = (ys, ok0, result, counts)
     return out, (dys,) + tuple(np.zeros(x.shape, jax.dtypes.float0) for x in out[1:])
+
+
+def sensitivity_solve(loop, model, y0s, ts, controller, model_axes) -> Trajectory:
+    """A batch solved by `loop(system, y0s, ts, tols, cstatic)` (the lane loop, the kernel:
+    raw outputs `ys, ok, result, counts` per trajectory, `cstatic` the controller's static
+    part, `tols` its arrays), and its `Trajectory`s: the solve both strategies share.
+
+    Differentiable in both modes by forward sensitivities: the rule of its `custom_jvp`
+    (`lane_jvp`) integrates, once, the variational equations for every input element with
+    a tangent by the same steps as the solve (`loop` run on a `Sensitivity`), and contracts
+    them with the tangents. That contraction is linear, so `jax.grad` transposes it, and
+    `jax.jacfwd`'s tangents share the one solve; the tangents never enter the loop. The
+    derivative is that of the discrete solve (the step sizes are not differentiated, as in
+    `diffeqsolve`)."""
+    ts = checked_times(ts)
+    batched = model_axes is not None
+    if batched:  # every array leaf with a leading trajectory axis
+        model = eqx.filter_vmap(lambda m: m, in_axes=(model_axes,))(model)
+    dyn, static = eqx.partition(model, eqx.is_array)
+    y0s = promoted(dyn, y0s, ts)  # before the loop's buffers take its dtype
+    tols, cstatic = eqx.partition(controller, eqx.is_array)
+
+    def run(system, y0s, ts, tols):
+        return loop(system, y0s, ts, tols, cstatic)
+
+    @jax.custom_jvp
+    def solve(dyn, y0s, ts, tols):
+        return run(Plain(eqx.combine(dyn, static)), y0s, ts, tols)
+
+    solve.defjvp(functools.partial(lane_jvp, run, static, batched), symbolic_zeros=True)
+    ys, ok0, result, counts = solve(dyn, y0s, ts, tols)
+
+    def finished(m, ys, ok, result, counts):
+        return finish(m, ts, ys, ok, as_result(result), list(counts))
+
+    return eqx.filter_vmap(finished, in_axes=(0 if batched else None, 0, 0, 0, 0))(
+        model, ys, ok0, result, counts
+    )
