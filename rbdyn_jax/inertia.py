@@ -77,6 +77,17 @@ def _physical(J: Array, xp=jnp) -> Array:
     return _is_symmetric(J, xp) & _planar_psd(J, xp)
 
 
+def _now_or_traced(program, x):
+    """`program(x)` (a jitted function): part of the caller's program for a traced `x`;
+    for a concrete one computed now, also inside a caller's trace, by the same compiled
+    arithmetic (not NumPy, nor JAX operation by operation), so that eager and traced
+    calls agree bit for bit."""
+    if isinstance(x, jax.core.Tracer):
+        return program(x)
+    with jax.ensure_compile_time_eval():
+        return program(x)
+
+
 def from_principal(moments: VectorLike, axes: MatrixLike | None = None) -> Matrix:
     """Inertia tensor from principal moments and axes, `J = C diag(moments) Cᵀ`.
 
@@ -169,17 +180,12 @@ def planar(J: MatrixLike) -> Matrix:
     `J'`, shape `(*batch, 3, 3)`: for point masses `Σ m r rᵀ` (planar moments `Σ m x²`, … on the
     diagonal, products `Σ m x y`, … with a plus sign off it).
     """
-    J = check_trailing(J, (3, 3), "J")
-    if isinstance(J, jax.core.Tracer):
-        return _planar_program(J)
-    with jax.ensure_compile_time_eval():  # concrete, also in a caller's trace: now
-        return _planar_program(J)
+    return _now_or_traced(_planar_program, check_trailing(J, (3, 3), "J"))
 
 
 @jit
 def _planar_program(J):
-    """`J'` of `J`: one compiled program for a concrete `J`, part of the caller's for a
-    traced one (as `_log_cholesky`)."""
+    """`J'` of `J`, one program (`_now_or_traced`)."""
     return _planar(J)
 
 
@@ -327,18 +333,13 @@ def is_physical(J: MatrixLike) -> BoolArray:
 
     A boolean array of shape `(*batch,)`.
     """
-    J = check_trailing(J, (3, 3), "J")
-    if isinstance(J, jax.core.Tracer):
-        return _physical_program(jax.lax.stop_gradient(J))
-    with jax.ensure_compile_time_eval():  # concrete, also in a caller's trace: now
-        return _physical_program(J)
+    return _now_or_traced(_physical_program, check_trailing(J, (3, 3), "J"))
 
 
 @jit
 def _physical_program(J):
-    """`is_physical` of `J`: one compiled program for a concrete `J`, part of the caller's
-    for a traced one (as `_log_cholesky`)."""
-    return _physical(J)
+    """`is_physical` of `J` (no gradient), one program (`_now_or_traced`)."""
+    return _physical(jax.lax.stop_gradient(J))
 
 
 def check_inertia(J: MatrixLike, name: str = "inertia") -> Matrix:
@@ -432,17 +433,12 @@ def from_log_cholesky(theta: LogCholeskyLike) -> Matrix:
 
     `J`, shape `(*batch, 3, 3)`; [`to_log_cholesky`][] is its inverse.
     """
-    theta = check_trailing(theta, (6,), "theta")
-    if isinstance(theta, jax.core.Tracer):
-        return _from_log_cholesky(theta)
-    with jax.ensure_compile_time_eval():  # concrete, also in a caller's trace: now
-        return _from_log_cholesky(theta)
+    return _now_or_traced(_from_log_cholesky, check_trailing(theta, (6,), "theta"))
 
 
 @jit
 def _from_log_cholesky(theta):
-    """`J` of `theta`: one compiled program for a concrete `theta`, part of the caller's for
-    a traced one (as `_log_cholesky`)."""
+    """`J` of `theta`, one program (`_now_or_traced`)."""
     l00, l11, l22, l10, l20, l21 = jnp.moveaxis(theta, -1, 0)
     zero = jnp.zeros_like(l00)
     L = jnp.stack(
