@@ -2,13 +2,14 @@
 trajectories from start to end: `kernel_run`.
 
 A program holds its block's lanes in rows: each scalar of a trajectory's state (and of
-its model's parameters, the controller's state, the last step's dense output) is a row of
-`block` lanes (`_kernel_layout`). For each output time in turn, the lanes that have not
-reached it step (`lax.while_loop` until none needs to: each lane's own step size, accepted
-or rejected by diffrax's `PIDController`), and then every lane saves its value there by
-the solver's interpolant of its last accepted step: one row of the output a component. A
-lane steps exactly as `diffeqsolve` would; waiting at an output time for the block's
-slowest lane changes none of its steps.
+its model's parameters, the controller's state) is a row of `block` lanes
+(`_kernel_layout`). The lanes step in one `lax.while_loop` until each has reached the end
+or failed, each with its own step size, accepted or rejected by diffrax's
+`PIDController`. A step that reaches output times saves its lane's value at each of them
+at once, by the solver's interpolant of that step, into the lane's column of the output:
+the step's stages are not carried to the next step, which keeps the loop's state (and a
+GPU thread's registers) to the trajectory's state, its last stage, the controller's
+state and the step's ends. A lane steps exactly as `diffeqsolve` would.
 
 The arithmetic per lane is the lane solver's (`_lane_step`): `unrolled_step` (the solver's
 Butcher tableau, its stages unrolled), `lane_control` (diffrax's controller, the clip at
@@ -147,28 +148,26 @@ def kernel_run(system, y0s, ts, controller, solver, max_steps, dt0, batched, blo
     # Each saved row in its state element's dtype (a float64 state with float32 times too)
     y_dtypes = [e.dtype for x in jax.tree_util.tree_leaves(ex_y) for e in x.flat]
     n_y = len(y_dtypes)
-    n_pad = next_power_of_two(n)
-    ts_pad = jnp.concatenate([uts, jnp.ones((n_pad - n,), dtype)])
+    # Rows of the output: the n times and a spare row n, where a lane with nothing to save
+    # writes when others save (a store is of every lane).
+    n_rows = next_power_of_two(n + 1)
+    ts_pad = jnp.concatenate([uts, jnp.ones((n_rows - n,), dtype)])
     int_t = jnp.int32
+    state_keys = ("tprev", "tnext", "ok", "steps", "accepted", "rejected", "result", "saved")
 
     def kernel(ts_ref, *refs):
         in_refs, out_refs = refs[:n_in], refs[n_in:]
-        ys_refs, counts_refs, result_ref = (
-            out_refs[:n_y],
-            out_refs[n_y : n_y + 3],
-            out_refs[n_y + 3],
-        )
+        ys_refs, counts_refs = out_refs[:n_y], out_refs[n_y:]
         params, (y, f, cstate, tnext, ok) = _unflat_rows(in_layout, [r[...] for r in in_refs])
         rows = (block,)
         zero_f = jnp.zeros(rows, dtype)
         zero_i = jnp.zeros(rows, int_t)
+        lane = jax.lax.broadcasted_iota(int_t, rows, 0)
+        obj = functools.partial(objects, ())
 
         def full(x):
             return jnp.broadcast_to(x, rows)
 
-        dense = jax.tree_util.tree_map(
-            lambda d: objects(d.shape, lambda idx: full(jnp.zeros((), d.dtype))), dense_shape
-        )
         state = dict(
             tprev=zero_f,
             tnext=tnext[()],
@@ -176,17 +175,15 @@ def kernel_run(system, y0s, ts, controller, solver, max_steps, dt0, batched, blo
             f=f,
             cstate=cstate,
             ok=ok[()],
-            dense=dense,
-            dt0=zero_f - 2,
-            dt1=zero_f - 1,
             steps=zero_i,
             accepted=zero_i,
             rejected=zero_i,
             result=zero_i,
+            saved=zero_i,  # the outputs saved so far: times 0 … saved − 1
         )
-        # The loops carry plain arrays: every row, broadcast to the block.
+        # The loop carries plain arrays: every row, broadcast to the block.
         template = jax.tree_util.tree_map(
-            lambda x: x if isinstance(x, np.ndarray) else objects((), lambda idx: x), state
+            lambda x: x if isinstance(x, np.ndarray) else obj(lambda idx: x), state
         )
 
         def pack(s):
@@ -194,106 +191,93 @@ def kernel_run(system, y0s, ts, controller, solver, max_steps, dt0, batched, blo
                 full(e)
                 for e in _elements(
                     jax.tree_util.tree_map(
-                        lambda x: x if isinstance(x, np.ndarray) else objects((), lambda idx: x), s
+                        lambda x: x if isinstance(x, np.ndarray) else obj(lambda idx: x), s
                     )
                 )
             ]
 
         def unpack(carry):
             s = _with_elements(template, carry)
-            return {
-                k: (
-                    v[()]
-                    if k
-                    in (
-                        "tprev",
-                        "tnext",
-                        "ok",
-                        "dt0",
-                        "dt1",
-                        "steps",
-                        "accepted",
-                        "rejected",
-                        "result",
-                    )
-                    else v
-                )
-                for k, v in s.items()
-            }
+            return {k: v[()] if k in state_keys else v for k, v in s.items()}
 
-        def output(i, carry):
-            t_i = ts_ref[i]
+        def going(s):  # lanes that have not reached the end and can step
+            return (s["tprev"] < 1) & (s["result"] == 0)
 
-            def wanted(s):  # lanes that have not reached t_i and can step
-                return (s["dt1"] < t_i) & (s["tprev"] < 1) & (s["result"] == 0)
+        def cond(carry):
+            return jnp.max(going(unpack(carry)).astype(int_t)) > 0
 
-            def cond(carry):
-                return jnp.max(wanted(unpack(carry)).astype(int_t)) > 0
-
-            def body(carry):
-                s = unpack(carry)
-                go = wanted(s)
-                obj = functools.partial(objects, ())
-                y1, dense, f1, keep, tp, tn, cs, code = rowwise(
-                    step,
-                    params,
-                    obj(lambda idx: s["tprev"]),
-                    obj(lambda idx: s["tnext"]),
-                    s["y"],
-                    obj(lambda idx: s["ok"]),
-                    s["f"],
-                    s["cstate"],
-                )
-                keep, tp, tn, code = (full(x[()]) for x in (keep, tp, tn, code))
-                accept = go & keep
-                s = dict(
-                    s,
-                    y=_select(accept, y1, s["y"]),
-                    f=_select(accept, f1, s["f"]),
-                    cstate=_select(go, cs, s["cstate"]),
-                    dense=_select(accept, dense, s["dense"]),
-                    dt0=jnp.where(accept, s["tprev"], s["dt0"]),
-                    dt1=jnp.where(accept, s["tnext"], s["dt1"]),
-                    tprev=jnp.where(go, tp, s["tprev"]),
-                    tnext=jnp.where(go, tn, s["tnext"]),
-                    steps=s["steps"] + go.astype(int_t),
-                    accepted=s["accepted"] + accept.astype(int_t),
-                    rejected=s["rejected"] + (go & ~keep).astype(int_t),
-                    result=jnp.where(go, code, s["result"]),
-                )
-                maxed = go & (s["steps"] >= max_steps) & (s["tprev"] < 1) & (s["result"] == 0)
-                s["result"] = jnp.where(maxed, result_code(RESULTS.max_steps_reached), s["result"])
-                return pack(s)
-
-            s = unpack(jax.lax.while_loop(cond, body, carry))
-            obj = functools.partial(objects, ())
-            vals = rowwise(
-                interpolate,
-                obj(lambda idx: s["dt0"]),
-                obj(lambda idx: s["dt1"]),
-                s["dense"],
-                obj(lambda idx: full(t_i)),
+        def body(carry):
+            s = unpack(carry)
+            go = going(s)
+            y1, dense, f1, keep, tp, tn, cs, code = rowwise(
+                step,
+                params,
+                obj(lambda idx: s["tprev"]),
+                obj(lambda idx: s["tnext"]),
+                s["y"],
+                obj(lambda idx: s["ok"]),
+                s["f"],
+                s["cstate"],
             )
-            reached = s["dt1"] >= t_i
-            for ref, v in zip(ys_refs, _elements(vals)):
-                ref[i, :] = jnp.where(reached, full(v), jnp.inf).astype(ref.dtype)
+            keep, tp, tn, code = (full(x[()]) for x in (keep, tp, tn, code))
+            accept = go & keep
+            t0, t1 = s["tprev"], s["tnext"]
+
+            # Every output time an accepted step reaches is saved now, by the step's
+            # interpolant: its stages are not kept past the step.
+            def due(saved):
+                t_out = ts_ref[jnp.minimum(saved, n - 1)]
+                return accept & (saved < n) & (t_out <= t1), t_out
+
+            def save(saved):
+                now, t_out = due(saved)
+                vals = rowwise(
+                    interpolate,
+                    obj(lambda idx: t0),
+                    obj(lambda idx: t1),
+                    dense,
+                    obj(lambda idx: t_out),
+                )
+                at = jnp.where(now, saved, n) * block + lane
+                for ref, v in zip(ys_refs, _elements(vals)):
+                    ref[at] = full(v).astype(ref.dtype)
+                return saved + now.astype(int_t)
+
+            saved = jax.lax.while_loop(
+                lambda saved: jnp.max(due(saved)[0].astype(int_t)) > 0, save, s["saved"]
+            )
+            s = dict(
+                s,
+                y=_select(accept, y1, s["y"]),
+                f=_select(accept, f1, s["f"]),
+                cstate=_select(go, cs, s["cstate"]),
+                tprev=jnp.where(go, tp, t0),
+                tnext=jnp.where(go, tn, t1),
+                steps=s["steps"] + go.astype(int_t),
+                accepted=s["accepted"] + accept.astype(int_t),
+                rejected=s["rejected"] + (go & ~keep).astype(int_t),
+                result=jnp.where(go, code, s["result"]),
+                saved=saved,
+            )
+            maxed = go & (s["steps"] >= max_steps) & (s["tprev"] < 1) & (s["result"] == 0)
+            s["result"] = jnp.where(maxed, result_code(RESULTS.max_steps_reached), s["result"])
             return pack(s)
 
-        s = unpack(jax.lax.fori_loop(0, n, output, pack(state)))
-        for ref, k in zip(counts_refs, ("steps", "accepted", "rejected")):
+        s = unpack(jax.lax.while_loop(cond, body, pack(state)))
+        for ref, k in zip(counts_refs, ("steps", "accepted", "rejected", "result", "saved")):
             ref[...] = s[k]
-        result_ref[...] = s["result"]
 
     row_spec = pl.BlockSpec((block,), lambda i: (i,))
-    out_shape = [jax.ShapeDtypeStruct((n_pad, P), d) for d in y_dtypes] + [
+    # A block's output rows are contiguous: time by time, each a row of its lanes.
+    out_shape = [jax.ShapeDtypeStruct((P * n_rows,), d) for d in y_dtypes] + [
         jax.ShapeDtypeStruct((P,), int_t)
-    ] * 4
-    out_specs = [pl.BlockSpec((n_pad, block), lambda i: (0, i))] * n_y + [row_spec] * 4
+    ] * 5
+    out_specs = [pl.BlockSpec((n_rows * block,), lambda i: (i,))] * n_y + [row_spec] * 5
     call = pl.pallas_call(
         kernel,
         out_shape=out_shape,
         grid=(P // block,),
-        in_specs=[pl.BlockSpec((n_pad,), lambda i: (0,))] + [row_spec] * n_in,
+        in_specs=[pl.BlockSpec((n_rows,), lambda i: (0,))] + [row_spec] * n_in,
         out_specs=out_specs,
         interpret=interpret,
         name="rbdyn_kernel",
@@ -304,7 +288,17 @@ def kernel_run(system, y0s, ts, controller, solver, max_steps, dt0, batched, blo
         else pltriton.CompilerParams(num_warps=TRITON_WARPS, num_stages=1),
     )
     outs = _undifferentiated(call)(ts_pad, *in_rows)
-    ys_rows, counts, result = outs[:n_y], outs[n_y : n_y + 3], outs[n_y + 3]
+    ys_rows, counts, result, saved = outs[:n_y], outs[n_y : n_y + 3], outs[-2], outs[-1]
+    # (n, P) rows; a time a lane never reached (its rows past `saved`, never written) is +inf.
+    unreached = jnp.arange(n, dtype=int_t)[:, None] >= saved[None, :]
+    ys_rows = [
+        jnp.where(
+            unreached,
+            jnp.inf,
+            r.reshape(P // block, n_rows, block)[:, :n].transpose(1, 0, 2).reshape(n, P),
+        ).astype(r.dtype)
+        for r in ys_rows
+    ]
 
     # Back to the batch's order: position p of the kernel holds trajectory order[p].
     back = jnp.argsort(order)
