@@ -79,8 +79,8 @@ def kernel_run(system, y0s, ts, controller, solver, max_steps, dt0, batched, blo
     def lanes(x):
         return x[picks]
 
-    def shared(x):
-        return jnp.broadcast_to(x, (P,) + jnp.shape(x))
+    def shared(x):  # one value for every lane: rows of one element, read as scalars
+        return jnp.asarray(x)[None]
 
     ctrl_dyn, cstatic = eqx.partition(controller, eqx.is_array)
     params = (
@@ -158,8 +158,11 @@ def kernel_run(system, y0s, ts, controller, solver, max_steps, dt0, batched, blo
     def kernel(ts_ref, *refs):
         in_refs, out_refs = refs[:n_in], refs[n_in:]
         ys_refs, counts_refs = out_refs[:n_y], out_refs[n_y:]
-        params, (y, f, cstate, tnext, ok) = _unflat_rows(in_layout, [r[...] for r in in_refs])
         rows = (block,)
+        params, (y, f, cstate, tnext, ok) = _unflat_rows(
+            in_layout,
+            [jnp.broadcast_to(r[0], rows) if r.shape[0] == 1 else r[...] for r in in_refs],
+        )
         zero_f = jnp.zeros(rows, dtype)
         zero_i = jnp.zeros(rows, int_t)
         lane = jax.lax.broadcasted_iota(int_t, rows, 0)
@@ -277,7 +280,9 @@ def kernel_run(system, y0s, ts, controller, solver, max_steps, dt0, batched, blo
         kernel,
         out_shape=out_shape,
         grid=(P // block,),
-        in_specs=[pl.BlockSpec((n_rows,), lambda i: (0,))] + [row_spec] * n_in,
+        # A value shared by every lane is one scalar load (a row of lanes a vector load).
+        in_specs=[pl.BlockSpec((n_rows,), lambda i: (0,))]
+        + [pl.BlockSpec((1,), lambda i: (0,)) if r.shape[0] == 1 else row_spec for r in in_rows],
         out_specs=out_specs,
         interpret=interpret,
         name="rbdyn_kernel",
