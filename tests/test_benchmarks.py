@@ -3,8 +3,10 @@
 import importlib.util
 import json
 import pathlib
+import re
 
 import numpy as np
+import pytest
 
 BENCH = pathlib.Path(__file__).resolve().parents[1] / "benchmarks"
 
@@ -217,3 +219,27 @@ def test_long_horizon_runs_and_the_splitting_keeps_its_invariants(tmp_path):
         for r in (top, gg)
     )
     assert saved["meta"]["targets"]["energy_le_1e-8"]
+
+
+def test_kernel_build_reads_the_kernel_lowered_for_an_h100():
+    """`benchmarks/kernel_build.py` reads the Triton module of the kernel lowered for an H100
+    from this CPU. JAX has no public API for it: this fails when Pallas's Triton lowering
+    moves. The module is the kernel as built: one step loop holding the loop that saves
+    output times, and the values every lane shares (the inertia's 9 elements, the
+    controller's rtol and atol, the time scale's start and span) read as 13 scalars."""
+    text = load("kernel_build").case_module("torque_free-float32", n=16)
+    assert text.count("tt.func public @rbdyn_kernel") == 1
+    assert text.count("scf.while") == 2
+    scalar_loads = re.findall(r"tt\.load %\w+ : !tt\.ptr<f32>", text)
+    assert len(scalar_loads) == 13
+
+
+def test_kernel_build_compiles_for_sm_90(tmp_path):
+    """Where the `triton` package is installed (the `kernel-build` extra), the benchmark
+    compiles the module for sm_90 and reads ptxas's report of the kernel."""
+    pytest.importorskip("triton")
+    rows = load("kernel_build").main(cases=["torque_free-float32"], out=str(tmp_path))
+    saved = json.loads((tmp_path / "kernel_build.json").read_text())
+    assert saved["rows"] == rows and rows[0]["case"] == "torque_free-float32"
+    assert 0 < rows[0]["registers"] <= 255 and rows[0]["blocks_per_sm"] >= 1
+    assert rows[0]["compile_s"] > rows[0]["coalesce_s"] > 0
