@@ -328,7 +328,7 @@ def _gpu_environment() -> str:
     return (
         f"- **GPU:** {m['jax_device']} (the CUDA kernel ran on {m['cuda_device']})\n"
         f"- **Versions:** jax {m['jax']} (CUDA), diffrax {m['diffrax']}, equinox "
-        f"{m['equinox']}"
+        f"{m['equinox']}" + (f", rbdyn_jax {m['revision']}" if "revision" in m else "")
     )
 
 
@@ -430,6 +430,33 @@ def _gpu_accuracy() -> str:
     return _table(
         [f"method (N = {_n(n)})", "mean steps", "most steps", "median error", "largest error"], rows
     )
+
+
+def _kernel_build() -> str:
+    """One row per case of `kernel_build.py`: the kernel as compiled for an H100."""
+    d = _load("kernel_build")
+    rows = [
+        [
+            r["case"].replace("-", ", "),
+            r["registers"],
+            f"{r['spill_stores']} / {r['spill_loads']}",
+            f"{r['blocks_per_sm']} ({r['resident_warps']} warps)",
+            f"{r['compile_s']:.1f}",
+            f"{r['coalesce_s']:.1f}",
+            _n(r["ttir_ops"]),
+        ]
+        for r in d["rows"]
+    ]
+    head = [
+        "case",
+        "registers a thread",
+        "spill stores / loads (B)",
+        "blocks a multiprocessor",
+        "Triton compile (s)",
+        "of which coalescing (s)",
+        "TTIR operations",
+    ]
+    return _table(head, rows)
 
 
 def _power(x: float) -> str:
@@ -541,6 +568,7 @@ def _long_horizon_potentials() -> str:
 TABLES = {
     "environment": _environment,
     "gpu_environment": _gpu_environment,
+    "kernel_build": _kernel_build,
     "gpu": _gpu,
     "gpu_accuracy": _gpu_accuracy,
     "throughput": _throughput,
