@@ -14,7 +14,8 @@ rtol = atol = 1e-8 in float64 and 1e-6 in float32. Rows:
   (`rb.Kernel`; the row names the strategy the default took, and for `Lanes` its lanes);
 - `default f32`: the same call on float32 inputs (the solve runs in float32);
 - `kernel`, `kernel f32`: `batching=rb.Kernel()` (a block of 128 trajectories a program),
-  float64 and float32;
+  float64 and float32; `Kernel(B)`, `Kernel(B) f32` for each block B of `--blocks` (a
+  trajectory a GPU thread at any block);
 - `lanes`, `lanes f32`: `batching=rb.Lanes()`, the lane solver in its array layout with the
   lanes it takes for the batch;
 - `kernel gradient`, `lanes gradient`: `jax.jit(jax.grad(loss))` of a batch loss (Σ ω² over
@@ -49,7 +50,7 @@ Results are written after every row (`gpu.json` under `--out`), so a run stopped
 `--budget` (seconds; later rows are skipped) or killed keeps what it measured.
 
 Run: `python benchmarks/gpu.py [--sizes 1000 10000 100000 1000000] [--grad-max 100000]
-[--vmap-max 100000] [--whole-min 100000] [--lanes L …] [--cpu-layout-max 0]
+[--vmap-max 100000] [--whole-min 100000] [--lanes L …] [--blocks B …] [--cpu-layout-max 0]
 [--models heavy_top gravity_gradient] [--model-min 100000] [--sweep-n 10000000]
 [--budget 600] [--out results/benchmarks]`. The whole report in one
 command within a 10-minute device call: `python benchmarks/gpu.py --sizes 100000 1000000
@@ -289,7 +290,7 @@ def measure(method, n, w0, ts, ref, repeats):
         "vmap",
         "lanes cpu layout",
         "lane per trajectory",
-    ) or method.startswith("Lanes("):
+    ) or method.startswith(("Lanes(", "Kernel(")):
         dtype = np.float32 if method.endswith("f32") else np.float64
         batching = {
             "vmap": rb.Vmap(),
@@ -302,6 +303,8 @@ def measure(method, n, w0, ts, ref, repeats):
         }.get(method)
         if method.startswith("Lanes("):
             batching = rb.Lanes(int(method[6:-1]))
+        if method.startswith("Kernel("):
+            batching = rb.Kernel(int(method[7:].split(")")[0]))
         tr, first, t = timed(rbdyn_forward(w0, ts, dtype, batching), repeats)
         row = rate_row(
             method,
@@ -378,6 +381,7 @@ def plan(
     sweep_n=0,
     models=(),
     model_min=0,
+    blocks=(),
 ):
     """(method, n) in the order measured: the yardstick first at each size, then the rest;
     the sweep after the largest size's kernel rows (before its slower reference rows)."""
@@ -391,6 +395,7 @@ def plan(
             ("kernel f32", n),
             ("default f32", n),
         ]
+        rows += [(f"Kernel({b}){s}", n) for b in blocks for s in ("", " f32")]
         if n <= grad_max:
             rows.append(("kernel gradient", n))
         if sweep_n and n == max(sizes):
@@ -434,6 +439,7 @@ def main(
     sweep_n=0,
     models=(),
     model_min=0,
+    blocks=(),
 ):
     t_start = time.perf_counter()
     ts = np.linspace(0.0, T_END, N_OUT)
@@ -445,12 +451,22 @@ def main(
         "sweep_n": sweep_n,
         "models": list(models),
         "model_min": model_min,
+        "blocks": list(blocks),
         **device_names(),
     }
     print(f"device: {meta['jax_device']}; CUDA yardstick on: {meta['cuda_device']}")
     rows, refs, model_refs = [], {}, {}
     for method, n in plan(
-        sizes, grad_max, vmap_max, cpu_layout_max, whole_min, lanes, sweep_n, models, model_min
+        sizes,
+        grad_max,
+        vmap_max,
+        cpu_layout_max,
+        whole_min,
+        lanes,
+        sweep_n,
+        models,
+        model_min,
+        blocks,
     ):
         if time.perf_counter() - t_start > budget:
             rows.append({"method": method, "batch": n, "skipped": "budget"})
@@ -554,6 +570,7 @@ if __name__ == "__main__":
     p.add_argument("--models", nargs="*", default=list(MODELS), choices=MODELS)
     p.add_argument("--model-min", type=int, default=100_000)
     p.add_argument("--sweep-n", type=int, default=10_000_000)
+    p.add_argument("--blocks", type=int, nargs="*", default=[])
     p.add_argument("--budget", type=float, default=600.0)
     p.add_argument("--out", default="results/benchmarks")
     a = p.parse_args()
@@ -570,4 +587,5 @@ if __name__ == "__main__":
         a.sweep_n,
         a.models,
         a.model_min,
+        a.blocks,
     )

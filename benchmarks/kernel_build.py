@@ -7,8 +7,8 @@ For each case it reports what sets a GPU thread's cost and the first call's Trit
 
 - `registers` a thread, `spill_stores` / `spill_loads` (bytes a thread moves to local
   memory, per `ptxas -v`) and `stack` (its frame, bytes);
-- `blocks_per_sm`: the programs (blocks of 128 lanes, 4 warps) an H100 streaming
-  multiprocessor holds at once by its 65,536 registers (`resident_warps` = 4 × that);
+- `blocks_per_sm`: the programs (blocks of `block` lanes, a lane a thread) an H100
+  streaming multiprocessor holds at once by its 65,536 registers, and `resident_warps`;
 - `compile_s`: the Triton compilation's seconds on this machine (TTIR passes, TTGIR,
   LLVM IR, PTX, `ptxas`), `coalesce_s` the part in Triton's coalescing pass, and the sizes
   of the module (`ttir_ops`) and of its PTX (`ptx_lines`).
@@ -21,7 +21,7 @@ sensitivities, float64).
 
 Needs the `triton` package (`pip install -c requirements.lock -e ".[kernel-build]"`; Linux
 x86-64), which brings its own `ptxas`; no GPU. Run: `python benchmarks/kernel_build.py [--cases …]
-[--out results/benchmarks]`.
+[--blocks 128 …] [--out results/benchmarks]`.
 """
 
 import argparse
@@ -43,7 +43,7 @@ import numpy as np  # noqa: E402
 
 import rbdyn_jax as rb  # noqa: E402
 from rbdyn_jax._program import checks  # noqa: E402
-from rbdyn_jax.integrate._kernel_layout import GPU_BLOCK, TRITON_WARPS  # noqa: E402
+from rbdyn_jax.integrate._kernel_layout import GPU_BLOCK, triton_warps  # noqa: E402
 from rbdyn_jax.integrate._kernel_solve import kernel_solve  # noqa: E402
 
 sys.path.insert(0, str(pathlib.Path(__file__).parent))
@@ -101,8 +101,10 @@ def triton_module(fn, *args) -> str:
     return modules[0]
 
 
-def case_module(case: str, n: int = 2 * GPU_BLOCK) -> str:
-    """The Triton module of a case (`CASES`) for a batch of `n` trajectories."""
+def case_module(case: str, block: int = GPU_BLOCK, n: int | None = None) -> str:
+    """The Triton module of a case (`CASES`) at `block` lanes a program, for a batch of `n`
+    trajectories (default two blocks)."""
+    n = 2 * block if n is None else n
     w0 = np.random.default_rng(0).normal(size=(n, 3))
     ts = np.linspace(0.0, T_END, N_OUT)
     if case == "gradient":
@@ -116,7 +118,7 @@ def case_module(case: str, n: int = 2 * GPU_BLOCK) -> str:
                 jnp.asarray(ts),
                 rtol=TOL["float64"],
                 atol=TOL["float64"],
-                batching=rb.Kernel(block=GPU_BLOCK, interpret=False),
+                batching=rb.Kernel(block=block, interpret=False),
             )
             return jnp.sum(tr.ys.omega**2)
 
@@ -126,14 +128,12 @@ def case_module(case: str, n: int = 2 * GPU_BLOCK) -> str:
     pid = rb.integrate.make_controller(rtol=TOL[dtype], atol=TOL[dtype], dtype=dtype)
 
     def solve(y0s, ts):
-        return kernel_solve(
-            model, y0s, ts, diffrax.Tsit5(), pid, 10**6, None, None, GPU_BLOCK, False
-        )
+        return kernel_solve(model, y0s, ts, diffrax.Tsit5(), pid, 10**6, None, None, block, False)
 
     return triton_module(solve, states(w0, dtype), jnp.asarray(ts, dtype))
 
 
-def build(module: str) -> dict:
+def build(module: str, block: int = GPU_BLOCK) -> dict:
     """Compile a Triton module's text for sm_90 as XLA's pipeline does (its TTIR passes
     first, as the `triton` package's own front end runs them), timed, and read `ptxas -v`'s
     report of its kernel."""
@@ -143,6 +143,7 @@ def build(module: str) -> dict:
     from triton.backends.nvidia.compiler import CUDABackend
 
     target = GPUTarget("cuda", SM_ARCH, 32)
+    warps = triton_warps(block)
     with tempfile.TemporaryDirectory() as tmp:
         os.environ["TRITON_CACHE_DIR"] = tmp  # nothing reused between cases
         src = pathlib.Path(tmp, "kernel.ttir")
@@ -170,7 +171,7 @@ def build(module: str) -> dict:
             lambda: triton.compile(
                 str(src),
                 target=target,
-                options={"num_warps": TRITON_WARPS, "num_stages": 1},
+                options={"num_warps": warps, "num_stages": 1},
             )
         )
         compiled, coalesce_s = coalesce
@@ -185,12 +186,12 @@ def build(module: str) -> dict:
             check=True,
         ).stderr
     usage = _ptxas_usage(report, compiled.name)
-    threads = 32 * TRITON_WARPS
+    threads = 32 * warps
     blocks = H100_REGISTERS // (max(usage["registers"], 1) * threads)
     return {
         **usage,
         "blocks_per_sm": blocks,
-        "resident_warps": blocks * TRITON_WARPS,
+        "resident_warps": blocks * warps,
         "compile_s": compile_s,
         "coalesce_s": coalesce_s,
         "ttir_ops": ttir_ops,
@@ -240,28 +241,28 @@ def _ptxas_usage(report: str, name: str) -> dict:
     }
 
 
-def main(cases=CASES, out="results/benchmarks"):
+def main(cases=CASES, blocks=(GPU_BLOCK,), out="results/benchmarks"):
     import triton
 
     rows = []
     print(
-        f"{'case':<26}{'regs':>6}{'spill st/ld B':>16}{'blocks/SM':>11}"
+        f"{'case':<26}{'block':>6}{'regs':>6}{'spill st/ld B':>16}{'blocks/SM':>11}"
         f"{'compile s':>11}{'coalesce s':>12}{'TTIR ops':>10}"
     )
     for case in cases:
-        row = {"case": case, **build(case_module(case))}
-        rows.append(row)
-        print(
-            f"{case:<26}{row['registers']:>6}"
-            f"{row['spill_stores']:>8}/{row['spill_loads']:<7}{row['blocks_per_sm']:>11}"
-            f"{row['compile_s']:>11.2f}{row['coalesce_s'] or float('nan'):>12.2f}"
-            f"{row['ttir_ops']:>10}"
-        )
+        for block in blocks:
+            row = {"case": case, "block": block, **build(case_module(case, block), block)}
+            rows.append(row)
+            print(
+                f"{case:<26}{block:>6}{row['registers']:>6}"
+                f"{row['spill_stores']:>8}/{row['spill_loads']:<7}{row['blocks_per_sm']:>11}"
+                f"{row['compile_s']:>11.2f}{row['coalesce_s'] or float('nan'):>12.2f}"
+                f"{row['ttir_ops']:>10}"
+            )
     meta = {
         "triton": triton.__version__,
         "target": f"sm_{SM_ARCH}a (H100)",
-        "block": GPU_BLOCK,
-        "num_warps": TRITON_WARPS,
+        "blocks": list(blocks),
         "t_end": T_END,
         "n_out": N_OUT,
         "tol": TOL,
@@ -273,5 +274,6 @@ def main(cases=CASES, out="results/benchmarks"):
 if __name__ == "__main__":
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--cases", nargs="+", default=list(CASES), choices=CASES)
+    p.add_argument("--blocks", type=int, nargs="+", default=[GPU_BLOCK])
     p.add_argument("--out", default="results/benchmarks")
     main(**vars(p.parse_args()))

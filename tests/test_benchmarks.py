@@ -136,9 +136,10 @@ def test_gradient_steps_runs_and_agrees(tmp_path):
 
 def test_gpu_report_runs_on_a_cpu(tmp_path):
     """`benchmarks/gpu.py`'s rows on this CPU at 3 trajectories over t ≤ 3: the kernel (in
-    interpret mode), the lane solver, the default call, the heavy top's rows, and the
-    summaries-only sweep (4 trajectories, its store written and removed). The CUDA rows are
-    recorded as failed (no driver here) and the run goes on. The gradient rows are left out
+    interpret mode, at its default block and at `--blocks 2`), the lane solver, the default
+    call, the heavy top's rows, and the summaries-only sweep (4 trajectories, its store
+    written and removed). The CUDA rows are recorded as failed (no driver here) and the run
+    goes on. The gradient rows are left out
     (`grad_max=0`): the kernel's sensitivities take two minutes to compile in interpret
     mode, and its gradients are tested in tests/test_kernel.py."""
     mod = load("gpu")
@@ -156,6 +157,7 @@ def test_gpu_report_runs_on_a_cpu(tmp_path):
         sweep_n=4,
         models=["heavy_top"],
         model_min=0,
+        blocks=[2],
     )
     saved = json.loads((tmp_path / "gpu.json").read_text())
     assert saved["rows"] == rows
@@ -165,6 +167,8 @@ def test_gpu_report_runs_on_a_cpu(tmp_path):
         "cuda f32",
         "kernel",
         "kernel f32",
+        "Kernel(2)",
+        "Kernel(2) f32",
         "default",
         "default f32",
         "lanes",
@@ -178,6 +182,9 @@ def test_gpu_report_runs_on_a_cpu(tmp_path):
     assert by["default"]["batching"] == "Lanes"  # a CPU backend
     for m in ("kernel", "default", "lanes"):
         assert by[m]["all_successful"] and by[m]["max_error"] < 1e-6, m
+    for m in ("kernel", "Kernel(2)"):  # blocks of 4 and of 2: the same steps in float64
+        assert by[m]["mean_steps"] == by["lanes"]["mean_steps"], m
+        assert by[f"{m} f32"]["all_successful"], m
     for m in ("", " heavy_top"):
         assert by[f"kernel{m}"]["mean_steps"] == by[f"lanes{m}"]["mean_steps"]
         assert by[f"kernel{m}"]["all_successful"]

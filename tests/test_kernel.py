@@ -284,21 +284,38 @@ def test_the_default_takes_the_kernel_only_on_a_gpu_backend():
 @pytest.mark.parametrize("dtype", [np.float64, np.float32])
 def test_the_kernel_lowers_to_triton_for_a_gpu(dtype):
     """Exported for CUDA from this CPU (`jax.export`): every operation of the kernel body
-    (rows of lanes, the loops, the stores of one output row, the scalar read of an output
-    time) has a Triton lowering, and the kernel is a Triton call, not Mosaic GPU (JAX's
-    default for `pallas_call` on a GPU). Compiling the Triton IR needs a GPU."""
+    (rows of lanes, the loops, the gathered output times, the stores into each lane's
+    column, the scalar reads of shared values) has a Triton lowering, and the kernel is a
+    Triton call, not Mosaic GPU (JAX's default for `pallas_call` on a GPU), with a thread a
+    lane: 64 lanes, 2 warps. `benchmarks/kernel_build.py` compiles such a module."""
     from rbdyn_jax.integrate._kernel_solve import kernel_solve
 
-    y0s = initial_states(16, dtype=dtype)
+    y0s = initial_states(100, dtype=dtype)
     ts = np.linspace(0.0, 3.0, 7, dtype=dtype)
     model = rb.RigidBody(np.asarray(J, dtype), rb.GravityGradient(np.asarray(0.3, dtype)))
     pid = rb.integrate.make_controller(dtype=dtype)
 
     def solve(y0s, ts):
-        return kernel_solve(model, y0s, ts, diffrax.Tsit5(), pid, 1000, None, None, 16, False)
+        return kernel_solve(model, y0s, ts, diffrax.Tsit5(), pid, 1000, None, None, 64, False)
 
     text = exported_for_cuda(solve, y0s, ts).mlir_module()
     assert "__gpu$xla.gpu.triton" in text and "mosaic" not in text.lower()
+    assert "num_warps = 2 : i32" in text and "grid_x = 2 : i32" in text
+
+
+def test_a_gpu_thread_a_lane():
+    from rbdyn_jax.integrate._kernel_layout import triton_warps
+
+    assert [triton_warps(b) for b in (1, 16, 32, 64, 128, 256, 1024, 4096)] == [
+        1,
+        1,
+        1,
+        2,
+        4,
+        8,
+        32,
+        32,
+    ]
 
 
 def exported_for_cuda(fn, *args):

@@ -165,8 +165,9 @@ class Kernel(AbstractBatching):
 
     **Arguments:**
 
-    - `block`: trajectories a program integrates, a power of two (Triton's blocks are);
-      `None`: 128 on a GPU, else the batch (to the next power of two, at most 1024).
+    - `block`: trajectories a program integrates, a power of two (Triton's blocks are); on
+      a GPU a trajectory a thread (`block` / 32 warps, 1 to 32). `None`: 128 on a GPU,
+      else the batch (to the next power of two, at most 1024).
     - `interpret`: run the kernel in Pallas's interpret mode (on any backend, slowly);
       `None`: on every backend but a GPU.
 

@@ -1,5 +1,5 @@
 """How the kernel lays a batch out: in blocks of lanes, a block a program (`kernel_block`:
-128 lanes on a GPU, a lane a Triton thread, `TRITON_WARPS`; else the whole batch up to
+128 lanes on a GPU, a lane a Triton thread, `triton_warps`; else the whole batch up to
 1024), and in rows, each scalar of a pytree with a leading trajectory axis a row of lanes
 (`_flat_rows`), rebuilt in the kernel as object arrays of rows (`_unflat_rows`, as
 `_rows.rowwise` takes them), read and replaced in order (`_elements`, `_with_elements`)
@@ -12,16 +12,21 @@ import numpy as np
 
 from ._rows import objects
 
-# The block on a GPU: 128 lanes a program (a Pallas kernel of this form solved 5.6 M
-# trajectories/s on an H100 with blocks of 128; other widths are untuned); elsewhere
+# The block on a GPU: 128 lanes a program, 4 warps (`benchmarks/gpu.py --blocks` measures
+# other widths, each a lane a thread); elsewhere
 # (interpret mode, where a program's cost hardly depends on its width) the whole batch in
 # one program, up to `MAX_INTERPRET_BLOCK` lanes.
 GPU_BLOCK, MAX_INTERPRET_BLOCK = 128, 1024
-TRITON_WARPS = 4  # 128 threads: a lane a thread at the GPU block
 
 
 def next_power_of_two(n: int) -> int:
     return 1 << max(0, int(n) - 1).bit_length()
+
+
+def triton_warps(block: int) -> int:
+    """Triton's warps for a program of `block` lanes: a lane a thread (32 a warp), at
+    least one warp and at most 32 (1024 threads, CUDA's most a block)."""
+    return min(32, max(1, block // 32))
 
 
 def kernel_block(block, n: int, gpu: bool) -> int:

@@ -34,13 +34,13 @@ import numpy as np
 
 from ._field import controller_in_unit_time, unit_time
 from ._kernel_layout import (
-    TRITON_WARPS,
     _elements,
     _flat_rows,
     _select,
     _unflat_rows,
     _with_elements,
     next_power_of_two,
+    triton_warps,
 )
 from ._lane_step import clip_floor, guarded_term, lane_control, lane_first, unrolled_step
 from ._rows import objects, rowwise, trace, unsupported
@@ -290,7 +290,7 @@ def kernel_run(system, y0s, ts, controller, solver, max_steps, dt0, batched, blo
         # GPU (`jax_pallas_use_mosaic_gpu`), whose copies are of whole warpgroups.
         compiler_params=None
         if interpret
-        else pltriton.CompilerParams(num_warps=TRITON_WARPS, num_stages=1),
+        else pltriton.CompilerParams(num_warps=triton_warps(block), num_stages=1),
     )
     outs = _undifferentiated(call)(ts_pad, *in_rows)
     ys_rows, counts, result, saved = outs[:n_y], outs[n_y : n_y + 3], outs[-2], outs[-1]
