@@ -684,3 +684,25 @@ def test_trajectory_bytes_of_the_default_scenario():
     assert sweep.trajectory_bytes(sc.with_settings(trajectories="none"))[1] == 72
     assert sweep.trajectory_bytes(sc.with_settings(trajectories=100))[1] == 72
     assert sweep.trajectory_bytes(sc.with_settings(trajectories=10))[1] == 260
+
+
+def test_an_interrupt_waits_for_the_region_being_written():
+    """Ctrl-C while a region is written is delivered once it is written (zarr writes from
+    its own thread, which an interrupt of the main one would leave running: the store would
+    then change after the sweep returned); the handler is then the caller's again."""
+    from rbdyn_jax.sweep._run import _interrupt_held
+
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        written = []
+        with pytest.raises(KeyboardInterrupt):
+            with _interrupt_held():
+                signal.raise_signal(signal.SIGINT)
+                written.append("region")  # still runs: the interrupt is held
+        assert written == ["region"]
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+        with _interrupt_held():  # none held: nothing delivered
+            written.append("next")
+        assert written == ["region", "next"]
+    finally:
+        signal.signal(signal.SIGINT, before)

@@ -437,7 +437,7 @@ def _kernel_build() -> str:
     d = _load("kernel_build")
     rows = [
         [
-            r["case"].replace("-", ", "),
+            r["case"].replace("-", ", ") + f", block {r.get('block', 128)}",
             r["registers"],
             f"{r['spill_stores']} / {r['spill_loads']}",
             f"{r['blocks_per_sm']} ({r['resident_warps']} warps)",

@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import pathlib
+import signal
+import threading
 import time
 import uuid
 from collections.abc import Callable
@@ -66,9 +69,30 @@ def _finish_region(g, launched: tuple) -> tuple[int, int]:
     runner, start, status, idx, out = launched
     if idx.size:
         res = runner.collect(out, idx)
-        _write(g, idx, res, runner.every)
+        with _interrupt_held():
+            _write(g, idx, res, runner.every)
         status[idx - start] = res["status"]
     return int(np.sum(status >= 0)), int(np.sum(status > 0))
+
+
+@contextlib.contextmanager
+def _interrupt_held():
+    """Ctrl-C (SIGINT) held while a region is written, then delivered: an interrupted sweep
+    leaves no write in flight (zarr writes from its own thread, which an interrupt of this
+    one does not stop), so its store says what was solved when the call returns. Only in
+    the main thread, with a handler Python installed; elsewhere as it is."""
+    main = threading.current_thread() is threading.main_thread()
+    if not main or signal.getsignal(signal.SIGINT) is None:
+        yield
+        return
+    held = []
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: held.append(signum))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        if held:
+            signal.raise_signal(signal.SIGINT)
 
 
 def _solve_region(g, runner: _Runner, key, start: int, stop: int) -> tuple[int, int]:
