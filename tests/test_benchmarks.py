@@ -232,12 +232,21 @@ def test_kernel_build_reads_the_kernel_lowered_for_an_h100():
     """`benchmarks/kernel_build.py` reads the Triton module of the kernel lowered for an H100
     from this CPU. JAX has no public API for it: this fails when Pallas's Triton lowering
     moves. The module is the kernel as built: one step loop holding the loop that saves
-    output times, and the values every lane shares (the inertia's 9 elements, the
-    controller's rtol and atol, the time scale's start and span) read as 13 scalars."""
-    text = load("kernel_build").case_module("torque_free-float32", n=16)
-    assert text.count("tt.func public @rbdyn_kernel") == 1
-    assert text.count("scf.while") == 2
-    scalar_loads = re.findall(r"tt\.load %\w+ : !tt\.ptr<f32>", text)
+    output times; the values every lane shares (the inertia's 9 elements, the controller's
+    rtol and atol, the time scale's start and span) read as 13 scalars; and as many memory
+    operations on rows of lanes for the torque-free body's 7 states as for the gradient's
+    25 states and sensitivities (each costs Triton's coalescing pass a pass over the kernel):
+    a load per dtype of rows, the output times' reads, a store of saved rows and one of the
+    counts."""
+    mod = load("kernel_build")
+    for case in ("torque_free-float32", "gradient"):
+        text = mod.case_module(case, n=16)
+        assert text.count("tt.func public @rbdyn_kernel") == 1, case
+        assert text.count("scf.while") == 2, case
+        assert len(re.findall(r"tt\.(?:load|store) [^\n]*tensor<", text)) == 8, case
+    scalar_loads = re.findall(
+        r"tt\.load %\w+ : !tt\.ptr<f32>", mod.case_module("torque_free-float32")
+    )
     assert len(scalar_loads) == 13
 
 

@@ -448,7 +448,7 @@ def test_gradients_for_per_trajectory_models_whole_states_and_times():
 def test_the_gradient_kernel_lowers_to_triton_for_a_gpu():
     """`jax.grad` through the kernel, exported for CUDA from this CPU: the one kernel of
     the gradient program integrates the state and its sensitivities (a loss on ω and the
-    attitude, six inertia parameters: 7 + 7 × 6 output rows) and lowers to Triton, every
+    attitude, six inertia parameters: 7 + 7 × 6 saved components) and lowers to Triton, every
     operation of the sensitivities' field (a `jax.jvp` of the model's, vmapped over the
     columns, on rows) included."""
     y0s, ts = initial_states(16), np.linspace(0.0, 3.0, 7)
@@ -472,8 +472,9 @@ def test_the_gradient_kernel_lowers_to_triton_for_a_gpu():
         if "custom_call" in line and "__gpu$xla.gpu.triton" in line
     ]
     assert len(calls) == 1 and "mosaic" not in text.lower()
-    # Output rows (7 output times and a spare row, padded to 8) of 16 lanes, flat
-    assert calls[0].count("tensor<128xf64>") == 7 + 7 * 6
+    # Its outputs: the saved rows, 8 times (7 and a spare) × 64 components (7 + 7 × 6,
+    # padded) × 16 lanes in one array, and the counts, 8 rows (5, padded) of 16 lanes.
+    assert "-> (tensor<8192xf64>, tensor<128xi32>)" in calls[0]
 
 
 def test_a_second_derivative_through_the_kernel_is_refused():

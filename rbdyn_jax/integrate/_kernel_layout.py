@@ -3,7 +3,11 @@
 1024), and in rows, each scalar of a pytree with a leading trajectory axis a row of lanes
 (`_flat_rows`), rebuilt in the kernel as object arrays of rows (`_unflat_rows`, as
 `_rows.rowwise` takes them), read and replaced in order (`_elements`, `_with_elements`)
-and selected per lane (`_select`).
+and selected per lane (`_select`). The kernel moves its rows through few memory
+operations (`_packed`, `read_rows`, `write_rows`): the per-lane rows of a dtype in one 2-D
+array read by one load in a loop, a value every lane shares as one element, and the rows
+it writes by one store in a loop. Triton's coalescing pass costs each memory operation a
+pass over the whole kernel, which is most of the kernel's compilation.
 """
 
 import jax
@@ -90,3 +94,52 @@ def _select(mask, new, old):
     return _with_elements(
         old, [jnp.where(mask, a, b) for a, b in zip(_elements(new), _elements(old))]
     )
+
+
+def _packed(rows):
+    """The kernel's inputs for `rows` (`(P,)` a row of lanes, `(1,)` a value every lane
+    shares): the per-lane rows of each dtype stacked into one `(R, P)` array (R a power of
+    two, the rest zeros), each shared value as it is; and for each input, the positions in
+    `rows` of the rows it holds."""
+    groups, shared = {}, []
+    for k, r in enumerate(rows):
+        if r.shape[0] == 1:
+            shared.append(k)
+        else:
+            groups.setdefault(r.dtype, []).append(k)
+    inputs, where = [], []
+    for ks in groups.values():
+        stack = [rows[k] for k in ks]
+        stack += [jnp.zeros_like(stack[0])] * (next_power_of_two(len(ks)) - len(ks))
+        inputs.append(jnp.stack(stack))
+        where.append(ks)
+    for k in shared:
+        inputs.append(rows[k])
+        where.append([k])
+    return inputs, where
+
+
+def read_rows(ref, count: int) -> list:
+    """In the kernel, rows 0 … `count` − 1 of a 2-D block `ref`, by one load in a loop: each
+    row is kept where the loop's index is its own (a select), bit for bit."""
+
+    def body(r, rows):
+        x = ref[r, :]
+        return tuple(jnp.where(r == k, x, rows[k]) for k in range(count))
+
+    zeros = tuple(jnp.zeros(ref.shape[1:], ref.dtype) for _ in range(count))
+    return list(jax.lax.fori_loop(0, count, body, zeros))
+
+
+def write_rows(ref, rows: list, at) -> None:
+    """In the kernel, `rows` into the flat block `ref`, row k at the positions `at(k)` (`k`
+    traced), by one store in a loop: the row stored is picked by selects on the index."""
+
+    def body(c, carry):
+        v = rows[0]
+        for k in range(1, len(rows)):
+            v = jnp.where(c == k, rows[k], v)
+        ref[at(c)] = v
+        return carry
+
+    jax.lax.fori_loop(0, len(rows), body, 0)

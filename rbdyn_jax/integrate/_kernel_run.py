@@ -36,11 +36,14 @@ from ._field import controller_in_unit_time, unit_time
 from ._kernel_layout import (
     _elements,
     _flat_rows,
+    _packed,
     _select,
     _unflat_rows,
     _with_elements,
     next_power_of_two,
+    read_rows,
     triton_warps,
+    write_rows,
 )
 from ._lane_step import clip_floor, guarded_term, lane_control, lane_first, unrolled_step
 from ._rows import objects, rowwise, trace, unsupported
@@ -91,7 +94,8 @@ def kernel_run(system, y0s, ts, controller, solver, max_steps, dt0, batched, blo
     )
     init = jax.tree_util.tree_map(lanes, (y0r, sstate0, cstate0, tnext0, ok0))
     in_rows, in_layout = _flat_rows((params, init))
-    n_in = len(in_rows)
+    inputs, where = _packed(in_rows)
+    n_in = len(inputs)
     error_order = solver.error_order(diffrax.ODETerm(lambda t, y, a: y))
     t1_floor = clip_floor(dtype)
 
@@ -148,6 +152,12 @@ def kernel_run(system, y0s, ts, controller, solver, max_steps, dt0, batched, blo
     # Each saved row in its state element's dtype (a float64 state with float32 times too)
     y_dtypes = [e.dtype for x in jax.tree_util.tree_leaves(ex_y) for e in x.flat]
     n_y = len(y_dtypes)
+    y_groups = {}  # the saved components by dtype: one output of each
+    for k, d in enumerate(y_dtypes):
+        y_groups.setdefault(d, []).append(k)
+    widths = [next_power_of_two(len(ks)) for ks in y_groups.values()]
+    counted = ("steps", "accepted", "rejected", "result", "saved")
+    n_counts = next_power_of_two(len(counted))
     # Rows of the output: the n times and a spare row n, where a lane with nothing to save
     # writes when others save (a store is of every lane).
     n_rows = next_power_of_two(n + 1)
@@ -156,13 +166,14 @@ def kernel_run(system, y0s, ts, controller, solver, max_steps, dt0, batched, blo
     state_keys = ("tprev", "tnext", "ok", "steps", "accepted", "rejected", "result", "saved")
 
     def kernel(ts_ref, *refs):
-        in_refs, out_refs = refs[:n_in], refs[n_in:]
-        ys_refs, counts_refs = out_refs[:n_y], out_refs[n_y:]
+        in_refs, ys_refs, counts_ref = refs[:n_in], refs[n_in:-1], refs[-1]
         rows = (block,)
-        params, (y, f, cstate, tnext, ok) = _unflat_rows(
-            in_layout,
-            [jnp.broadcast_to(r[0], rows) if r.shape[0] == 1 else r[...] for r in in_refs],
-        )
+        flat = [None] * len(in_rows)
+        for ref, ks in zip(in_refs, where):
+            parts = read_rows(ref, len(ks)) if len(ref.shape) == 2 else [ref[0]]
+            for k, row in zip(ks, parts):
+                flat[k] = jnp.broadcast_to(row, rows)
+        params, (y, f, cstate, tnext, ok) = _unflat_rows(in_layout, flat)
         zero_f = jnp.zeros(rows, dtype)
         zero_i = jnp.zeros(rows, int_t)
         lane = jax.lax.broadcasted_iota(int_t, rows, 0)
@@ -241,9 +252,14 @@ def kernel_run(system, y0s, ts, controller, solver, max_steps, dt0, batched, blo
                     dense,
                     obj(lambda idx: t_out),
                 )
-                at = jnp.where(now, saved, n) * block + lane
-                for ref, v in zip(ys_refs, _elements(vals)):
-                    ref[at] = full(v).astype(ref.dtype)
+                row = jnp.where(now, saved, n)
+                comps = _elements(vals)
+                for ref, ks, width in zip(ys_refs, y_groups.values(), widths):
+                    write_rows(
+                        ref,
+                        [full(comps[k]).astype(ref.dtype) for k in ks],
+                        lambda c, w=width: (row * w + c) * block + lane,
+                    )
                 return saved + now.astype(int_t)
 
             saved = jax.lax.while_loop(
@@ -267,22 +283,29 @@ def kernel_run(system, y0s, ts, controller, solver, max_steps, dt0, batched, blo
             return pack(s)
 
         s = unpack(jax.lax.while_loop(cond, body, pack(state)))
-        for ref, k in zip(counts_refs, ("steps", "accepted", "rejected", "result", "saved")):
-            ref[...] = s[k]
+        write_rows(counts_ref, [s[k] for k in counted], lambda c: c * block + lane)
 
-    row_spec = pl.BlockSpec((block,), lambda i: (i,))
-    # A block's output rows are contiguous: time by time, each a row of its lanes.
-    out_shape = [jax.ShapeDtypeStruct((P * n_rows,), d) for d in y_dtypes] + [
-        jax.ShapeDtypeStruct((P,), int_t)
-    ] * 5
-    out_specs = [pl.BlockSpec((n_rows * block,), lambda i: (i,))] * n_y + [row_spec] * 5
+    # A block's outputs are contiguous: time by time, component by component, each a row of
+    # its lanes; then its counts, a row each.
+    out_shape = [jax.ShapeDtypeStruct((P * n_rows * w,), d) for d, w in zip(y_groups, widths)] + [
+        jax.ShapeDtypeStruct((P * n_counts,), int_t)
+    ]
+    out_specs = [pl.BlockSpec((n_rows * w * block,), lambda i: (i,)) for w in widths] + [
+        pl.BlockSpec((n_counts * block,), lambda i: (i,))
+    ]
     call = pl.pallas_call(
         kernel,
         out_shape=out_shape,
         grid=(P // block,),
-        # A value shared by every lane is one scalar load (a row of lanes a vector load).
+        # The per-lane rows of a dtype: the block's columns of one 2-D array; a value every
+        # lane shares: one element, read as a scalar.
         in_specs=[pl.BlockSpec((n_rows,), lambda i: (0,))]
-        + [pl.BlockSpec((1,), lambda i: (0,)) if r.shape[0] == 1 else row_spec for r in in_rows],
+        + [
+            pl.BlockSpec((x.shape[0], block), lambda i: (0, i))
+            if x.ndim == 2
+            else pl.BlockSpec((1,), lambda i: (0,))
+            for x in inputs
+        ],
         out_specs=out_specs,
         interpret=interpret,
         name="rbdyn_kernel",
@@ -292,18 +315,18 @@ def kernel_run(system, y0s, ts, controller, solver, max_steps, dt0, batched, blo
         if interpret
         else pltriton.CompilerParams(num_warps=triton_warps(block), num_stages=1),
     )
-    outs = _undifferentiated(call)(ts_pad, *in_rows)
-    ys_rows, counts, result, saved = outs[:n_y], outs[n_y : n_y + 3], outs[-2], outs[-1]
+    outs = _undifferentiated(call)(ts_pad, *inputs)
+    steps, accepted, rejected, result, saved = (
+        outs[-1].reshape(P // block, n_counts, block).transpose(1, 0, 2).reshape(n_counts, P)
+    )[: len(counted)]
+    counts = [steps, accepted, rejected]
     # (n, P) rows; a time a lane never reached (its rows past `saved`, never written) is +inf.
     unreached = jnp.arange(n, dtype=int_t)[:, None] >= saved[None, :]
-    ys_rows = [
-        jnp.where(
-            unreached,
-            jnp.inf,
-            r.reshape(P // block, n_rows, block)[:, :n].transpose(1, 0, 2).reshape(n, P),
-        ).astype(r.dtype)
-        for r in ys_rows
-    ]
+    ys_rows = [None] * n_y
+    for out, ks, width in zip(outs[:-1], y_groups.values(), widths):
+        x = out.reshape(P // block, n_rows, width, block)[:, :n].transpose(1, 2, 0, 3)
+        for j, k in enumerate(ks):
+            ys_rows[k] = jnp.where(unreached, jnp.inf, x[:, j].reshape(n, P)).astype(out.dtype)
 
     # Back to the batch's order: position p of the kernel holds trajectory order[p].
     back = jnp.argsort(order)
