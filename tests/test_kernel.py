@@ -280,6 +280,30 @@ def test_the_default_takes_the_kernel_only_on_a_gpu_backend():
     assert type(default_batching(diffrax.Tsit5(), pid, None, backend="gpu")) is rb.Lanes
 
 
+def test_a_default_device_on_a_cpu_takes_the_cpus_strategy(monkeypatch):
+    """With JAX's backend a GPU (faked) but its default device a CPU (`jax.default_device`),
+    a solve runs on the CPU, where Triton has no lowering: the default takes `Lanes`, and
+    `Kernel()` its interpret mode, the same solve as asked for explicitly."""
+    import rbdyn_jax.integrate._batching as batching
+
+    y0s, model = initial_states(4), rb.RigidBody(J)
+    pid = rb.integrate.make_controller(rtol=RTOL, atol=RTOL)
+    kw = dict(rtol=RTOL, atol=RTOL)
+    monkeypatch.setattr(batching.jax, "default_backend", lambda: "gpu")
+
+    def default():
+        return type(batching.default_batching(diffrax.Tsit5(), pid, None, model, y0s))
+
+    assert default() is rb.Kernel
+    for device in (jax.devices("cpu")[0], "cpu"):
+        with jax.default_device(device):
+            assert default() is rb.Lanes
+            kernel = rb.simulate_batch(model, y0s, TS, batching=rb.Kernel(), **kw)
+    asked = rb.simulate_batch(model, y0s, TS, batching=rb.Kernel(interpret=True), **kw)
+    for x, y in zip(jax.tree_util.tree_leaves(kernel), jax.tree_util.tree_leaves(asked)):
+        np.testing.assert_array_equal(x, y)
+
+
 @pytest.mark.core  # also under the next JAX: its Triton lowering changes
 @pytest.mark.parametrize("dtype", [np.float64, np.float32])
 def test_the_kernel_lowers_to_triton_for_a_gpu(dtype):

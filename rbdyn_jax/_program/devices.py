@@ -17,6 +17,17 @@ BATCH = PartitionSpec("batch")  # split along the leading axis
 WHOLE = PartitionSpec()  # every device holds all of it
 
 
+def platform() -> str:
+    """The platform ("cpu", "gpu", …) a program with no committed input runs on: that of
+    JAX's default device where one is set (`jax.default_device`, a device or a platform's
+    name), else the default backend's."""
+    device = jax.config.jax_default_device
+    if device is None:
+        return jax.default_backend()
+    name = getattr(device, "platform", device)
+    return "gpu" if name in ("cuda", "rocm") else str(name)
+
+
 def mesh(devices: Sequence) -> jax.sharding.Mesh:
     """The one-dimensional mesh (axis `"batch"`) of `devices`."""
     return jax.sharding.Mesh(np.asarray(devices), ("batch",))

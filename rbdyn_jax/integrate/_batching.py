@@ -12,7 +12,7 @@ import jax
 import jax.numpy as jnp
 
 from .._program import traces
-from .._program.devices import mesh as device_mesh, over_devices
+from .._program.devices import mesh as device_mesh, over_devices, platform
 from .._program.flags import loops_compiled_whole
 from .._program.program import Program
 from .._program.xla import top_level
@@ -168,8 +168,11 @@ class Kernel(AbstractBatching):
     - `block`: trajectories a program integrates, a power of two (Triton's blocks are); on
       a GPU a trajectory a thread (`block` / 32 warps, 1 to 32). `None`: 128 on a GPU,
       else the batch (to the next power of two, at most 1024).
-    - `interpret`: run the kernel in Pallas's interpret mode (on any backend, slowly);
-      `None`: on every backend but a GPU.
+    - `interpret`: run the kernel in Pallas's interpret mode (on any platform, slowly);
+      `None`: on every platform but a GPU.
+
+    The platform is that of JAX's default device: `jax.default_device` where set, else the
+    default backend's.
 
     Needs an explicit Runge–Kutta solver (`diffrax.AbstractERK`), a
     `diffrax.PIDController`, no `adjoint`, and a model whose vector field is written on
@@ -199,7 +202,7 @@ class Kernel(AbstractBatching):
         reason = step_refuse(solver, controller, adjoint)
         if reason is not None:
             raise ValueError(f"`Kernel` {reason}; `batching=Lanes()` or `Vmap()` takes it.")
-        gpu = jax.default_backend() == "gpu"
+        gpu = platform() == "gpu"
         interpret = (not gpu) if self.interpret is None else self.interpret
         block = kernel_block(self.block, jax.tree_util.tree_leaves(y0s)[0].shape[0], gpu)
         run = kernel_interpreted if interpret else kernel_compiled
@@ -273,10 +276,11 @@ def default_lanes(
 def default_batching(
     solver, controller, adjoint, model=None, y0s=None, model_axes=None, backend=None
 ) -> AbstractBatching:
-    """The default strategy: on a GPU backend (`backend`, default JAX's), `Kernel()` where
-    it can run the solve (`model` and `y0s` given, and its field runs on rows of lanes);
-    else `Lanes()` where the lane solver can run it; else `Vmap()`."""
-    backend = jax.default_backend() if backend is None else backend
+    """The default strategy: on a GPU (`backend`, default the platform of JAX's default
+    device: `jax.default_device` where set, else the default backend), `Kernel()` where it
+    can run the solve (`model` and `y0s` given, and its field runs on rows of lanes); else
+    `Lanes()` where the lane solver can run it; else `Vmap()`."""
+    backend = platform() if backend is None else backend
     if (
         backend == "gpu"
         and model is not None
