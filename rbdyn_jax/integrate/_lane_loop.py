@@ -25,6 +25,7 @@ Both take the same steps and save the same values to round-off (tested).
 
 import dataclasses
 import functools
+from typing import Any, NamedTuple
 
 import diffrax
 import equinox as eqx
@@ -77,6 +78,25 @@ class LaneState(eqx.Module):
     ys: PyTree  # (N, n, …) the saved outputs; +inf where never saved
     out_counts: Int[Array, "N 3"]  # each trajectory's `counts`, once finished
     out_result: Int[Array, " N"]  # each trajectory's code, once finished
+
+
+class _Lanes(NamedTuple):
+    """What a refill replaces in the lanes that finished, and the reports it writes."""
+
+    idx: Any
+    tprev: Any
+    tnext: Any
+    y: Any
+    sstate: Any
+    cstate: Any
+    ok: Any
+    m: Any
+    save: Any
+    counts: Any
+    result: Any
+    out_counts: Any
+    out_result: Any
+    nxt: Any
 
 
 def lane_loop(
@@ -228,93 +248,49 @@ def lane_loop(
         pending = c.pending & (save < n) & (ts[s] <= c.dense_t[1])
         # (2) Finished lanes report and take the next trajectory.
         done = active & ~pending & ((c.tprev >= t1) | (c.result != 0))
-        lanes_now = (
-            c.idx,
-            c.tprev,
-            c.tnext,
-            c.y,
-            c.solver_state,
-            c.controller_state,
-            c.ok,
-            c.model,
-            save,
-            c.counts,
-            c.result,
-            c.out_counts,
-            c.out_result,
-            c.next,
+        lanes_now = _Lanes(
+            idx=c.idx,
+            tprev=c.tprev,
+            tnext=c.tnext,
+            y=c.y,
+            sstate=c.solver_state,
+            cstate=c.controller_state,
+            ok=c.ok,
+            m=c.model,
+            save=save,
+            counts=c.counts,
+            result=c.result,
+            out_counts=c.out_counts,
+            out_result=c.out_result,
+            nxt=c.next,
         )
 
-        def refill(lanes_now):
-            (
-                idx,
-                tprev,
-                tnext,
-                y,
-                sstate,
-                cstate,
-                ok,
-                m,
-                save,
-                counts,
-                result,
-                out_counts,
-                out_result,
-                nxt,
-            ) = lanes_now
-            out_counts = write(out_counts, (current,), counts.T, done)
-            out_result = write(out_result, (current,), result, done)
-            new = nxt + jnp.cumsum(done, dtype=jnp.int32) - 1
-            nxt = nxt + jnp.sum(done, dtype=jnp.int32)
+        def refill(r: _Lanes) -> _Lanes:
+            new = r.nxt + jnp.cumsum(done, dtype=jnp.int32) - 1
             pick = order[jnp.minimum(new, N - 1)]
-            idx = jnp.where(done, jnp.where(new < N, new, N), idx)
-            tprev = jnp.where(done, t0, tprev)
-            tnext = jnp.where(done, tnext0[pick], tnext)
-            y = lane_select(done, take_last(y0r, pick), y)
-            sstate = lane_select(done, take_last(sstate0, pick), sstate)
-            cstate = first_select(done, take(cstate0, pick), cstate)
-            ok = jnp.where(done, ok0[pick], ok)
-            m = lane_select(done, take_last(lane_dyn, pick), m) if batched else None
-            save = jnp.where(done, 0, save)
-            counts = jnp.where(done, 0, counts)
-            result = jnp.where(done, 0, result)
-            return (
-                idx,
-                tprev,
-                tnext,
-                y,
-                sstate,
-                cstate,
-                ok,
-                m,
-                save,
-                counts,
-                result,
-                out_counts,
-                out_result,
-                nxt,
+            return r._replace(
+                out_counts=write(r.out_counts, (current,), r.counts.T, done),
+                out_result=write(r.out_result, (current,), r.result, done),
+                nxt=r.nxt + jnp.sum(done, dtype=jnp.int32),
+                idx=jnp.where(done, jnp.where(new < N, new, N), r.idx),
+                tprev=jnp.where(done, t0, r.tprev),
+                tnext=jnp.where(done, tnext0[pick], r.tnext),
+                y=lane_select(done, take_last(y0r, pick), r.y),
+                sstate=lane_select(done, take_last(sstate0, pick), r.sstate),
+                cstate=first_select(done, take(cstate0, pick), r.cstate),
+                ok=jnp.where(done, ok0[pick], r.ok),
+                m=lane_select(done, take_last(lane_dyn, pick), r.m) if batched else None,
+                save=jnp.where(done, 0, r.save),
+                counts=jnp.where(done, 0, r.counts),
+                result=jnp.where(done, 0, r.result),
             )
 
         if array:  # a branch would wait for the host: refill, selecting per lane
-            refilled = refill(lanes_now)
+            r = refill(lanes_now)
         else:  # skipped at the iterations where no lane finished
-            refilled = jax.lax.cond(jnp.any(done), refill, lambda x: x, lanes_now)
-        (
-            idx,
-            tprev,
-            tnext,
-            y,
-            sstate,
-            cstate,
-            ok,
-            m,
-            save,
-            counts,
-            result,
-            out_counts,
-            out_result,
-            nxt,
-        ) = refilled
+            r = jax.lax.cond(jnp.any(done), refill, lambda x: x, lanes_now)
+        idx, tprev, tnext, y, sstate, cstate, ok, m = r[:8]  # _Lanes' order
+        save, counts, result = r.save, r.counts, r.result
         # (3) One solver step in every lane with nothing left to save.
         go = (idx < N) & ~pending & (tprev < t1) & (result == 0)
         y1, y_error, dense, ss1 = step(
@@ -352,10 +328,10 @@ def lane_loop(
             save=save,
             counts=counts,
             result=result,
-            next=nxt,
+            next=r.nxt,
             ys=ys,
-            out_counts=out_counts,
-            out_result=out_result,
+            out_counts=r.out_counts,
+            out_result=r.out_result,
         )
 
     c = jax.lax.while_loop(cond, body, state)
