@@ -239,12 +239,12 @@ def kernel_run(system, y0s, ts, controller, solver, max_steps, dt0, batched, blo
 
             # Every output time an accepted step reaches is saved now, by the step's
             # interpolant: its stages are not kept past the step.
-            def due(saved):
+            def due(saved):  # the lanes whose next output time this step reached
                 t_out = ts_ref[jnp.minimum(saved, n - 1)]
-                return accept & (saved < n) & (t_out <= t1), t_out
+                return saved, accept & (saved < n) & (t_out <= t1), t_out
 
-            def save(saved):
-                now, t_out = due(saved)
+            def save(carry):
+                saved, now, t_out = carry
                 vals = rowwise(
                     interpolate,
                     obj(lambda idx: t0),
@@ -260,10 +260,10 @@ def kernel_run(system, y0s, ts, controller, solver, max_steps, dt0, batched, blo
                         [full(comps[k]).astype(ref.dtype) for k in ks],
                         lambda c, w=width: (row * w + c) * block + lane,
                     )
-                return saved + now.astype(int_t)
+                return due(saved + now.astype(int_t))
 
-            saved = jax.lax.while_loop(
-                lambda saved: jnp.max(due(saved)[0].astype(int_t)) > 0, save, s["saved"]
+            saved, _, _ = jax.lax.while_loop(
+                lambda carry: jnp.max(carry[1].astype(int_t)) > 0, save, due(s["saved"])
             )
             s = dict(
                 s,
