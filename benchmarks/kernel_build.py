@@ -167,14 +167,13 @@ def build(module: str, block: int = GPU_BLOCK) -> dict:
         pm.run(mod, "ttir")
         src.write_text(str(mod))
         ttir_ops = len(re.findall(r"^\s*(?:%\S+ = )?\"?[a-z_]+\.[a-z_.]+", str(mod), re.M))
-        coalesce = _pass_seconds(
+        compiled, coalesce_s = _pass_seconds(
             lambda: triton.compile(
                 str(src),
                 target=target,
                 options={"num_warps": warps, "num_stages": 1},
             )
         )
-        compiled, coalesce_s = coalesce
         compile_s = time.perf_counter() - t0
         ptx = pathlib.Path(tmp, "kernel.ptx")
         ptx.write_text(compiled.asm["ptx"])
@@ -201,23 +200,19 @@ def build(module: str, block: int = GPU_BLOCK) -> dict:
 
 def _pass_seconds(fn):
     """`fn()` and the seconds MLIR's pass timing gives Triton's coalescing pass in it."""
-    import io
-    from contextlib import redirect_stderr
-
     os.environ["MLIR_ENABLE_TIMING"] = "1"
-    err = io.StringIO()
+    fd = os.dup(2)  # MLIR writes its timing report to the process's stderr (fd 2)
     try:
-        fd = os.dup(2)  # MLIR writes its timing report to the process's stderr
-        with tempfile.TemporaryFile("w+") as f, redirect_stderr(err):
+        with tempfile.TemporaryFile("w+") as f:
             os.dup2(f.fileno(), 2)
             try:
                 out = fn()
             finally:
                 os.dup2(fd, 2)
-                os.close(fd)
             f.seek(0)
             text = f.read()
     finally:
+        os.close(fd)
         os.environ.pop("MLIR_ENABLE_TIMING", None)
     found = re.findall(r"^\s*([\d.]+) \(\s*[\d.]+%\)\s+TritonGPUCoalesce$", text, re.M)
     return out, (float(found[0]) if found else None)
