@@ -189,6 +189,9 @@ def test_gpu_report_runs_on_a_cpu(tmp_path):
         assert by[f"kernel{m}"]["mean_steps"] == by[f"lanes{m}"]["mean_steps"]
         assert by[f"kernel{m}"]["all_successful"]
     assert by["sweep"]["all_successful"] and by["sweep"]["store_bytes"] > 0
+    # one chunk of 4: its seconds (within the whole run's), no sustained rate after it
+    assert by["sweep"]["chunks"] == 1 and by["sweep"]["steady_traj_per_s"] is None
+    assert 0 < by["sweep"]["first_chunk_s"] <= by["sweep"]["seconds"]
     assert not (tmp_path / "gpu_sweep.zarr").exists()
 
 
@@ -259,3 +262,23 @@ def test_kernel_build_compiles_for_sm_90(tmp_path):
     assert saved["rows"] == rows and rows[0]["case"] == "torque_free-float32"
     assert 0 < rows[0]["registers"] <= 255 and rows[0]["blocks_per_sm"] >= 1
     assert rows[0]["compile_s"] > rows[0]["coalesce_s"] > 0
+
+
+def test_store_write_runs_and_its_stores_read_back(tmp_path):
+    """`benchmarks/store_write.py` writes solved trajectories into a store per compressor;
+    each store reads back the values written, bit for bit (it raises otherwise), and a
+    store keeping the states takes their bytes: 81 × 7 float64 a trajectory (4,536 B),
+    which Blosc barely compresses (their low bits are noise: measured 4,235 B with LZ4)."""
+    mod = load("store_write")
+    rows = mod.main(n=256, states_n=64, repeats=1, out=str(tmp_path))
+    saved = json.loads((tmp_path / "store_write.json").read_text())
+    assert saved["rows"] == rows and saved["meta"]["compression"]["cname"] == "lz4"
+    assert [(r["trajectories"], r["compressor"]) for r in rows] == [
+        (t, c) for t in ("none", "all") for c in mod.COMPRESSORS
+    ]
+    for r in rows:
+        assert r["traj_per_s"] > 0
+        base = next(b for b in rows if b["trajectories"] == r["trajectories"])
+        assert r["size_ratio"] == pytest.approx(r["bytes_per_traj"] / base["bytes_per_traj"])
+    none, states = rows[0]["bytes_per_traj"], rows[3]["bytes_per_traj"]
+    assert 0.85 * 4536 < states - none < 4536 + 200  # 200 B: a small store's metadata

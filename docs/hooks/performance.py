@@ -275,6 +275,26 @@ def _sweep_dask(d: dict) -> str:
     )
 
 
+def _store_write() -> str:
+    """One row per layout and compressor of `store_write.py`: the write rate and the bytes
+    a trajectory, each beside the store's own compressor's."""
+    d = _load("store_write")
+    rows = [
+        [
+            "every state" if r["trajectories"] == "all" else "no states",
+            f"{r['compressor']}: {r['cname']} {r['clevel']}"
+            if r["compressor"] == "store's"
+            else f"{r['cname']} {r['clevel']}",
+            _n(r["n"]),
+            f"{_n(r['traj_per_s'])} ({r['speed_ratio']:.2f}×)",
+            f"{r['bytes_per_traj']:,.0f} ({r['size_ratio']:.3f}×)".replace(",", "\u2009"),
+        ]
+        for r in d["rows"]
+    ]
+    head = ["store keeps", "Blosc compressor", "N", "written traj/s", "bytes a trajectory"]
+    return _table(head, rows, "llrrr")
+
+
 def _identify() -> str:
     d = _load("identify")
     rows = [
@@ -577,6 +597,7 @@ TABLES = {
     "gradient_steps": _gradient_steps,
     "compile": _compile,
     "sweep_scale": _sweep_scale,
+    "store_write": _store_write,
     "identify": _identify,
     "long_horizon": _long_horizon,
     "long_horizon_potentials": _long_horizon_potentials,
