@@ -11,7 +11,12 @@ For each case it reports what sets a GPU thread's cost and the first call's Trit
   streaming multiprocessor holds at once by its 65,536 registers, and `resident_warps`;
 - `compile_s`: the Triton compilation's seconds on this machine (TTIR passes, TTGIR,
   LLVM IR, PTX, `ptxas`), `coalesce_s` the part in Triton's coalescing pass, and the sizes
-  of the module (`ttir_ops`) and of its PTX (`ptx_lines`).
+  of the module (`ttir_ops`) and of its PTX (`ptx_lines`);
+- the machine code (SASS, `cuobjdump -sass` of ptxas's cubin), nearly all of it the step
+  loop's: `sass_instructions`, of which `sass_float` floating-point multiply-adds,
+  multiplies and adds and `sass_mufu` operations of the special-function unit
+  (reciprocals, square roots, logarithms and exponentials: an H100 multiprocessor issues
+  16 of them a cycle, against 64 float64 multiply-adds).
 
 Cases: the torque-free body, the heavy top and the gravity-gradient satellite of
 `gpu.py` (Tsit5, rtol = atol = 1e-8 in float64 and 1e-6 in float32, 101 outputs), each in
@@ -177,14 +182,22 @@ def build(module: str, block: int = GPU_BLOCK) -> dict:
         compile_s = time.perf_counter() - t0
         ptx = pathlib.Path(tmp, "kernel.ptx")
         ptx.write_text(compiled.asm["ptx"])
-        ptxas = pathlib.Path(triton.__file__).parent / "backends/nvidia/bin/ptxas"
+        tools = pathlib.Path(triton.__file__).parent / "backends/nvidia/bin"
+        cubin = pathlib.Path(tmp, "kernel.cubin")
         report = subprocess.run(
-            [str(ptxas), "-v", f"--gpu-name=sm_{SM_ARCH}a", str(ptx), "-o", os.devnull],
+            [str(tools / "ptxas"), "-v", f"--gpu-name=sm_{SM_ARCH}a", str(ptx), "-o", str(cubin)],
             capture_output=True,
             text=True,
             check=True,
         ).stderr
+        sass = subprocess.run(
+            [str(tools / "cuobjdump"), "-sass", str(cubin)],
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout
     usage = _ptxas_usage(report, compiled.name)
+    ops = _sass_opcodes(sass)
     threads = 32 * warps
     blocks = H100_REGISTERS // (max(usage["registers"], 1) * threads)
     return {
@@ -195,7 +208,16 @@ def build(module: str, block: int = GPU_BLOCK) -> dict:
         "coalesce_s": coalesce_s,
         "ttir_ops": ttir_ops,
         "ptx_lines": compiled.asm["ptx"].count("\n"),
+        "sass_instructions": len(ops),
+        "sass_float": sum(op in ("DFMA", "DMUL", "DADD", "FFMA", "FMUL", "FADD") for op in ops),
+        "sass_mufu": ops.count("MUFU"),
     }
+
+
+def _sass_opcodes(sass: str) -> list[str]:
+    """The opcode of every instruction in `cuobjdump -sass`'s listing (a predicate such as
+    `@!P0` skipped, modifiers such as `.RCP64H` dropped)."""
+    return re.findall(r"^\s+/\*[0-9a-f]{4,}\*/\s+(?:@!?U?P[T0-9]\s+)?([A-Z][A-Z0-9_]*)", sass, re.M)
 
 
 def _pass_seconds(fn):

@@ -46,30 +46,10 @@ def _cholesky(J):
     return l00, l10, l11, l20, l21, l22
 
 
-def _cholesky_solve(L, b):
-    l00, l10, l11, l20, l21, l22 = L
-    y0 = b[0] / l00
-    y1 = (b[1] - l10 * y0) / l11
-    y2 = (b[2] - l20 * y0 - l21 * y1) / l22
-    x2 = y2 / l22
-    x1 = (y1 - l21 * x2) / l11
-    x0 = (y0 - l10 * x1 - l20 * x2) / l00
-    return [x0, x1, x2]
-
-
-@jax.custom_jvp
-def _solve(J, b):
-    """`J⁻¹ b` for a symmetric positive-definite 3×3 `J` by an unrolled Cholesky
-    factorisation (reads the lower triangle). Elementwise arithmetic only: no LAPACK call
-    per right-hand-side evaluation, which would slow a vmapped solve down (the performance
-    page, docs/performance.md). Its derivative is `dx = J⁻¹ (db − dJ x)` (`_solve_jvp`)."""
-    return jnp.stack(_cholesky_solve(_cholesky(J), split(b)), axis=-1)
-
-
-def _inverse_parts(L):
-    """The entries `(a00, a01, a02, a11, a12, a22)` of the symmetric `J⁻¹ = L⁻ᵀ L⁻¹` from
-    the Cholesky factor `L` of `J` (`_cholesky`)."""
-    l00, l10, l11, l20, l21, l22 = L
+def _inverse(J):
+    """The entries `(a00, a01, a02, a11, a12, a22)` of the symmetric `J⁻¹ = L⁻ᵀ L⁻¹`, `L`
+    the Cholesky factor of `J` (`_cholesky`)."""
+    l00, l10, l11, l20, l21, l22 = _cholesky(J)
     i00, i11, i22 = 1.0 / l00, 1.0 / l11, 1.0 / l22  # L⁻¹, lower triangular
     i10 = -l10 * i00 * i11
     i21 = -l21 * i11 * i22
@@ -84,19 +64,41 @@ def _inverse_parts(L):
     )
 
 
+def _times(A, v):
+    """The symmetric `A` (`_inverse`'s entries) times the vector `v` (its components):
+    each component a three-term sum."""
+    a00, a01, a02, a11, a12, a22 = A
+    v0, v1, v2 = v
+    return [
+        a00 * v0 + a01 * v1 + a02 * v2,
+        a01 * v0 + a11 * v1 + a12 * v2,
+        a02 * v0 + a12 * v1 + a22 * v2,
+    ]
+
+
+@jax.custom_jvp
+def _solve(J, b):
+    """`J⁻¹ b` for a symmetric positive-definite 3×3 `J` (reads the lower triangle), by the
+    six entries of J⁻¹ formed from an unrolled Cholesky factorisation (`_inverse`).
+    Elementwise arithmetic only: no LAPACK call per right-hand-side evaluation, which would
+    slow a vmapped solve down (the performance page, docs/performance.md). No division
+    depends on `b`: where `J` is constant over a solve (a model's own inertia), a compiler
+    computes J⁻¹ once, outside the step loop, and each evaluation is nine multiply-adds
+    (triangular solves would divide six times, a division costing many multiply-adds on
+    a CPU and more on a GPU). Its derivative is `dx = J⁻¹ (db − dJ x)` (`_solve_jvp`)."""
+    return jnp.stack(_times(_inverse(J), split(b)), axis=-1)
+
+
 def _solve_jvp(primals, tangents):
-    """`dx = J⁻¹ (db − dJ x)` with the factor of the solve itself, dJ the symmetric matrix
+    """`dx = J⁻¹ (db − dJ x)` with the inverse of the solve itself, dJ the symmetric matrix
     of dJ's lower triangle (what `_solve` reads). The factor's own tangents are never
     formed: a sensitivity column per inertia element (`integrate/_sensitivity.py`) costs a
     product with J⁻¹ instead of the derivative of the factorisation, a markedly cheaper
-    gradient of a loss w.r.t. the inertia through the lane solver. J⁻¹'s six entries are
-    formed from the factor, so that each component of dx is a three-term sum: by two
-    triangular solves, each component is the end of a chain through the others, which XLA
-    recomputes for each (`benchmarks/gradients.py` measures the lane gradient; see the
-    performance page, docs/performance.md)."""
+    gradient of a loss w.r.t. the inertia through the lane solver (`benchmarks/gradients.py`
+    measures the lane gradient; see the performance page, docs/performance.md)."""
     (J, b), (dJ, db) = primals, tangents
-    L = _cholesky(J)
-    x = _cholesky_solve(L, split(b))
+    A = _inverse(J)
+    x = _times(A, split(b))
     rhs = None if isinstance(db, SymbolicZero) else split(db)
     if not isinstance(dJ, SymbolicZero):
 
@@ -105,14 +107,7 @@ def _solve_jvp(primals, tangents):
 
         dJx = [sum(entry(i, j) * x[j] for j in range(3)) for i in range(3)]
         rhs = [-d for d in dJx] if rhs is None else [r - d for r, d in zip(rhs, dJx)]
-    a00, a01, a02, a11, a12, a22 = _inverse_parts(L)
-    r0, r1, r2 = rhs
-    dx = [
-        a00 * r0 + a01 * r1 + a02 * r2,
-        a01 * r0 + a11 * r1 + a12 * r2,
-        a02 * r0 + a12 * r1 + a22 * r2,
-    ]
-    return jnp.stack(x, axis=-1), jnp.stack(dx, axis=-1)
+    return jnp.stack(x, axis=-1), jnp.stack(_times(A, rhs), axis=-1)
 
 
 _solve.defjvp(_solve_jvp, symbolic_zeros=True)

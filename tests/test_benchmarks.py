@@ -262,6 +262,9 @@ def test_kernel_build_compiles_for_sm_90(tmp_path):
     assert saved["rows"] == rows and rows[0]["case"] == "torque_free-float32"
     assert 0 < rows[0]["registers"] <= 255 and rows[0]["blocks_per_sm"] >= 1
     assert rows[0]["compile_s"] > rows[0]["coalesce_s"] > 0
+    # the machine code: float32 arithmetic (FFMA, FMUL, FADD) a part of it, and the
+    # controller's power and the error norm's divisions on the special-function unit
+    assert rows[0]["sass_instructions"] > rows[0]["sass_float"] > 0 and rows[0]["sass_mufu"] > 0
 
 
 def test_store_write_runs_and_its_stores_read_back(tmp_path):

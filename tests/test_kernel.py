@@ -173,16 +173,25 @@ def test_failures_stay_in_their_lane():
 
 
 def test_float32():
-    """float32 inputs solve in float32 (the default tolerance 1e-6), with the same steps
-    as `Vmap`; values to float32's round-off grown along the solve."""
-    y0s = initial_states(dtype=np.float32)
+    """float32 inputs solve in float32 (the default tolerance 1e-6), with `Vmap`'s steps
+    to float32's rounding. XLA rounds the kernel's program and `Vmap`'s differently (where
+    it fuses a product into a multiply-add), by float32's ε = 1.2e-7, a tenth of the
+    tolerance: near it, that turns a step's acceptance, and a trajectory takes a step more
+    or fewer (measured: one, in 3 to 11 of 64 trajectories over four seeds; never in
+    float64, whose rounding is 1e-8 of its tolerance). The values then agree to the
+    solves' error, not to round-off: measured ≤ 7e-6 over t ∈ [0, 3]."""
+    y0s = initial_states(n=64, dtype=np.float32)
     ts = np.linspace(0.0, 3.0, 7, dtype=np.float32)
     model = rb.RigidBody(np.asarray(J, np.float32))
     kernel = rb.simulate_batch(model, y0s, ts, batching=rb.Kernel())
     plain = rb.simulate_batch(model, y0s, ts, batching=rb.Vmap())
-    assert kernel.ys.omega.dtype == jnp.float32
-    assert np.all(plain.result._value == 0)
-    assert_same_solves(kernel, plain, tol=2e-5)
+    assert kernel.ys.omega.dtype == kernel.ys.quat.dtype == jnp.float32
+    assert np.all(plain.result._value == 0) and np.all(kernel.result._value == 0)
+    for k in ("num_steps", "num_accepted_steps", "num_rejected_steps"):
+        diff = np.abs(np.asarray(kernel.stats[k]) - np.asarray(plain.stats[k]))
+        assert np.max(diff) <= 1 and np.mean(diff != 0) < 0.25, k
+    for x, y in zip(jax.tree_util.tree_leaves(kernel.ys), jax.tree_util.tree_leaves(plain.ys)):
+        np.testing.assert_allclose(x, y, rtol=0, atol=2e-5)
 
 
 def test_float32_times_with_a_float64_state():

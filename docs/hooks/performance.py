@@ -464,6 +464,7 @@ def _kernel_build() -> str:
             f"{r['compile_s']:.1f}",
             f"{r['coalesce_s']:.1f}",
             _n(r["ttir_ops"]),
+            f"{_n(r['sass_instructions'])} ({_n(r['sass_float'])} / {r['sass_mufu']})",
         ]
         for r in d["rows"]
     ]
@@ -475,6 +476,7 @@ def _kernel_build() -> str:
         "Triton compile (s)",
         "of which coalescing (s)",
         "TTIR operations",
+        "SASS instructions (float arithmetic / special-function)",
     ]
     return _table(head, rows)
 
