@@ -736,9 +736,9 @@ def test_argument_errors():
 
 def test_two_devices_and_the_persistent_cache(tmp_path):
     """In a fresh process with two XLA host devices, the batch (odd: padded) is dealt to
-    both and equals the plain solve, with a shared model and with per-trajectory models;
-    the compiled program holds no host callback, so it is written to JAX's persistent
-    compilation cache."""
+    both and equals the plain solve, with a shared model and with per-trajectory models,
+    and with inputs committed to one of the devices; the compiled program holds no host
+    callback, so it is written to JAX's persistent compilation cache."""
     out = tmp_path / "lanes.npz"
     cache = tmp_path / "xla-cache"
     code = textwrap.dedent(f"""
@@ -762,8 +762,16 @@ def test_two_devices_and_the_persistent_cache(tmp_path):
                                 jnp.asarray(d["ts"]), rtol={RTOL}, atol={RTOL},
                                 batching=rb.Lanes({LANES}),
                                 model_axes=0)
+        # inputs committed to one device (by `jax.device_put`, or as a stored program's
+        # outputs are) are placed on both
+        one = jax.devices()[1]
+        tr3 = rb.simulate_batch(rb.RigidBody(jax.device_put(J, one)),
+                                jax.device_put(rb.State(jnp.asarray(d["w"]),
+                                                        jnp.asarray(d["q"])), one),
+                                jax.device_put(jnp.asarray(d["ts"]), one),
+                                rtol={RTOL}, atol={RTOL}, batching=rb.Lanes({LANES}))
         np.savez({str(out)!r}, omega=tr.ys.omega, steps=tr.stats["num_steps"],
-                 omega2=tr2.ys.omega, steps2=tr2.stats["num_steps"])
+                 omega2=tr2.ys.omega, steps2=tr2.stats["num_steps"], omega3=tr3.ys.omega)
     """)
     y0s = initial_states()
     weights = jnp.linspace(0.5, 2.0, N)
@@ -774,6 +782,7 @@ def test_two_devices_and_the_persistent_cache(tmp_path):
     plain = rb.simulate_batch(rb.RigidBody(J), y0s, TS, rtol=RTOL, atol=RTOL, batching=rb.Vmap())
     np.testing.assert_array_equal(got["steps"], plain.stats["num_steps"])
     np.testing.assert_allclose(got["omega"], plain.ys.omega, rtol=0, atol=ROUND_OFF)
+    np.testing.assert_array_equal(got["omega3"], got["omega"])  # the same program's bits
     # per-trajectory models are padded and dealt to the devices with their trajectories
     plain2 = rb.simulate_batch(
         eqx.filter_vmap(heavy_top)(weights),
@@ -789,19 +798,28 @@ def test_two_devices_and_the_persistent_cache(tmp_path):
     assert any(p.is_file() for p in cache.rglob("*")), "nothing entered the cache"
 
 
-def test_throw_over_two_devices_raises_instead_of_aborting(tmp_path):
-    """`throw=True` on a batch the lane solver splits over two devices: a failed check
-    raises, called eagerly and inside a caller's `jit`, rather than aborting the process
-    (XLA does when a check raises on one device while the other waits for it)."""
+def test_two_devices_with_committed_inputs_and_throw(tmp_path):
+    """The lane solver splitting a batch over two devices (no cache of traced programs):
+    inputs a user committed to one device (`jax.device_put(x, device)`) are placed on both,
+    with the same bits as uncommitted ones; and with `throw=True` a failed check raises,
+    called eagerly and inside a caller's `jit`, rather than aborting the process (XLA does
+    when a check raises on one device while the other waits for it)."""
     code = textwrap.dedent("""
         import jax, jax.numpy as jnp, numpy as np
         import equinox as eqx
         import rbdyn_jax as rb
         jax.config.update("jax_enable_x64", True)
         assert jax.local_device_count() == 2
-        w = np.ones((8, 3)); w[5, 0] = np.inf
+        w = np.ones((8, 3)); w[:, 1] = np.linspace(-1, 1, 8)
         y0s = rb.State(jnp.asarray(w), jnp.tile(jnp.array([1.0, 0.0, 0.0, 0.0]), (8, 1)))
         model, ts = rb.RigidBody(jnp.diag(jnp.array([1.0, 2.0, 3.0]))), jnp.linspace(0, 1, 3)
+        free = rb.simulate_batch(model, y0s, ts).ys.omega
+        one = jax.devices()[1]
+        put = rb.simulate_batch(jax.device_put(model, one), jax.device_put(y0s, one),
+                                jax.device_put(ts, one)).ys.omega
+        assert np.array_equal(put, free)
+        w[5, 0] = np.inf
+        y0s = rb.State(jnp.asarray(w), y0s.quat)
         try:
             rb.simulate_batch(model, y0s, ts, throw=True)
         except eqx.EquinoxRuntimeError as e:

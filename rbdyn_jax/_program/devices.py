@@ -39,3 +39,25 @@ def over_devices(fn: Callable, on: jax.sharding.Mesh, split: Sequence[bool]) -> 
     leading axis: `jax.shard_map` with no collective inside."""
     specs = tuple(BATCH if s else WHOLE for s in split)
     return jax.shard_map(fn, mesh=on, in_specs=specs, out_specs=BATCH, check_vma=False)
+
+
+def on_mesh(tree, on: jax.sharding.Mesh):
+    """`tree` with each array committed to devices other than `on`'s placed on all of
+    `on`'s (replicated): a program over `on` (`over_devices`) refuses an argument committed
+    elsewhere, such as one a user put on one device (`jax.device_put(x, device)`) or an
+    output of a stored program (`traces.cached`). Uncommitted arrays and tracers stay as
+    they are: the program places them."""
+    devices = set(on.devices.flat)
+    whole = jax.sharding.NamedSharding(on, WHOLE)
+
+    def place(x):
+        if (
+            isinstance(x, jax.Array)
+            and not isinstance(x, jax.core.Tracer)
+            and x.committed
+            and x.sharding.device_set != devices
+        ):
+            return jax.device_put(x, whole)
+        return x
+
+    return jax.tree_util.tree_map(place, tree)

@@ -12,7 +12,7 @@ import jax
 import jax.numpy as jnp
 
 from .._program import traces
-from .._program.devices import mesh as device_mesh, over_devices, platform
+from .._program.devices import mesh as device_mesh, on_mesh, over_devices, platform
 from .._program.flags import loops_compiled_whole
 from .._program.program import Program
 from .._program.xla import top_level
@@ -139,6 +139,8 @@ class Lanes(AbstractBatching):
         # for concrete times and tolerances), with the cache of traced programs on: the
         # loop is stored alone, and the caller's trace holds the stored program.
         stored = as_nan and not top_level() and traces.directory() is not None
+        if mesh.devices.size > 1:
+            model, y0s, ts, controller = on_mesh((model, y0s, ts, controller), mesh)
         return _lane_solved(
             model,
             y0s,
