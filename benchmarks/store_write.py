@@ -10,7 +10,7 @@ a fraction of a second) possibly the writes.
 Data: a sweep of `--n` trajectories of `torque_free_flip` (seed 0, float64, every state
 kept), solved on this machine's CPU by `sweep.run` and read back. For each compressor, a
 new store of the same layout receives the same values as `sweep.run` writes a chunk
-(`_store._write`), timed (median of `--repeats` writes of the same chunk):
+(`_store._write`), timed (median of `--repeats` writes of the same chunk, default 5):
 
 - `none`: the `--n` trajectories without states (`trajectories="none"`: inertia, status,
   num_steps and the four summaries);
@@ -21,7 +21,7 @@ disk (the store's files, metadata included, over its trajectories), and both as 
 the store's own compressor. Every store is read back and compared with the values written,
 bit for bit (the compressors are lossless).
 
-Run: `python benchmarks/store_write.py [--n 131072] [--states-n 32768] [--repeats 3]
+Run: `python benchmarks/store_write.py [--n 131072] [--states-n 32768] [--repeats 5]
 [--out results/benchmarks]` prints a table and writes OUT/store_write.json.
 """
 
@@ -94,7 +94,7 @@ def write_rate(values: dict, n: int, trajectories: str, compression: dict, folde
     return float(np.median(times)), size / n
 
 
-def main(n=1 << 17, states_n=1 << 15, repeats=3, out="results/benchmarks"):
+def main(n=1 << 17, states_n=1 << 15, repeats=5, out="results/benchmarks"):
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         folder = pathlib.Path(tmp)
@@ -142,6 +142,6 @@ if __name__ == "__main__":
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--n", type=int, default=1 << 17)
     p.add_argument("--states-n", type=int, default=1 << 15)
-    p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--out", default="results/benchmarks")
     main(**vars(p.parse_args()))
