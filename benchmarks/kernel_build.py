@@ -20,9 +20,11 @@ For each case it reports what sets a GPU thread's cost and the first call's Trit
 
 Cases: the torque-free body, the heavy top and the gravity-gradient satellite of
 `gpu.py` (Tsit5, rtol = atol = 1e-8 in float64 and 1e-6 in float32, 101 outputs), each in
-float64 and float32, and `gradient`: `jax.grad` of Σ ω² over the outputs through the
+float64 and float32; `gradient`: `jax.grad` of Σ ω² over the outputs through the
 kernel w.r.t. the six log-Cholesky parameters of the inertia (the kernel of state and
-sensitivities, float64).
+sensitivities, float64); and `sweep`: the kernel of a chunk of `sweep.run`'s shipped
+scenario `torque_free_flip` (Tsit5 at 1e-8, 81 outputs over 40 s, each trajectory its own
+sampled inertia, float64).
 
 Needs the `triton` package (`pip install -c requirements.lock -e ".[kernel-build]"`; Linux
 x86-64), which brings its own `ptxas`; no GPU. Run: `python benchmarks/kernel_build.py [--cases …]
@@ -57,6 +59,7 @@ from gpu import N_OUT, T_END, TOL, J, rbdyn_model, states  # noqa: E402
 
 CASES = tuple(f"{m}-{d}" for m in ("torque_free", "heavy_top", "gravity_gradient") for d in TOL) + (
     "gradient",
+    "sweep",
 )
 H100_REGISTERS, SM_ARCH = 65536, 90
 
@@ -112,6 +115,8 @@ def case_module(case: str, block: int = GPU_BLOCK, n: int | None = None) -> str:
     n = 2 * block if n is None else n
     w0 = np.random.default_rng(0).normal(size=(n, 3))
     ts = np.linspace(0.0, T_END, N_OUT)
+    if case == "sweep":
+        return triton_module(*_sweep_solve(n, block))
     if case == "gradient":
         body = rb.RigidBody(jnp.asarray(J))
         y0s = states(w0, np.float64)
@@ -136,6 +141,33 @@ def case_module(case: str, block: int = GPU_BLOCK, n: int | None = None) -> str:
         return kernel_solve(model, y0s, ts, diffrax.Tsit5(), pid, 10**6, None, None, block, False)
 
     return triton_module(solve, states(w0, dtype), jnp.asarray(ts, dtype))
+
+
+def _sweep_solve(n: int, block: int):
+    """The solve of a sweep's chunk of `n` trajectories of `torque_free_flip` as `sweep.run`
+    runs it on a GPU (its scenario's solver, tolerances and times; a per-trajectory inertia;
+    `block` lanes a program),
+    and its arguments: the sampled values (drawn here: sampling reads no GPU) and the times."""
+    from rbdyn_jax.scenario import Scenario
+
+    sc = Scenario.load("torque_free_flip")
+    values = jax.vmap(lambda i: sc.sample(sc.dists, jax.random.key(0), i))(jnp.arange(n))
+
+    def solve(values, ts):
+        models, y0s = jax.vmap(sc.build)(values)
+        return rb.simulate_batch(
+            models,
+            y0s,
+            ts,
+            model_axes=0,
+            solver=sc.diffrax_solver,
+            stepsize_controller=sc.stepsize_controller,
+            dt0=sc.dt,
+            max_steps=sc.max_steps,
+            batching=rb.Kernel(block=block, interpret=False),
+        )
+
+    return solve, values, jnp.asarray(sc.ts)
 
 
 def build(module: str, block: int = GPU_BLOCK) -> dict:

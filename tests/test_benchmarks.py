@@ -240,9 +240,9 @@ def test_kernel_build_reads_the_kernel_lowered_for_an_h100():
     operations on rows of lanes for the torque-free body's 7 states as for the gradient's
     25 states and sensitivities (each costs Triton's coalescing pass a pass over the kernel):
     a load per dtype of rows, the output times' reads, a store of saved rows and one of the
-    counts."""
+    counts; so too for a sweep's kernel, whose every trajectory has its own inertia."""
     mod = load("kernel_build")
-    for case in ("torque_free-float32", "gradient"):
+    for case in ("torque_free-float32", "gradient", "sweep"):
         text = mod.case_module(case, n=16)
         assert text.count("tt.func public @rbdyn_kernel") == 1, case
         assert text.count("scf.while") == 2, case
