@@ -45,9 +45,12 @@ rtol = atol = 1e-8 in float64 and 1e-6 in float32. Rows:
   while the one before is written); the store, under `--out`, is removed afterwards.
 
 Each rate is the median of repeated calls after a first call, which is reported apart (it
-includes compilation). Errors: the largest and the median over trajectories of
-max_t |ω − ω_ref| on the first `--ref-max` trajectories, ω_ref the Jacobi elliptic solution
-(`rb.analytic.torque_free_elliptic`). The card is named from JAX's and numba's device queries.
+includes compilation; `first_call_phases` splits its compilation into JAX's tracing,
+lowering and the backend's compilation, which on a GPU includes Triton's, as
+`jax.monitoring` reports them, summed over the programs compiled). Errors: the largest and
+the median over trajectories of max_t |ω − ω_ref| on the first `--ref-max` trajectories,
+ω_ref the Jacobi elliptic solution (`rb.analytic.torque_free_elliptic`). The card is named
+from JAX's and numba's device queries.
 Results are written after every row (`gpu.json` under `--out`), so a run stopped by
 `--budget` (seconds; later rows are skipped) or killed keeps what it measured.
 
@@ -111,11 +114,37 @@ def errors(omega, ref):
     return {"max_error": float(np.max(e)), "median_error": float(np.median(e))}
 
 
+# JAX's compilation phases in the latest first call (`timed`): seconds by event of
+# `jax.monitoring` (tracing to a jaxpr, lowering to MLIR, the backend's compilation; summed
+# over the programs the call compiles).
+FIRST_CALL_PHASES: dict[str, float] = {}
+PHASES = {
+    "/jax/core/compile/jaxpr_trace_duration": "trace_s",
+    "/jax/core/compile/jaxpr_to_mlir_module_duration": "lower_s",
+    "/jax/core/compile/backend_compile_duration": "compile_s",
+}
+_timing = {"on": False, "phases": {}}  # the listener: registered, and what it collects
+
+
+def _phase(event: str, duration: float, **_) -> None:
+    phases = _timing["phases"]
+    if event in PHASES:
+        phases[PHASES[event]] = phases.get(PHASES[event], 0.0) + duration
+
+
 def timed(fn, repeats):
-    """(last output, first call's seconds, median of `repeats` further calls)."""
+    """(last output, first call's seconds, median of `repeats` further calls); the first
+    call's compilation phases in `FIRST_CALL_PHASES`."""
+    if not _timing["on"]:
+        jax.monitoring.register_event_duration_secs_listener(_phase)
+        _timing["on"] = True
+    _timing["phases"] = {}
     t0 = time.perf_counter()
     out = jax.block_until_ready(fn())
     first = time.perf_counter() - t0
+    FIRST_CALL_PHASES.clear()
+    FIRST_CALL_PHASES.update(_timing["phases"])
+    _timing["phases"] = {}  # a repeat's compilations (none expected) are not the first call's
     times = []
     for _ in range(repeats):
         t0 = time.perf_counter()
@@ -505,6 +534,8 @@ def main(
                 row = measure(method, n, w0, ts, refs[n], 3 if n <= 100_000 else 1)
         except Exception as e:  # recorded, and the run goes on (out of memory, say)
             row = {"method": method, "batch": n, "failed": f"{type(e).__name__}: {e}"[:500]}
+        if "first_call_s" in row and method != "sweep":
+            row["first_call_phases"] = dict(FIRST_CALL_PHASES)
         model = method.rsplit(" ", 1)[-1]
         suffix = f" {model}" if model in MODELS else ""
         for yard_method, key in (

@@ -189,6 +189,9 @@ def test_gpu_report_runs_on_a_cpu(tmp_path):
         assert by[f"kernel{m}"]["mean_steps"] == by[f"lanes{m}"]["mean_steps"]
         assert by[f"kernel{m}"]["all_successful"]
     assert by["sweep"]["all_successful"] and by["sweep"]["store_bytes"] > 0
+    # the kernel's first call compiles (its phases as JAX reports them, within the call)
+    phases = by["kernel"]["first_call_phases"]
+    assert 0 < phases["compile_s"] < by["kernel"]["first_call_s"] and phases["trace_s"] > 0
     # one chunk of 4: its seconds (within the whole run's), no sustained rate after it
     assert by["sweep"]["chunks"] == 1 and by["sweep"]["steady_traj_per_s"] is None
     assert 0 < by["sweep"]["first_chunk_s"] <= by["sweep"]["seconds"]
