@@ -47,7 +47,9 @@ rtol = atol = 1e-8 in float64 and 1e-6 in float32. Rows:
 Each rate is the median of repeated calls after a first call, which is reported apart (it
 includes compilation; `first_call_phases` splits its compilation into JAX's tracing,
 lowering and the backend's compilation, which on a GPU includes Triton's, as
-`jax.monitoring` reports them, summed over the programs compiled). Errors: the largest and
+`jax.monitoring` reports them, summed over the programs compiled), and `dispatch_s` the
+median time a repeated call takes to return before the device has finished (the host's
+share of a call: its Python, its checks, its launches). Errors: the largest and
 the median over trajectories of max_t |ω − ω_ref| on the first `--ref-max` trajectories,
 ω_ref the Jacobi elliptic solution (`rb.analytic.torque_free_elliptic`). The card is named
 from JAX's and numba's device queries.
@@ -114,10 +116,12 @@ def errors(omega, ref):
     return {"max_error": float(np.max(e)), "median_error": float(np.median(e))}
 
 
-# JAX's compilation phases in the latest first call (`timed`): seconds by event of
-# `jax.monitoring` (tracing to a jaxpr, lowering to MLIR, the backend's compilation; summed
-# over the programs the call compiles).
-FIRST_CALL_PHASES: dict[str, float] = {}
+# What the latest `timed` saw beyond its seconds: its first call's compilation phases
+# (`first_call_phases`: seconds by `jax.monitoring` event, tracing to a jaxpr, lowering to
+# MLIR, the backend's compilation, each summed over the programs the call compiles) and the
+# median seconds its repeated calls took to return before the device finished
+# (`dispatch_s`: the host's share of a call).
+LAST_TIMING: dict = {}
 PHASES = {
     "/jax/core/compile/jaxpr_trace_duration": "trace_s",
     "/jax/core/compile/jaxpr_to_mlir_module_duration": "lower_s",
@@ -133,8 +137,8 @@ def _phase(event: str, duration: float, **_) -> None:
 
 
 def timed(fn, repeats):
-    """(last output, first call's seconds, median of `repeats` further calls); the first
-    call's compilation phases in `FIRST_CALL_PHASES`."""
+    """(last output, first call's seconds, median of `repeats` further calls); the rest in
+    `LAST_TIMING`."""
     if not _timing["on"]:
         jax.monitoring.register_event_duration_secs_listener(_phase)
         _timing["on"] = True
@@ -142,14 +146,18 @@ def timed(fn, repeats):
     t0 = time.perf_counter()
     out = jax.block_until_ready(fn())
     first = time.perf_counter() - t0
-    FIRST_CALL_PHASES.clear()
-    FIRST_CALL_PHASES.update(_timing["phases"])
+    LAST_TIMING.clear()
+    LAST_TIMING["first_call_phases"] = _timing["phases"]
     _timing["phases"] = {}  # a repeat's compilations (none expected) are not the first call's
-    times = []
+    times, dispatch = [], []
     for _ in range(repeats):
         t0 = time.perf_counter()
-        out = jax.block_until_ready(fn())
+        out = fn()
+        dispatch.append(time.perf_counter() - t0)
+        out = jax.block_until_ready(out)
         times.append(time.perf_counter() - t0)
+    if dispatch:
+        LAST_TIMING["dispatch_s"] = float(np.median(dispatch))
     return out, first, float(np.median(times))
 
 
@@ -535,7 +543,7 @@ def main(
         except Exception as e:  # recorded, and the run goes on (out of memory, say)
             row = {"method": method, "batch": n, "failed": f"{type(e).__name__}: {e}"[:500]}
         if "first_call_s" in row and method != "sweep":
-            row["first_call_phases"] = dict(FIRST_CALL_PHASES)
+            row.update(LAST_TIMING)
         model = method.rsplit(" ", 1)[-1]
         suffix = f" {model}" if model in MODELS else ""
         for yard_method, key in (

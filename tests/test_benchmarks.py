@@ -192,6 +192,8 @@ def test_gpu_report_runs_on_a_cpu(tmp_path):
     # the kernel's first call compiles (its phases as JAX reports them, within the call)
     phases = by["kernel"]["first_call_phases"]
     assert 0 < phases["compile_s"] < by["kernel"]["first_call_s"] and phases["trace_s"] > 0
+    # each repeat returns before it finishes, so the medians keep the order
+    assert 0 < by["kernel"]["dispatch_s"] <= by["kernel"]["seconds"]
     # one chunk of 4: its seconds (within the whole run's), no sustained rate after it
     assert by["sweep"]["chunks"] == 1 and by["sweep"]["steady_traj_per_s"] is None
     assert 0 < by["sweep"]["first_chunk_s"] <= by["sweep"]["seconds"]
