@@ -508,6 +508,8 @@ def main(
         "models": list(models),
         "model_min": model_min,
         "blocks": list(blocks),
+        # first calls compile cold unless JAX's persistent cache is configured
+        "compilation_cache": jax.config.jax_compilation_cache_dir or None,
         **device_names(),
     }
     print(f"device: {meta['jax_device']}; CUDA yardstick on: {meta['cuda_device']}")
