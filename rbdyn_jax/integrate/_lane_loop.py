@@ -289,8 +289,8 @@ def lane_loop(
             r = refill(lanes_now)
         else:  # skipped at the iterations where no lane finished
             r = jax.lax.cond(jnp.any(done), refill, lambda x: x, lanes_now)
-        idx, tprev, tnext, y, sstate, cstate, ok, m = r[:8]  # _Lanes' order
-        save, counts, result = r.save, r.counts, r.result
+        idx, tprev, tnext, y, ok, m = r.idx, r.tprev, r.tnext, r.y, r.ok, r.m
+        sstate, cstate, save, counts, result = r.sstate, r.cstate, r.save, r.counts, r.result
         # (3) One solver step in every lane with nothing left to save.
         go = (idx < N) & ~pending & (tprev < t1) & (result == 0)
         y1, y_error, dense, ss1 = step(
