@@ -267,6 +267,10 @@ def test_the_fields_verdict_is_kept_per_structure():
         assert _kernel_refusal.field_refuse(table, y0s, None) is None
 
 
+def _k(tau, psi):
+    return 0.5 + 0.1 * jnp.sin(psi)
+
+
 def test_the_default_takes_the_kernel_only_on_a_gpu_backend():
     """`simulate_batch`'s default (`default_batching`): `Kernel` on a GPU backend (faked
     here: the choice reads the backend's name) where it can run the solve; `Lanes` on a
@@ -283,6 +287,11 @@ def test_the_default_takes_the_kernel_only_on_a_gpu_backend():
         chosen(eqx.filter_vmap(heavy_top)(jnp.linspace(0.5, 2.0, 4)), "gpu", model_axes=0)
         is rb.Kernel
     )
+    # a batch of models sharing a leaf that is no array (a plain function k(τ, ψ))
+    k_models = eqx.filter_vmap(lambda e: rb.RigidBody(J, rb.RestoringMoment(_k, e)))(
+        jnp.linspace(0.1, 0.4, 4)
+    )
+    assert chosen(k_models, "gpu", model_axes=0) is rb.Kernel
     assert chosen(rb.RigidBody(J), "cpu") is rb.Lanes
     assert chosen(rb.RigidBody(J, _Looped()), "gpu") is rb.Lanes
     assert chosen(rb.RigidBody(J), "gpu", solver=diffrax.Kvaerno5()) is rb.Vmap

@@ -5,6 +5,7 @@ import equinox as eqx
 
 from ._field import (
     Guarded,
+    array_axes,
     checked_times,
     controller_in_unit_time,
     finish,
@@ -48,4 +49,4 @@ def solve_vmapped(
     def one(m, y0):
         return solve(m, y0, ts, solver, controller, adjoint, max_steps, dt0)
 
-    return eqx.filter_vmap(one, in_axes=(model_axes, 0))(model, y0s)
+    return eqx.filter_vmap(one, in_axes=(array_axes(model_axes), 0))(model, y0s)

@@ -20,6 +20,16 @@ def all_finite(tree) -> Array:
     return jnp.all(jnp.stack(leaves))
 
 
+def array_axes(model_axes):
+    """`simulate_batch`'s `model_axes` as `eqx.filter_vmap` takes it: each integer axis of
+    the prefix maps only the array leaves beneath it (`eqx.if_array`), so that a model's
+    other leaves (a Python function such as a restoring moment's `k`) are shared by the
+    batch, as "`0` maps every array leaf" says."""
+    return jax.tree_util.tree_map(
+        lambda a: eqx.if_array(a) if isinstance(a, int) else a, model_axes
+    )
+
+
 def where_tree(pred, tree, fill):
     return jax.tree_util.tree_map(lambda x: jnp.where(pred, x, jnp.full_like(x, fill)), tree)
 

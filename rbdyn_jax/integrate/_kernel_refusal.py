@@ -11,6 +11,7 @@ trace on the next call of the same kind.
 import equinox as eqx
 import jax
 
+from ._field import array_axes
 from ._rows import trace, unsupported
 
 
@@ -55,12 +56,12 @@ def _signature(model, y0s, model_axes):
 
 
 def _field_refuse(model, y0s, model_axes) -> str | None:
-    def one(x):
-        return jax.ShapeDtypeStruct(x.shape[1:], x.dtype)
+    def one(x):  # an array's shape for one trajectory; another leaf as it is
+        return jax.ShapeDtypeStruct(x.shape[1:], x.dtype) if hasattr(x, "shape") else x
 
     if model_axes is not None:
         model = eqx.filter_eval_shape(
-            lambda m: eqx.filter_vmap(lambda x: x, in_axes=(model_axes,))(m), model
+            lambda m: eqx.filter_vmap(lambda x: x, in_axes=(array_axes(model_axes),))(m), model
         )
         model = jax.tree_util.tree_map(one, model)
     dyn, static = eqx.partition(

@@ -66,7 +66,7 @@ def kernel_run(system, y0s, ts, controller, solver, max_steps, dt0, batched, blo
     start_time, span, uts, dt0 = unit_time(ts, dt0)
     controller = controller_in_unit_time(controller, start_time, span)
     dtype = uts.dtype
-    axis = 0 if batched else None
+    axis = eqx.if_array(0) if batched else None
     first = functools.partial(
         lane_first, controller=controller, solver=solver, start_time=start_time, span=span, dt0=dt0
     )

@@ -136,7 +136,7 @@ def lane_loop(
     t0, t1 = jnp.zeros((), ts.dtype), jnp.ones((), ts.dtype)
     t1_floor = jnp.asarray(clip_floor(ts.dtype))  # diffeqsolve's clip
     dyn, static = eqx.partition(system, eqx.is_array)
-    axis = 0 if batched else None
+    axis = eqx.if_array(0) if batched else None
     first = functools.partial(
         lane_first, controller=controller, solver=solver, start_time=start_time, span=span, dt0=dt0
     )

@@ -68,7 +68,7 @@ class LaneField(eqx.Module):
     span: Array
 
     def __call__(self, s, y, ok):  # `Guarded` per lane: the vmapped path's arithmetic
-        axis = -1 if self.batched else None
+        axis = eqx.if_array(-1) if self.batched else None
         return eqx.filter_vmap(
             lambda m, s, x, ok: Guarded(m, self.t0, self.span)(s, x, ok),
             in_axes=(axis, 0, -1, 0),

@@ -12,7 +12,7 @@ import numpy as np
 from ..models import AbstractRigidBody
 from ._cheapest import cheapest
 from ._dependencies import closed_groups
-from ._field import checked_times, finish, promoted, where_tree
+from ._field import array_axes, checked_times, finish, promoted, where_tree
 from ._lane_arrays import take
 from ._lane_system import AbstractLaneSystem, Plain
 from ._solution import Trajectory, as_result
@@ -174,7 +174,7 @@ def lane_jvp(loop, static, batched, primals, tangents):
             S0 = jax.tree_util.tree_map(lambda s, f: s.at[-1].set(-f), S0, f0)
         return [jnp.ravel(jnp.moveaxis(s, 0, -1)) for s in jax.tree_util.tree_leaves(S0)]
 
-    S0 = eqx.filter_vmap(initial, in_axes=(0 if batched else None, 0))(model, y0s)
+    S0 = eqx.filter_vmap(initial, in_axes=(eqx.if_array(0) if batched else None, 0))(model, y0s)
     # One sensitivity solve per closed group of the state's leaves (`closed_groups`), the
     # smallest first, then one of every leaf: `_cheapest` runs the first that gives what the
     # caller reads. A loss on a torque-free body's ω alone integrates ω's columns only (18
@@ -222,7 +222,7 @@ def lane_jvp(loop, static, batched, primals, tangents):
             return where_tree(ok, f, 0.0)
 
         F = jax.tree_util.tree_leaves(
-            eqx.filter_vmap(rates, in_axes=(0 if batched else None, 0, 0))(
+            eqx.filter_vmap(rates, in_axes=(eqx.if_array(0) if batched else None, 0, 0))(
                 model, jax.tree_util.tree_unflatten(treedef, leaves), ok0
             )
         )
@@ -259,7 +259,7 @@ def sensitivity_solve(loop, model, y0s, ts, controller, model_axes) -> Trajector
     ts = checked_times(ts)
     batched = model_axes is not None
     if batched:  # every array leaf with a leading trajectory axis
-        model = eqx.filter_vmap(lambda m: m, in_axes=(model_axes,))(model)
+        model = eqx.filter_vmap(lambda m: m, in_axes=(array_axes(model_axes),))(model)
     dyn, static = eqx.partition(model, eqx.is_array)
     y0s = promoted(dyn, y0s, ts)  # before the loop's buffers take its dtype
     tols, cstatic = eqx.partition(controller, eqx.is_array)
@@ -277,6 +277,6 @@ def sensitivity_solve(loop, model, y0s, ts, controller, model_axes) -> Trajector
     def finished(m, ys, ok, result, counts):
         return finish(m, ts, ys, ok, as_result(result), list(counts))
 
-    return eqx.filter_vmap(finished, in_axes=(0 if batched else None, 0, 0, 0, 0))(
+    return eqx.filter_vmap(finished, in_axes=(eqx.if_array(0) if batched else None, 0, 0, 0, 0))(
         model, ys, ok0, result, counts
     )
