@@ -121,9 +121,13 @@ def test_same_steps_and_values_as_vmapped_diffeqsolve(case):
     """From a start time that is not 0 (the field is read at t0 + s·span); four solvers
     (their tableaus and interpolants), a shared and a per-trajectory model, a sum of
     torques, a polynomial restoring moment, relative models in a turning frame and on a
-    circular orbit."""
+    circular orbit. Each is a model the default takes the kernel for on a GPU: its field
+    and the field's derivative run on rows (`field_refuse`)."""
+    from rbdyn_jax.integrate._kernel_refusal import field_refuse
+
     model, axes, solver = CASES[case]()
     y0s = initial_states()
+    assert field_refuse(model, y0s, axes) is None
     ts = TS + 1.5
     kw = dict(model_axes=axes, solver=solver, rtol=RTOL, atol=RTOL)
     kernel = rb.simulate_batch(model, y0s, ts, batching=rb.Kernel(), **kw)
@@ -245,6 +249,66 @@ class _Tabulated(eqx.Module):
 
     def vector_field(self, t, y, args):
         return self.body.vector_field(t, y, args)
+
+
+@jax.custom_jvp
+def _soft(x):
+    return jnp.tanh(x)
+
+
+@_soft.defjvp
+def _soft_jvp(primals, tangents):  # a rule holding a while loop: no form on rows
+    (x,), (dx,) = primals, tangents
+    d, _ = jax.lax.while_loop(
+        lambda c: c[1] < 2, lambda c: (c[0], c[1] + 1), (1.0 - jnp.tanh(x) ** 2, 0)
+    )
+    return _soft(x), d * dx
+
+
+class _SoftDamping(rb.AbstractTorque):
+    """A torque c·tanh(ω) whose derivative (a `custom_jvp` rule) has no form on rows."""
+
+    c: jax.Array
+
+    def __call__(self, kin, inertia):
+        return -self.c * _soft(kin.omega)
+
+
+def test_a_derivative_with_no_form_on_rows_makes_the_default_take_lanes(monkeypatch):
+    """A field whose values run on rows but whose derivative does not (a `custom_jvp` rule
+    with a while loop): the kernel solves it when asked and refuses its gradient by name;
+    the default on a GPU (faked) takes `Lanes` for it, so that `jax.grad` through the
+    default call works, equal to reverse mode through `Vmap` (the same discrete solve:
+    measured 6e-16 relative; bound 1e-9 as the lane solver's own gradient tests)."""
+    import rbdyn_jax.integrate._batching as batching
+
+    y0s, c = initial_states(4), jnp.array([0.1, 0.2, 0.3])
+    kw = dict(rtol=RTOL, atol=RTOL)
+
+    def loss(c, batching=None):
+        tr = rb.simulate_batch(rb.RigidBody(J, _SoftDamping(c)), y0s, TS, batching=batching, **kw)
+        return jnp.sum(tr.ys.omega[:, -1] ** 2)
+
+    kernel = rb.Kernel(interpret=True)
+    np.testing.assert_allclose(loss(c, kernel), loss(c, rb.Lanes()), rtol=1e-12)
+    with pytest.raises(ValueError, match="while"):
+        jax.grad(loss)(c, kernel)
+    monkeypatch.setattr(batching, "Kernel", lambda: kernel)
+    monkeypatch.setattr(batching.jax, "default_backend", lambda: "gpu")
+    assert "derivative" in batching.field_refuse(rb.RigidBody(J, _SoftDamping(c)), y0s, None)
+    assert isinstance(
+        batching.default_batching(
+            diffrax.Tsit5(),
+            rb.integrate.make_controller(**kw),
+            None,
+            rb.RigidBody(J, _SoftDamping(c)),
+            y0s,
+        ),
+        rb.Lanes,
+    )
+    got, ref = jax.grad(loss)(c), jax.grad(loss)(c, rb.Vmap())
+    assert np.min(np.abs(ref)) > 1e-3
+    np.testing.assert_allclose(got, ref, rtol=1e-9)
 
 
 def test_the_fields_verdict_is_kept_per_structure():
@@ -531,8 +595,10 @@ def test_a_second_derivative_through_the_kernel_is_refused():
 
 
 def test_euler_angle_and_poisson_forms():
-    """The other state forms: their fields run on rows as written (trigonometric
-    kinematics; the Poisson vector γ)."""
+    """The other state forms: their fields (and derivatives) run on rows as written
+    (trigonometric kinematics; the Poisson vector γ)."""
+    from rbdyn_jax.integrate._kernel_refusal import field_refuse
+
     rng = np.random.default_rng(1)
     omega = jnp.asarray(rng.normal(size=(6, 3)))
     angles = jnp.asarray(rng.uniform([0.0, 0.5, 0.0], [6.0, 2.5, 6.0], size=(6, 3)))
@@ -545,6 +611,7 @@ def test_euler_angle_and_poisson_forms():
         ),
     ]
     for model, y0s in cases:
+        assert field_refuse(model, y0s, None) is None
         kw = dict(rtol=RTOL, atol=RTOL)
         kernel = rb.simulate_batch(model, y0s, TS, batching=rb.Kernel(), **kw)
         plain = rb.simulate_batch(model, y0s, TS, batching=rb.Vmap(), **kw)

@@ -1,11 +1,13 @@
 """What the kernel cannot run, by name, beside the solvers, controllers and adjoints the
 lane loop refuses too (`_lane_step.step_refuse`): `field_refuse`, a model whose vector
-field has an operation with no form on rows of lanes (`_rows.unsupported`).
+field, or its derivative, has an operation with no form on rows of lanes
+(`_rows.unsupported`).
 
 `Kernel.solve` refuses a solve by `step_refuse` before it compiles anything; the default
-strategy on a GPU asks `field_refuse`, which traces the field for one trajectory and keeps
-its verdict per structure, static values, shapes and dtypes, so that choosing costs no
-trace on the next call of the same kind.
+strategy on a GPU asks `field_refuse`, which traces the field's JVP for one trajectory
+(the field and the derivative the kernel integrates for a gradient: a `custom_jvp` rule
+runs only there) and keeps its verdict per structure, static values, shapes and dtypes,
+so that choosing costs no trace on the next call of the same kind.
 """
 
 import equinox as eqx
@@ -70,11 +72,21 @@ def _field_refuse(model, y0s, model_axes) -> str | None:
     dyn = jax.tree_util.tree_map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), dyn)
     y = jax.tree_util.tree_map(one, y0s)
     t = jax.ShapeDtypeStruct((), jax.tree_util.tree_leaves(y)[0].dtype)
-    closed, _ = trace(lambda d, t, y: eqx.combine(d, static).vector_field(t, y, None), dyn, t, y)
+
+    def field_jvp(d, t, y):  # the field and its derivative w.r.t. the state and the model
+        floats, rest = eqx.partition((d, y), eqx.is_inexact_array)
+
+        def field(floats):
+            d, y = eqx.combine(floats, rest)
+            return eqx.combine(d, static).vector_field(t, y, None)
+
+        return jax.jvp(field, (floats,), (floats,))
+
+    closed, _ = trace(field_jvp, dyn, t, y)
     bad = unsupported(closed.jaxpr)
     if not bad:
         return None
     return (
-        f"cannot run this model on rows of lanes: its vector field uses {sorted(bad)}, "
-        "which have no form on rows (write the field on vector components)"
+        f"cannot run this model on rows of lanes: its vector field or its derivative uses "
+        f"{sorted(bad)}, which have no form on rows (write the field on vector components)"
     )
