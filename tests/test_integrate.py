@@ -688,6 +688,39 @@ def test_not_a_model(fn, model):
         fn(model, y0_for(fn), TS)
 
 
+@pytest.mark.parametrize(
+    "batching", [None, rb.Lanes(), rb.Kernel(interpret=True)], ids=["default", "Lanes", "Kernel"]
+)
+def test_batch_sizes_that_disagree_are_named(batching):
+    """`y0s` leaves of different leading sizes, or a model mapped by `model_axes` whose
+    axis is not the batch's, are refused with the shapes, before any strategy runs."""
+    with pytest.raises(ValueError, match=r"`y0s`.*\(4, 3\), \(3, 4\)"):
+        rb.simulate_batch(gen_model(), state(W0S, Q0S[:3]), TS, batching=batching)
+    with pytest.raises(ValueError, match="`y0s`"):
+        rb.simulate_batch(gen_model(), state(W0, Q0), TS, batching=batching)  # no batch axis
+    models = eqx.filter_vmap(rb.RigidBody)(jnp.asarray(JS[:3]))
+    with pytest.raises(ValueError, match=r"model array of shape \(3, 3, 3\).*4 trajectories"):
+        rb.simulate_batch(models, state(W0S, Q0S), TS, model_axes=0, batching=batching)
+    with pytest.raises(ValueError, match="4 trajectories"):  # a model with no batch axis
+        rb.simulate_batch(gen_model(), state(W0S, Q0S), TS, model_axes=0, batching=batching)
+
+
+@pytest.mark.parametrize(
+    "batching",
+    [None, rb.Vmap(), rb.Lanes(), rb.Kernel(interpret=True)],
+    ids=["default", "Vmap", "Lanes", "Kernel"],
+)
+def test_an_empty_batch_gives_an_empty_trajectory(batching):
+    """No trajectories: every strategy returns the `Trajectory` of none, each leaf with
+    its leading axis 0 and its other axes as for a batch."""
+    empty = state(W0S[:0], Q0S[:0])
+    got = rb.simulate_batch(gen_model(), empty, TS, batching=batching)
+    full = rb.simulate_batch(gen_model(), state(W0S[:1], Q0S[:1]), TS)
+    assert jax.tree_util.tree_structure(got) == jax.tree_util.tree_structure(full)
+    for a, b in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(full)):
+        assert a.shape == (0,) + b.shape[1:] and a.dtype == b.dtype
+
+
 # ---------------------------------------------------------------------------------------
 # 9. Initial states and models that cannot be integrated.
 

@@ -14,7 +14,7 @@ from .._checks import as_float_array
 from .._program.program import Program
 from .._program.xla import top_level
 from ..models import AbstractRigidBody
-from ._batching import AbstractBatching, Lanes, default_batching
+from ._batching import AbstractBatching, Lanes, Vmap, default_batching
 from ._diffeqsolve import solve
 from ._field import checked_before_tracing, solve_dtype
 from ._lie_poisson import LiePoissonSplitting
@@ -129,6 +129,35 @@ def _prepare(model, y0, ts, stepsize_controller, rtol, atol, max_steps, solver=N
 _solved = Program(solve, validated=checked_before_tracing)
 
 
+def batch_size(model, y0s, model_axes) -> int:
+    """The number of trajectories in a batch: the leading axis every leaf of `y0s` carries,
+    which the arrays `model_axes` maps must carry along their axis too. A `ValueError`
+    names the shapes that disagree."""
+    shapes = [np.shape(x) for x in jax.tree_util.tree_leaves(y0s)]
+    sizes = {s[0] if s else None for s in shapes}
+    if not shapes or None in sizes or len(sizes) != 1:
+        raise ValueError(
+            "`y0s` must carry the batch along a leading axis of every leaf, of one size; "
+            f"got shapes {shapes}."
+        )
+    (n,) = sizes
+
+    def check(axis, sub):  # the arrays of `sub` mapped along `axis`
+        axis = axis.axis if isinstance(axis, eqx.if_array) else axis
+        if not isinstance(axis, int):  # None, or a callable choosing per leaf
+            return
+        for x in jax.tree_util.tree_leaves(sub):
+            if eqx.is_array(x) and (x.ndim <= axis or x.shape[axis] != n):
+                raise ValueError(
+                    f"`model_axes` maps a model array of shape {x.shape} along axis {axis}, "
+                    f"which must be the batch's {n} trajectories (`y0s`)."
+                )
+
+    if model_axes is not None:
+        jax.tree_util.tree_map(check, model_axes, model, is_leaf=lambda x: x is None)
+    return n
+
+
 def simulate(
     model: AbstractRigidBody,
     y0: PyTree,
@@ -205,7 +234,8 @@ def simulate_batch(
 
     **Arguments:** as `simulate`, and
 
-    - `y0s`: initial states with a leading batch axis on every leaf.
+    - `y0s`: initial states with a leading batch axis on every leaf, of one size (none:
+      the `Trajectory` of no trajectories).
     - `model_axes`: `None` (default) shares `model` across the batch; `0` maps every array
       leaf of `model` along its leading axis (build such a model with
       `eqx.filter_vmap(lambda J: RigidBody(J, torque))(Js)`); or any `in_axes` prefix of
@@ -231,13 +261,15 @@ def simulate_batch(
     ts, controller, max_steps = _prepare(
         model, y0s, ts, stepsize_controller, rtol, atol, max_steps, solver, dt0
     )
-    if batching is None:
-        batching = default_batching(solver, controller, adjoint, model, y0s, model_axes)
-    elif not isinstance(batching, AbstractBatching):
+    if batching is not None and not isinstance(batching, AbstractBatching):
         raise ValueError(
             "`batching` must be `rbdyn_jax.Lanes(...)`, `rbdyn_jax.Kernel(...)`, "
             f"`rbdyn_jax.Vmap()` or None, got {type(batching).__name__}."
         )
+    if batch_size(model, y0s, model_axes) == 0:  # no lanes to fill: the vmapped solve
+        batching = Vmap()  # gives the empty `Trajectory`
+    elif batching is None:
+        batching = default_batching(solver, controller, adjoint, model, y0s, model_axes)
     if throw and isinstance(batching, Lanes) and not top_level():
         batching = Lanes(batching.lanes, devices=1, layout=batching.layout)
     traj = batching.solve(
