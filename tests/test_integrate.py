@@ -721,6 +721,23 @@ def test_an_empty_batch_gives_an_empty_trajectory(batching):
         assert a.shape == (0,) + b.shape[1:] and a.dtype == b.dtype
 
 
+@pytest.mark.parametrize(
+    "batching",
+    [None, rb.Vmap(), rb.Lanes(), rb.Kernel(interpret=True)],
+    ids=["default", "Vmap", "Lanes", "Kernel"],
+)
+def test_integer_initial_states_are_the_floats_they_hold(batching):
+    """Initial rates and quaternions given as integers (`[1, 0, 0, 0]`) start the solve
+    from the floats they hold: the same solve, to the bit, as from float arrays."""
+    w0 = np.array([[1, 0, 2], [0, -1, 1], [2, 1, 0], [0, 0, 1]])
+    q0 = np.array([[1, 0, 0, 0], [0, 1, 0, 0], [1, 1, 0, 0], [0, 0, 0, 1]])
+    ints = batch(gen_model(), state(w0, q0), batching=batching)
+    floats = batch(gen_model(), state(w0 * 1.0, q0 * 1.0), batching=batching)
+    for a, b in zip(jax.tree_util.tree_leaves(ints), jax.tree_util.tree_leaves(floats)):
+        np.testing.assert_array_equal(a, b)
+    assert ints.ys.omega.dtype == jnp.float64
+
+
 # ---------------------------------------------------------------------------------------
 # 9. Initial states and models that cannot be integrated.
 

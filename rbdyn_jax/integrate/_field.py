@@ -145,13 +145,11 @@ def solve_dtype(model, y0, t):
 
 
 def promoted(model, y0, t):
-    """`y0` with its floating leaves in the dtype its steps give it (`solve_dtype`; an
+    """`y0` with every leaf an array in the dtype its steps give it (`solve_dtype`; an
     explicit cast). A float32 `y0` with float64 times starts in float64, and is normalised
-    there."""
+    there; an integer one (`[1, 0, 0, 0]`) starts as the floats it holds."""
     dtype = solve_dtype(model, y0, t)
-    return jax.tree_util.tree_map(
-        lambda y: y.astype(dtype) if jnp.issubdtype(y.dtype, jnp.inexact) else y, y0
-    )
+    return jax.tree_util.tree_map(lambda y: jnp.asarray(y).astype(dtype), y0)
 
 
 def start(model, y0, t0):
