@@ -394,6 +394,22 @@ def test_euler_angle_observations_equal_quaternion_ones(gravity_truth):
         idf.Observations(TS, euler=angles[..., :2])
 
 
+def test_a_stage_holds_its_fraction_of_the_record_wherever_the_record_lies():
+    """A staged fit's stage holds the samples up to its fraction of each trajectory's
+    recorded span, the same ones for a record at negative or large times as at [0, 4],
+    and the last stage (1) every recorded sample, the last included."""
+    from rbdyn_jax.identify._fit import stage_samples
+
+    ts = np.stack([np.linspace(0.0, 4.0, 41)] * 2)
+    mask = np.ones(ts.shape, bool)
+    mask[1, :3] = mask[1, -2:] = False  # the second record spans [0.3, 3.8]
+    for frac, counts in ((0.25, (11, 9)), (0.5, (21, 18)), (1.0, (41, 36))):
+        ref = stage_samples(ts, mask, frac)
+        assert tuple(np.sum(ref & mask, axis=1)) == counts
+        for shift in (-5.0, -1e3, 7.0):
+            np.testing.assert_array_equal(stage_samples(ts + shift, mask, frac), ref)
+
+
 def test_staged_horizons_rescue_a_long_record():
     """Over t ∈ [0, 40] the heavy top's record is long enough that a fit from a 30 %-off
     diagonal guess stalls in a local minimum (measured χ²/dof ≈ 330). Staged horizons

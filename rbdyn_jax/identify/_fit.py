@@ -255,17 +255,24 @@ def _result(
     )
 
 
+def stage_samples(ts, mask, frac: float) -> np.ndarray:
+    """The samples of a staged fit's stage: those of each trajectory's record (`mask`) at
+    times up to the fraction `frac` of its span, `t0 + frac (t1 − t0)`, every sample at
+    `frac = 1` (a span's rounding is allowed for, whatever the times' sign)."""
+    ts, mask = np.asarray(ts), np.asarray(mask)
+    t0 = np.array([t[m][0] for t, m in zip(ts, mask)])
+    t1 = np.array([t[m][-1] for t, m in zip(ts, mask)])
+    span = t1 - t0
+    return ts <= (t0 + frac * span + 1e-12 * span)[:, None]
+
+
 def _staged_fit(model, data: Observations, horizons, **kwargs) -> FitResult:
     h = np.asarray(horizons, dtype=float)
     if h.ndim != 1 or h.size < 1 or np.any(h <= 0) or np.any(np.diff(h) <= 0) or h[-1] != 1:
         raise ValueError(f"`horizons` must increase within (0, 1] and end at 1, got {horizons}.")
-    ts = np.asarray(data.ts)
-    mask = np.asarray(data.mask)
-    t0 = np.array([t[m][0] for t, m in zip(ts, mask)])
-    t1 = np.array([t[m][-1] for t, m in zip(ts, mask)])
     res, y0 = None, kwargs.pop("y0")
     for frac in h:
-        keep = jnp.asarray(ts <= (t0 + frac * (t1 - t0))[:, None] * (1 + 1e-12))
+        keep = jnp.asarray(stage_samples(data.ts, data.mask, frac))
         stage = eqx.tree_at(
             lambda d: (d.mask_omega, d.mask_quat),
             data,
