@@ -51,6 +51,23 @@ def test_same_seed_same_bits_for_any_chunk(reference_run, tmp_path, chunk):
     assert not np.array_equal(load(other)["omega"], load(out)["omega"])
 
 
+def test_numpy_integers_are_taken_as_ints(reference_run, tmp_path):
+    """`n`, `chunk`, `seed`, `lanes` and `trajectories` as NumPy integers (a value read from
+    an array, say): the same store as with Python ints, its attributes plain ints."""
+    out = sweep.run(
+        Scenario.from_dict(small()),
+        np.int64(N),
+        tmp_path / "np.zarr",
+        chunk=np.int32(N),
+        seed=np.int64(3),
+        lanes=np.int64(16),
+        trajectories=np.int64(1),
+    )
+    assert_same(load(reference_run), load(out))
+    attrs = xr.open_zarr(out).attrs
+    assert (attrs["n_trajectories"], attrs["seed"], attrs["trajectories"]) == (N, 3, 1)
+
+
 def test_two_devices_give_the_same_bits(reference_run, tmp_path):
     """A fresh process with two XLA host devices, each taking half of every chunk."""
     code = (

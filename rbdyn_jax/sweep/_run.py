@@ -254,6 +254,8 @@ def run(
     (`solver.rtol` finer than float32 resolves, say).
     """
     sc = scenario if isinstance(scenario, Scenario) else Scenario.load(scenario)
+    if isinstance(trajectories, np.integer):  # the scenario's source is JSON: a Python int
+        trajectories = int(trajectories)
     sc = sc.with_settings(dtype=dtype, trajectories=trajectories)
     for name, v in (("n", n), ("chunk", chunk), ("lanes", lanes)):
         if v is None and name != "n":
@@ -262,6 +264,9 @@ def run(
             raise ValueError(f"`{name}` must be a positive integer, got {v!r}.")
     if isinstance(seed, bool) or not isinstance(seed, int | np.integer) or seed < 0:
         raise ValueError(f"`seed` must be a non-negative integer, got {seed!r}.")
+    # Python ints from here: they are written into the store's attributes (JSON)
+    n, seed = int(n), int(seed)
+    chunk, lanes = (None if v is None else int(v) for v in (chunk, lanes))
     if client is None:
         _check_types(
             sc.dtype, n, "in this process: call `jax.config.update('jax_enable_x64', True)` first"
