@@ -231,6 +231,20 @@ def test_scenarios_page_examples_validate():
     assert complete >= 1
 
 
+def test_tutorials_show_their_scripts(site):
+    """Each tutorial page includes the script it is about (a `--8<--` snippet), whose
+    code appears on the built page."""
+    pages = sorted(
+        set((ROOT / "docs" / "tutorials").glob("*.md")) - {ROOT / "docs/tutorials/index.md"}
+    )
+    assert pages
+    for md in pages:
+        (script,) = re.findall(r'^--8<-- "(examples/[\w.]+)"$', md.read_text(), re.M)
+        page = _text(_page(site, f"tutorials/{md.name}"))
+        first = next(line for line in (ROOT / script).read_text().splitlines() if line.strip())
+        assert first.strip() in page, (md.name, script)
+
+
 def test_results_table_matches_the_codes():
     page = (DOCS / "api" / "simulate.md").read_text()
     rows = re.findall(r"^\| (\d+) \| `(\w+)` \|", page, re.M)
