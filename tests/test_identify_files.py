@@ -47,6 +47,24 @@ def test_npz_round_trip(tmp_path, record):
     assert_same(two, Observations(TS, omega=w[:2], quat=q[:2], sigma_omega=0.5, sigma_quat=0.02))
 
 
+def test_the_first_trajectories_keep_a_noise_level_per_sample(tmp_path, record):
+    """`trajectories` cuts the arrays that have a trajectory axis only: a σ per sample
+    `(n, 3)` or per component, shared by the trajectories, is kept whole. A count that is
+    not positive is refused."""
+    w, q = record
+    sigma = np.linspace(0.1, 0.5, N)[:, None] * np.ones(3)  # (n, 3): one per sample
+    sigma_q = np.linspace(0.01, 0.05, N)  # (n,)
+    np.savez(tmp_path / "s.npz", ts=TS, omega=w, quat=q, sigma_omega=sigma, sigma_quat=sigma_q)
+    for k in (1, 2):
+        got = Observations.from_file(tmp_path / "s.npz", trajectories=k)
+        assert_same(
+            got, Observations(TS, omega=w[:k], quat=q[:k], sigma_omega=sigma, sigma_quat=sigma_q)
+        )
+    for bad in (0, -1, 1.5, True):
+        with pytest.raises(ValueError, match="`trajectories`"):
+            Observations.from_file(tmp_path / "s.npz", trajectories=bad)
+
+
 def test_npz_of_euler_angles_per_trajectory_times_and_a_mask(tmp_path, record):
     """`euler` with the file's own `seq`, `ts` (K, n) and a `mask` padding the last record."""
     w, q = record
@@ -159,6 +177,13 @@ def test_a_missing_or_bad_file_is_a_clear_error(tmp_path, record):
     _csv(tmp_path / "none.csv", [[0.0, 1.0]], "t,speed")
     with pytest.raises(ValueError, match="none.csv: the header names no observed field"):
         Observations.from_file(tmp_path / "none.csv")
+    _csv(
+        tmp_path / "ids.csv",
+        [[0.5, 0.0, 1.0, 2.0, 3.0], [0.0, 1.0, 1.0, 2.0, 3.0]],
+        "trajectory,t,wx,wy,wz",
+    )
+    with pytest.raises(ValueError, match="ids.csv: the `trajectory` column must hold integers"):
+        Observations.from_file(tmp_path / "ids.csv")
     (tmp_path / "ragged.csv").write_text("t,wx,wy,wz\n0,1,2,3\n1,2\n")
     with pytest.raises(ValueError, match="ragged.csv: not a CSV table of numbers"):
         Observations.from_file(tmp_path / "ragged.csv")

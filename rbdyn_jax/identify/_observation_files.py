@@ -9,12 +9,29 @@ import numpy as np
 NPZ_ARRAYS = ("ts", "omega", "quat", "euler", "seq", "sigma_omega", "sigma_quat", "mask")
 # A CSV file's columns of each observed field.
 CSV_COLUMNS = {"omega": ("wx", "wy", "wz"), "quat": ("qw", "qx", "qy", "qz")}
+# The rank of each array with its leading trajectory axis (K, n, …): one of lower rank
+# (shared times, a σ per sample or per component) is broadcast over the trajectories.
+WITH_TRAJECTORIES = {
+    "ts": 2,
+    "omega": 3,
+    "quat": 3,
+    "euler": 3,
+    "mask": 2,
+    "sigma_omega": 3,
+    "sigma_quat": 2,
+}
 
 
 def read_fields(path, *, trajectories: int | None, seq: str) -> tuple[dict, str]:
     """`({argument: array}, seq)` for `Observations` from the file at `path` (its format by
     its suffix, as `Observations.from_file` describes), the first `trajectories` kept."""
     p = pathlib.Path(path)
+    if trajectories is not None and (
+        isinstance(trajectories, bool)
+        or not isinstance(trajectories, int | np.integer)
+        or trajectories < 1
+    ):
+        raise ValueError(f"`trajectories` must be a positive int or None, got {trajectories!r}.")
     if not p.exists():
         raise FileNotFoundError(f"{p}: no such file")
     if p.suffix == ".npz":
@@ -24,11 +41,9 @@ def read_fields(path, *, trajectories: int | None, seq: str) -> tuple[dict, str]
     else:
         return _dataset(p, trajectories), seq  # sliced as it is read
     if trajectories is not None:
-        for k in ("omega", "quat", "euler", "mask", "sigma_omega", "sigma_quat"):
-            if k in fields and np.ndim(fields[k]) >= 2:
+        for k, rank in WITH_TRAJECTORIES.items():
+            if k in fields and np.ndim(fields[k]) == rank:
                 fields[k] = fields[k][:trajectories]
-        if np.ndim(fields["ts"]) == 2:
-            fields["ts"] = fields["ts"][:trajectories]
     return fields, seq
 
 
@@ -63,7 +78,13 @@ def _csv(p: pathlib.Path) -> dict:
     if table.size == 0:
         raise ValueError(f"{p}: no rows under the header")
     fields: dict = {}
-    traj = table["trajectory"].astype(int) if "trajectory" in names else np.zeros(len(table), int)
+    if "trajectory" in names:
+        ids = table["trajectory"]
+        if not np.all(np.isfinite(ids) & (ids == np.round(ids))):
+            raise ValueError(f"{p}: the `trajectory` column must hold integers")
+        traj = ids.astype(int)
+    else:
+        traj = np.zeros(len(table), int)
     ids = np.unique(traj)
     n = max(int(np.sum(traj == i)) for i in ids)
     K = len(ids)
