@@ -476,3 +476,24 @@ def test_sweep_refuses_a_dtype_or_states_the_scenario_cannot_take(tmp_path, caps
             )
         assert e.value.code == 2
     assert "expected all, none or a positive integer K" in capsys.readouterr().err
+
+
+def test_unreadable_scenarios_and_a_bad_duration_are_one_line_and_status_2(tmp_path, capsys):
+    """A scenario path that is a folder, a file that is not UTF-8 text, and a demo
+    duration that is not a positive number: one message on stderr and exit status 2, no
+    traceback, nothing written."""
+    folder = tmp_path / "folder.toml"
+    folder.mkdir()
+    binary = tmp_path / "binary.toml"
+    binary.write_bytes(b"\xff\xfe\x00")
+    for scenario, says in ((folder, "cannot read it as a scenario"), (binary, "not valid TOML")):
+        out = tmp_path / "x.zarr"
+        assert cli.main(["sweep", str(scenario), "--n", "2", "--out", str(out)]) == 2
+        err = capsys.readouterr().err
+        assert says in err and str(scenario) in err and "Traceback" not in err
+        assert not out.exists()
+    for bad in ("0", "-5", "nan"):
+        with pytest.raises(SystemExit) as e:
+            cli.main(["demo", "--duration", bad])
+        assert e.value.code == 2
+        assert "--duration must be a positive number" in capsys.readouterr().err

@@ -1,6 +1,7 @@
 """`rbdyn`'s entry point: parse the arguments, run the command, turn warnings and Ctrl-C
 into one line each."""
 
+import math
 import sys
 import warnings
 
@@ -53,5 +54,7 @@ def _dispatch(parser, args) -> int:
     if args.command == "demo":
         if args.steps < 1:
             parser.error("--steps must be ≥ 1")
+        if not math.isfinite(args.duration) or args.duration <= 0:
+            parser.error("--duration must be a positive number of seconds")
         return demo(args.steps, args.duration)
     return EXIT_USAGE  # unreachable: argparse rejects unknown commands

@@ -98,9 +98,11 @@ class Scenario:
     def from_toml(cls, path: str | pathlib.Path) -> Scenario:
         path = pathlib.Path(path)
         try:
-            d = tomllib.loads(path.read_text())
-        except tomllib.TOMLDecodeError as e:
+            d = tomllib.loads(path.read_text(encoding="utf-8"))
+        except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
             raise ScenarioError(f"{path}: not valid TOML: {e}") from None
+        except OSError as e:  # a directory, unreadable, …
+            raise ScenarioError(f"{path}: cannot read it as a scenario: {e.strerror}") from None
         return cls.from_dict(d, default_name=path.stem)
 
     @classmethod
