@@ -282,6 +282,16 @@ def test_fit_command_recovers_the_inertia_from_csv(tmp_path, capsys, no_cache):
     assert np.all(np.isfinite(se)) and np.all(se < 0.05)
     assert np.max(np.abs(J - J_true) / se) < 4.0  # Gaussian errors: 4σ over 6 entries
     assert (out / "fit.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # a second fit into the same folder replaces its files only when asked: refused at once
+    before = (out / "fit.json").read_bytes()
+    again = ["fit", str(tmp_path / "obs.csv"), "--model", str(tmp_path / "top.toml")]
+    assert cli.main([*again, "--steps", "1", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "fit.json and " in err and "already there: pass --overwrite" in err
+    assert (out / "fit.json").read_bytes() == before
+    assert cli.main([*again, "--steps", "1", "--out", str(out), "--overwrite"]) in (0, 6)
+    assert (out / "fit.json").read_bytes() != before  # its own time and steps
+    capsys.readouterr()
     # a bad file exits 2 with the reason
     (tmp_path / "bad.csv").write_text("time,wx\n0,1\n")
     assert (
@@ -292,7 +302,7 @@ def test_fit_command_recovers_the_inertia_from_csv(tmp_path, capsys, no_cache):
                 "--model",
                 str(tmp_path / "top.toml"),
                 "--out",
-                str(out),
+                str(tmp_path / "bad"),
             ]
         )
         == 2

@@ -15,6 +15,17 @@ class _Refused(Exception):
 def fit_command(args) -> int:
     """`rbdyn fit DATA --model SCENARIO`: 0 for a converged fit, `EXIT_NOT_CONVERGED` (its
     files written) or a user's error."""
+    import pathlib
+
+    written = [pathlib.Path(args.out) / f for f in ("fit.json", "fit.png")]
+    kept = [str(f) for f in written if f.exists()]
+    if kept and not args.overwrite:  # before the fit: nothing replaced unasked
+        print(
+            f"rbdyn fit: {' and '.join(kept)} already there: pass --overwrite to replace "
+            "them, or choose another --out",
+            file=sys.stderr,
+        )
+        return EXIT_USAGE
     import jax
 
     jax.config.update("jax_enable_x64", True)
@@ -73,7 +84,6 @@ def fit_command(args) -> int:
     for note in res.notes:
         print(f"  note: {note}")
     import json
-    import pathlib
 
     out = pathlib.Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -117,6 +117,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p_fit.add_argument("--out", default="results/fit", help="folder for fit.json, fit.png")
     p_fit.add_argument(
+        "--overwrite", action="store_true", help="replace a fit.json or fit.png already in --out"
+    )
+    p_fit.add_argument(
         "--steps",
         type=int,
         default=30,
