@@ -65,6 +65,28 @@ def test_the_first_trajectories_keep_a_noise_level_per_sample(tmp_path, record):
             Observations.from_file(tmp_path / "s.npz", trajectories=bad)
 
 
+def test_quaternions_written_to_four_decimals_are_renormalised_when_asked(tmp_path, record, capsys):
+    """A CSV of quaternions rounded to 4 decimals (norms off by up to ~1e-4) is refused,
+    naming the option; with `normalize_quat=True` it reads as the unit quaternions of the
+    rounded values, and `rbdyn fit` offers the same as `--normalize-quat`."""
+    from rbdyn_jax import cli
+
+    w, q = record
+    rows = [[k, t, *np.round(q[k, i], 4)] for k in range(K) for i, t in enumerate(TS)]
+    path = _csv(tmp_path / "q4.csv", rows, "trajectory,t,qw,qx,qy,qz")
+    with pytest.raises(ValueError, match="not a unit quaternion.*`normalize_quat=True`"):
+        Observations.from_file(path)
+    got = Observations.from_file(path, normalize_quat=True)
+    rounded = np.round(q, 4)
+    assert_same(got, Observations(TS, quat=rounded, normalize_quat=True))
+    unit = rounded / np.linalg.norm(rounded, axis=-1, keepdims=True)
+    np.testing.assert_allclose(got.quat, unit, rtol=0, atol=1e-15)  # rounding of the norm
+    args = ["fit", str(path), "--model", "torque_free_flip", "--out", str(tmp_path / "f")]
+    assert cli.main(args) == 2
+    assert "pass --normalize-quat to renormalise" in capsys.readouterr().err
+    assert cli.main([*args, "--normalize-quat", "--steps", "1"]) in (0, 6)
+
+
 def test_npz_of_euler_angles_per_trajectory_times_and_a_mask(tmp_path, record):
     """`euler` with the file's own `seq`, `ts` (K, n) and a `mask` padding the last record."""
     w, q = record

@@ -41,12 +41,13 @@ def fit_command(args) -> int:
                 sigma_quat=args.sigma_quat,
                 trajectories=args.trajectories,
                 seq=args.seq,
+                normalize_quat=args.normalize_quat,
             )
             params, where = free_params(
                 [s.strip() for s in args.free.split(",") if s.strip()], model.torque
             )
-        except (ValueError, OSError) as e:
-            raise _Refused(e) from e
+        except (ValueError, OSError) as e:  # the option's name where the library's is said
+            raise _Refused(str(e).replace("`normalize_quat=True`", "--normalize-quat")) from e
         scale = scale_arg(args.scale)
         K, n = data.ts.shape
         print(

@@ -140,6 +140,11 @@ def build_parser() -> argparse.ArgumentParser:
         "the last (default 0.25,0.5,1); 1: the whole record at once",
     )
     p_fit.add_argument("--seq", default="ZXZ", help="Euler sequence of `euler` data")
+    p_fit.add_argument(
+        "--normalize-quat",
+        action="store_true",
+        help="renormalise the observed quaternions (data written to a few decimals)",
+    )
     sub.add_parser("scenarios", help="list the shipped scenarios")
     p_demo = sub.add_parser("demo", help="summarise and simulate the shipped default body")
     p_demo.add_argument("--steps", type=int, default=5, help="output steps (default 5)")

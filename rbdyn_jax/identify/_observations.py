@@ -199,6 +199,7 @@ class Observations(eqx.Module):
         sigma_quat: Float[ArrayLike, "..."] | None = None,
         trajectories: int | None = None,
         seq: str = "ZXZ",
+        normalize_quat: bool = False,
     ) -> "Observations":
         """Observations read from a file, chosen by its suffix:
 
@@ -213,7 +214,10 @@ class Observations(eqx.Module):
           successful trajectories where it has a `status`.
 
         `trajectories` keeps the first K. `sigma_omega` and `sigma_quat`, where given,
-        override the file's (default 1). A missing file is a `FileNotFoundError`; a file
+        override the file's (default 1). `normalize_quat` renormalises the quaternions
+        (as `Observations` does): a file written to a few decimals holds quaternions whose
+        norms miss 1 by more than the 1e-6 otherwise allowed. A missing file is a
+        `FileNotFoundError`; a file
         that is none of these, or holds no usable record, a `ValueError` naming it.
         """
         fields, seq = read_fields(path, trajectories=trajectories, seq=seq)
@@ -230,4 +234,5 @@ class Observations(eqx.Module):
             mask=fields.get("mask"),
             euler=fields.get("euler"),
             seq=seq,
+            normalize_quat=normalize_quat,
         )
