@@ -384,6 +384,22 @@ def test_sweep_refuses_an_existing_store_and_exports_netcdf(tmp_path, capsys, no
     assert cli.main(["export", str(out), str(nc)]) == 2
     assert "--overwrite" in capsys.readouterr().err
     assert cli.main(["export", str(out), str(nc), "--overwrite"]) == 0
+    capsys.readouterr()
+    nowhere = tmp_path / "no such folder" / "s.nc"
+    assert cli.main(["export", str(out), str(nowhere)]) == 2
+    assert f"cannot write {nowhere}: no folder {nowhere.parent}" in capsys.readouterr().err
+
+
+def test_the_sweeps_closing_hint_quotes_its_path(tmp_path, capsys, no_cache):
+    """The `rbdyn plot` line a sweep ends with runs as printed in a shell: a path with a
+    space is quoted."""
+    import shlex
+
+    out = tmp_path / "a folder" / "s.zarr"
+    toml = _small_toml(tmp_path / "tiny.toml")
+    assert cli.main(["sweep", str(toml), "--n", "4", "--out", str(out), "--lanes", "8"]) == 0
+    hint = capsys.readouterr().out.rsplit("plots: ", 1)[1].split("\n")[0]
+    assert shlex.split(hint) == ["rbdyn", "plot", str(out)]
 
 
 @pytest.mark.parametrize("case", ["some", "all"])

@@ -121,7 +121,7 @@ def sweep_command(args) -> int:
     print(
         f"\nwrote {path} in {elapsed:.1f} s {where}, in chunks of {attrs['chunk']} with "
         f"{attrs['lanes']} lanes per device (open with xarray.open_zarr({str(path)!r}));"
-        f" plots: rbdyn plot {path}"
+        f" plots: {shlex.join(['rbdyn', 'plot', str(path)])}"
     )
     failed = stats["n"] - stats["status"].get("successful", 0)
     if failed:
