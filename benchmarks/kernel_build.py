@@ -128,7 +128,7 @@ def case_module(case: str, block: int = GPU_BLOCK, n: int | None = None) -> str:
                 jnp.asarray(ts),
                 rtol=TOL["float64"],
                 atol=TOL["float64"],
-                batching=rb.Kernel(block=block, interpret=False),
+                batching=rb.Kernel(block=block, interpret=False, devices=1),
             )
             return jnp.sum(tr.ys.omega**2)
 
@@ -164,7 +164,7 @@ def _sweep_solve(n: int, block: int):
             stepsize_controller=sc.stepsize_controller,
             dt0=sc.dt,
             max_steps=sc.max_steps,
-            batching=rb.Kernel(block=block, interpret=False),
+            batching=rb.Kernel(block=block, interpret=False, devices=1),
         )
 
     return solve, values, jnp.asarray(sc.ts)

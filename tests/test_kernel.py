@@ -176,6 +176,46 @@ def test_failures_stay_in_their_lane():
     assert_same_solves(kernel, plain)
 
 
+def test_the_devices_share_the_batch_to_the_bit():
+    """`Kernel(devices=2)` deals the batch out over the two host devices (11 trajectories:
+    one padded), each running the kernel on its share: every trajectory's solve is its
+    own, so the values, stats and codes equal one device's to the bit, for a model per
+    trajectory and with a failing trajectory, and so does the gradient. Under
+    `jax.default_device` the kernel keeps to that device."""
+    n = 11
+    y0s = initial_states(n)
+    y0s = rb.State(y0s.omega.at[4].set(jnp.nan), y0s.quat)
+    models = eqx.filter_vmap(heavy_top)(jnp.linspace(0.5, 2.0, n))
+    kw = dict(rtol=RTOL, atol=RTOL, model_axes=0)
+
+    def solve(devices):
+        return rb.simulate_batch(models, y0s, TS, batching=rb.Kernel(devices=devices), **kw)
+
+    one, two = solve(1), solve(2)
+    assert len(two.ys.omega.sharding.device_set) == 2
+    assert int(one.result._value[4]) == rb.RESULTS.nonfinite_state._value
+    for a, b in zip(jax.tree_util.tree_leaves(one), jax.tree_util.tree_leaves(two)):
+        np.testing.assert_array_equal(a, b)
+
+    def loss(weights, devices):
+        m = eqx.filter_vmap(heavy_top)(weights)
+        tr = rb.simulate_batch(m, y0s, TS, batching=rb.Kernel(devices=devices), **kw)
+        return jnp.sum(jnp.where(jnp.isfinite(tr.ys.omega), tr.ys.omega, 0.0) ** 2)
+
+    weights = jnp.linspace(0.5, 2.0, n)
+    g1, g2 = jax.grad(loss)(weights, 1), jax.grad(loss)(weights, 2)
+    assert np.count_nonzero(g1) == n - 1  # the failed trajectory's weight moves nothing
+    np.testing.assert_array_equal(g1, g2)
+    with jax.default_device(jax.devices()[1]):
+        kept = rb.simulate_batch(models, y0s, TS, batching=rb.Kernel(), **kw)
+    assert kept.ys.omega.sharding.device_set == {jax.devices()[1]}
+    for bad in (0, -1, 2.0, True):
+        with pytest.raises(ValueError, match="`devices`"):
+            rb.Kernel(devices=bad)
+    with pytest.raises(ValueError, match="`devices`"):
+        rb.simulate_batch(models, y0s, TS, batching=rb.Kernel(devices=3), **kw)
+
+
 def test_float32():
     """float32 inputs solve in float32 (the default tolerance 1e-6), with `Vmap`'s steps
     to float32's rounding. XLA rounds the kernel's program and `Vmap`'s differently (where
@@ -567,7 +607,7 @@ def test_the_gradient_kernel_lowers_to_triton_for_a_gpu():
             rb.with_log_cholesky(body, theta),
             y0s,
             ts,
-            batching=rb.Kernel(block=16, interpret=False),
+            batching=rb.Kernel(block=16, interpret=False, devices=1),
         )
         return jnp.sum(tr.ys.omega**2) + jnp.sum(tr.ys.quat[..., 1:] ** 2)
 
@@ -629,11 +669,12 @@ SWEEP_N = 12
 def test_a_sweep_on_a_gpu_takes_the_kernel(monkeypatch, tmp_path):
     """On a GPU backend (faked: JAX's backend reported as a GPU, the kernel in interpret
     mode since the CPU has no Triton, and each chunk's device share solved in one block as
-    on a GPU) a sweep takes the default's `Kernel`. Its store is the same to the bit for
-    two chunkings (each trajectory is integrated in its own lane, whatever the others
-    are), and equals the lane solver's store to round-off: the same step counts and codes,
-    values within `ROUND_OFF` (the unrolled stages and the rows' sums round differently
-    in the last bits; states and summaries of size ≲ 3 here; measured ≤ 2.2e-14)."""
+    on a GPU) a sweep takes the default's `Kernel`, on each device's share. Its store is
+    the same to the bit for two chunkings (each trajectory is integrated in its own lane,
+    whatever the others are), and equals the lane solver's store to round-off: the same
+    step counts and codes, values within `ROUND_OFF` (the unrolled stages and the rows'
+    sums round differently in the last bits; states and summaries of size ≲ 3 here;
+    measured ≤ 2.2e-14)."""
     from helpers import load_store, small_scenario
 
     import rbdyn_jax.integrate._batching as batching
@@ -646,7 +687,7 @@ def test_a_sweep_on_a_gpu_takes_the_kernel(monkeypatch, tmp_path):
 
     def recorded(*args):
         out = real(*args)
-        chosen.append(type(out))
+        chosen.append(out)
         return out
 
     def run(name, chunk):
@@ -654,7 +695,7 @@ def test_a_sweep_on_a_gpu_takes_the_kernel(monkeypatch, tmp_path):
 
     monkeypatch.setattr(sweep._chunk, "_batching", recorded)
     lanes = run("lanes.zarr", SWEEP_N)
-    assert set(chosen) == {rb.Lanes}
+    assert {type(b) for b in chosen} == {rb.Lanes}
     chosen.clear()
     monkeypatch.setattr(batching, "Kernel", lambda: rb.Kernel(interpret=True))
     monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
@@ -662,7 +703,8 @@ def test_a_sweep_on_a_gpu_takes_the_kernel(monkeypatch, tmp_path):
     jax.clear_caches()  # the chunk program compiled for the CPU's choice
     one = run("k12.zarr", SWEEP_N)
     split = run("k5.zarr", 5)
-    assert set(chosen) == {rb.Kernel}
+    # inside the chunk's program over the devices: each device's share on its device
+    assert {(type(b), b.devices) for b in chosen} == {(rb.Kernel, 1)}
     for k in one:
         np.testing.assert_array_equal(one[k], split[k], err_msg=k)
     assert np.all(one["status"] == 0)

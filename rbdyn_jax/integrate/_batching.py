@@ -9,13 +9,13 @@ import numbers
 import diffrax
 import equinox as eqx
 import jax
-import jax.numpy as jnp
 
 from .._program import traces
-from .._program.devices import mesh as device_mesh, on_mesh, over_devices, platform
+from .._program.devices import mesh as device_mesh, on_mesh, platform
 from .._program.flags import loops_compiled_whole
 from .._program.program import Program
 from .._program.xla import top_level
+from ._dealt import dealt
 from ._diffeqsolve import solve_vmapped
 from ._field import checked_before_tracing
 from ._kernel_layout import kernel_block
@@ -172,6 +172,10 @@ class Kernel(AbstractBatching):
       else the batch (to the next power of two, at most 1024).
     - `interpret`: run the kernel in Pallas's interpret mode (on any platform, slowly);
       `None`: on every platform but a GPU.
+    - `devices`: how many local devices share the batch, each running the kernel on its
+      share (dealt out in turn, as `Lanes` deals it); `None`: all of them, or the one
+      device JAX's `jax.default_device` names where one is set. A trajectory's solve is
+      its own whatever device or block it runs in: the same bits for any count.
 
     The platform is that of JAX's default device: `jax.default_device` where set, else the
     default backend's.
@@ -188,6 +192,7 @@ class Kernel(AbstractBatching):
 
     block: int | None = None
     interpret: bool | None = None
+    devices: int | None = None
 
     def __check_init__(self):
         b = self.block
@@ -197,6 +202,9 @@ class Kernel(AbstractBatching):
             raise ValueError(f"`block` must be a power of two or None, got {b!r}.")
         if self.interpret is not None and not isinstance(self.interpret, bool):
             raise ValueError(f"`interpret` must be a bool or None, got {self.interpret!r}.")
+        d = self.devices
+        if d is not None and (isinstance(d, bool) or not isinstance(d, numbers.Integral) or d < 1):
+            raise ValueError(f"`devices` must be a positive int or None, got {d!r}.")
 
     def solve(
         self, model, y0s, ts, *, solver, controller, adjoint, max_steps, dt0, model_axes
@@ -206,9 +214,25 @@ class Kernel(AbstractBatching):
             raise ValueError(f"`Kernel` {reason}; `batching=Lanes()` or `Vmap()` takes it.")
         gpu = platform() == "gpu"
         interpret = (not gpu) if self.interpret is None else self.interpret
-        block = kernel_block(self.block, jax.tree_util.tree_leaves(y0s)[0].shape[0], gpu)
         run = kernel_interpreted if interpret else kernel_compiled
-        return run(model, y0s, ts, solver, controller, max_steps, dt0, model_axes, block, interpret)
+        # As `Lanes`: one device where the solve checks its times or tolerances at run time
+        # (a check raising on one of several devices aborts the process), and where JAX's
+        # default device is set (the platform followed is that device's).
+        devices = self.devices
+        if not run.checks_nan(model, y0s, ts, solver, controller):
+            devices = 1
+        elif devices is None and jax.config.jax_default_device is not None:
+            devices = 1
+        mesh = _mesh(devices)
+        n = jax.tree_util.tree_leaves(y0s)[0].shape[0]
+        block = kernel_block(self.block, -(-n // mesh.devices.size), gpu)
+        if mesh.devices.size > 1:
+            model, y0s, ts, controller = on_mesh((model, y0s, ts, controller), mesh)
+        else:
+            mesh = None
+        return run(
+            model, y0s, ts, solver, controller, max_steps, dt0, model_axes, block, interpret, mesh
+        )
 
 
 # Lanes per CPU device: about two trajectories per lane, so that lanes refill and finish
@@ -320,7 +344,7 @@ def lane_solve(
     layout="cpu",
     stored=False,
 ) -> Trajectory:
-    """The lane loop (`_lane_loop.lane_loop`; on each device of `mesh`, `_sharded`) and its
+    """The lane loop (`_lane_loop.lane_loop`; on each device of `mesh`, `_dealt.dealt`) and its
     `Trajectory`s, differentiable by forward sensitivities (`_sensitivity.sensitivity_solve`;
     the rule is outside the devices' `shard_map`, which the sensitivities' solve enters as
     the forward solve does).
@@ -370,37 +394,7 @@ def lane_run(
     )
     if mesh is None or mesh.devices.size == 1:
         return run(system, y0s, ts, eqx.combine(tols, cstatic))
-    return _sharded(run, system, y0s, ts, tols, cstatic, batched, mesh)
-
-
-def _sharded(run, system, y0s, ts, tols, cstatic, batched, mesh):
-    """`run` (the lane loop) on each device's share of the batch (`shard_map`: every device
-    runs its own loop, no collective inside it), its raw outputs in the batch's order. The
-    batch is padded to a multiple of the devices by repeating its last trajectory and dealt
-    out in turn (device d takes trajectories d, d + devices, …), so that a batch ordered by
-    difficulty (a sweep over spin rates, say) still gives every device an equal share of
-    the work."""
-    n_dev = mesh.devices.size
-    N = jax.tree_util.tree_leaves(y0s)[0].shape[0]
-    pad = -N % n_dev
-
-    def padded(x):  # padded to P = N + pad, dealt: row d·(P/devices) + i holds i·devices + d
-        x = jnp.concatenate([x, jnp.repeat(x[-1:], pad, axis=0)]) if pad else x
-        return x.reshape((-1, n_dev) + x.shape[1:]).swapaxes(0, 1).reshape(x.shape)
-
-    def collected(x):  # the inverse of the deal, without the padding
-        return x.reshape((n_dev, -1) + x.shape[1:]).swapaxes(0, 1).reshape(x.shape)[:N]
-
-    y0s = jax.tree_util.tree_map(padded, y0s)
-    dyn, static = eqx.partition(system, eqx.is_array)
-    if batched:
-        dyn = jax.tree_util.tree_map(padded, dyn)
-
-    def local(dyn, y0s, ts, tols):
-        return run(eqx.combine(dyn, static), y0s, ts, eqx.combine(tols, cstatic))
-
-    out = over_devices(local, mesh, (batched, True, False, False))(dyn, y0s, ts, tols)
-    return jax.tree_util.tree_map(collected, out)
+    return dealt(run, system, y0s, ts, tols, cstatic, batched, mesh)
 
 
 _vmapped = Program(solve_vmapped, validated=checked_before_tracing)

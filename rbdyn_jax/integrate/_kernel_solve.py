@@ -9,6 +9,7 @@ import equinox as eqx
 
 from .._program.program import Program
 from .._program.xla import COMPILER_OPTIONS
+from ._dealt import dealt
 from ._field import checked_before_tracing
 from ._kernel_run import kernel_run
 from ._sensitivity import sensitivity_solve
@@ -16,9 +17,10 @@ from ._solution import Trajectory
 
 
 def kernel_solve(
-    model, y0s, ts, solver, controller, max_steps, dt0, model_axes, block, interpret
+    model, y0s, ts, solver, controller, max_steps, dt0, model_axes, block, interpret, mesh=None
 ) -> Trajectory:
-    """The kernel (`Kernel`) over the batch, and its `Trajectory`s.
+    """The kernel (`Kernel`) over the batch (on each device of `mesh`, its share dealt out:
+    `_dealt.dealt`), and its `Trajectory`s.
 
     Differentiable in both modes by forward sensitivities, by the lane solver's rule
     (`_sensitivity.sensitivity_solve`): the kernel integrates the model extended by the
@@ -28,19 +30,15 @@ def kernel_solve(
     derivative is refused."""
     batched = model_axes is not None
 
-    def loop(system, y0s, ts, tols, cstatic):
+    def run(system, y0s, ts, controller):
         return kernel_run(
-            system,
-            y0s,
-            ts,
-            eqx.combine(tols, cstatic),
-            solver,
-            max_steps,
-            dt0,
-            batched,
-            block,
-            interpret,
+            system, y0s, ts, controller, solver, max_steps, dt0, batched, block, interpret
         )
+
+    def loop(system, y0s, ts, tols, cstatic):
+        if mesh is None or mesh.devices.size == 1:
+            return run(system, y0s, ts, eqx.combine(tols, cstatic))
+        return dealt(run, system, y0s, ts, tols, cstatic, batched, mesh)
 
     return sensitivity_solve(loop, model, y0s, ts, controller, model_axes)
 

@@ -1,5 +1,6 @@
 """The public solves: `simulate` (one trajectory) and `simulate_batch` (a batch)."""
 
+import dataclasses
 import math
 import numbers
 
@@ -14,7 +15,7 @@ from .._checks import as_float_array
 from .._program.program import Program
 from .._program.xla import top_level
 from ..models import AbstractRigidBody
-from ._batching import AbstractBatching, Lanes, Vmap, default_batching
+from ._batching import AbstractBatching, Kernel, Lanes, Vmap, default_batching
 from ._diffeqsolve import solve
 from ._field import checked_before_tracing, solve_dtype
 from ._lie_poisson import LiePoissonSplitting
@@ -252,8 +253,8 @@ def simulate_batch(
     - `throw`: default `False`: a failing trajectory (`max_steps_reached`,
       `nonfinite_state`, …) gets its own code in `result` and the others are unaffected.
       With `throw=True` inside a caller's transformation (`jax.jit`, …), the lane solver
-      runs on one device: XLA aborts the process when a check raises on one device of a
-      program while the others wait for it.
+      and the kernel run on one device: XLA aborts the process when a check raises on one
+      device of a program while the others wait for it.
 
     **Returns:** a `Trajectory` with a leading batch axis on every leaf (including `ts`,
     `stats` and `result`).
@@ -270,8 +271,8 @@ def simulate_batch(
         batching = Vmap()  # gives the empty `Trajectory`
     elif batching is None:
         batching = default_batching(solver, controller, adjoint, model, y0s, model_axes)
-    if throw and isinstance(batching, Lanes) and not top_level():
-        batching = Lanes(batching.lanes, devices=1, layout=batching.layout)
+    if throw and isinstance(batching, Lanes | Kernel) and not top_level():
+        batching = dataclasses.replace(batching, devices=1)
     traj = batching.solve(
         model,
         y0s,

@@ -83,7 +83,7 @@ def _batching(scenario: Scenario, models, y0s, lanes):
     every trajectory in lockstep, so `Vmap` wastes nothing, and the lane solver and the
     kernel take only adaptive Runge–Kutta methods); `Kernel` where `simulate_batch`'s
     default takes it (a GPU backend, and the scenario's model field runs on rows of lanes);
-    else the lane solver through `lanes` lanes on the block's device. A kernel's trajectory
+    else the lane solver through `lanes` lanes; either on the block's device. A kernel's trajectory
     is integrated by its own lane of a program, its arithmetic the same whatever the other
     lanes hold, so a sweep's bits do not depend on its chunking either way."""
     if scenario.fixed_step:
@@ -91,7 +91,9 @@ def _batching(scenario: Scenario, models, y0s, lanes):
     chosen = default_batching(
         scenario.diffrax_solver, scenario.stepsize_controller, None, models, y0s, model_axes=0
     )
-    return chosen if isinstance(chosen, Kernel) else Lanes(lanes, devices=1)
+    if isinstance(chosen, Kernel):
+        return dataclasses.replace(chosen, devices=1)
+    return Lanes(lanes, devices=1)
 
 
 _PER_LANE = 8  # trajectories per lane in one CPU block (a block: 8 × lanes)
