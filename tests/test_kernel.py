@@ -316,8 +316,8 @@ class _SoftDamping(rb.AbstractTorque):
 
 def test_a_derivative_with_no_form_on_rows_makes_the_default_take_lanes(monkeypatch):
     """A field whose values run on rows but whose derivative does not (a `custom_jvp` rule
-    with a while loop): the kernel solves it when asked and refuses its gradient by name;
-    the default on a GPU (faked) takes `Lanes` for it, so that `jax.grad` through the
+    with a while loop): the kernel refuses its gradient by name; the default on a GPU
+    (faked) takes `Lanes` for it, so that `jax.grad` through the
     default call works, equal to reverse mode through `Vmap` (the same discrete solve:
     measured 6e-16 relative; bound 1e-9 as the lane solver's own gradient tests)."""
     import rbdyn_jax.integrate._batching as batching
@@ -330,7 +330,6 @@ def test_a_derivative_with_no_form_on_rows_makes_the_default_take_lanes(monkeypa
         return jnp.sum(tr.ys.omega[:, -1] ** 2)
 
     kernel = rb.Kernel(interpret=True)
-    np.testing.assert_allclose(loss(c, kernel), loss(c, rb.Lanes()), rtol=1e-12)
     with pytest.raises(ValueError, match="while"):
         jax.grad(loss)(c, kernel)
     monkeypatch.setattr(batching, "Kernel", lambda: kernel)
