@@ -504,7 +504,9 @@ def test_sweep_refuses_a_dtype_or_states_the_scenario_cannot_take(tmp_path, caps
     assert "expected all, none or a positive integer K" in capsys.readouterr().err
 
 
-def test_unreadable_scenarios_and_a_bad_duration_are_one_line_and_status_2(tmp_path, capsys):
+def test_unreadable_scenarios_and_a_bad_duration_are_one_line_and_status_2(
+    tmp_path, capsys, no_cache
+):
     """A scenario path that is a folder, a file that is not UTF-8 text, and a demo
     duration that is not a positive number: one message on stderr and exit status 2, no
     traceback, nothing written."""

@@ -65,12 +65,15 @@ def test_the_first_trajectories_keep_a_noise_level_per_sample(tmp_path, record):
             Observations.from_file(tmp_path / "s.npz", trajectories=bad)
 
 
-def test_quaternions_written_to_four_decimals_are_renormalised_when_asked(tmp_path, record, capsys):
+def test_quaternions_written_to_four_decimals_are_renormalised_when_asked(
+    tmp_path, record, capsys, monkeypatch
+):
     """A CSV of quaternions rounded to 4 decimals (norms off by up to ~1e-4) is refused,
     naming the option; with `normalize_quat=True` it reads as the unit quaternions of the
     rounded values, and `rbdyn fit` offers the same as `--normalize-quat`."""
     from rbdyn_jax import cli
 
+    monkeypatch.setenv("RBDYN_JAX_CACHE_DIR", "")  # the command leaves JAX's cache off
     w, q = record
     rows = [[k, t, *np.round(q[k, i], 4)] for k in range(K) for i, t in enumerate(TS)]
     path = _csv(tmp_path / "q4.csv", rows, "trajectory,t,qw,qx,qy,qz")

@@ -2,7 +2,6 @@
 and the message of a user-caused error."""
 
 import os
-import pathlib
 
 EXIT_USAGE = 2  # a usage error, an invalid scenario or data, a path that cannot be written
 EXIT_SOME_FAILED = 3  # `rbdyn sweep`: some trajectories failed (the rest are written)
@@ -33,6 +32,8 @@ def error_text(e: Exception, path: str) -> str:
     """The message of a user-caused error: an OS error on `path` as `cannot write PATH:
     reason`, any other as it is."""
     if isinstance(e, OSError) and e.errno is not None:
+        import pathlib
+
         folder = pathlib.Path(path).parent
         if not folder.is_dir():  # some writers (netCDF's) report it as a permission
             return f"cannot write {path}: no folder {folder}"

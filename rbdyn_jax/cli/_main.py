@@ -1,7 +1,6 @@
 """`rbdyn`'s entry point: parse the arguments, run the command, turn warnings and Ctrl-C
 into one line each."""
 
-import math
 import sys
 import warnings
 
@@ -54,7 +53,7 @@ def _dispatch(parser, args) -> int:
     if args.command == "demo":
         if args.steps < 1:
             parser.error("--steps must be ≥ 1")
-        if not math.isfinite(args.duration) or args.duration <= 0:
+        if not 0 < args.duration < float("inf"):  # NaN too
             parser.error("--duration must be a positive number of seconds")
         return demo(args.steps, args.duration)
     return EXIT_USAGE  # unreachable: argparse rejects unknown commands
