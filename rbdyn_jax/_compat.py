@@ -27,6 +27,16 @@ def backends_are_initialized() -> bool:
     return xla_bridge.backends_are_initialized()
 
 
+def uncommitted(x):
+    """The JAX array `x` as one not committed to its devices, as `jit` returns when none
+    of its inputs is committed (JAX has no public spelling): a stored program's call
+    (`jax.export`) commits its outputs, where the same program traced by `jit` would
+    leave them free to move to another device's computation."""
+    from jax._src import array
+
+    return array.ArrayImpl(x.aval, x.sharding, x._arrays, committed=False)
+
+
 def wrapped_term(term):
     """`term` as `diffrax.diffeqsolve` hands it to its solver (`WrapTerm(term, 1)`), for a
     loop that drives the solver's step itself and must take bitwise the same steps."""

@@ -111,6 +111,19 @@ def test_error_mode_nan_turns_a_failed_check_into_nan():
         jax.jit(lambda x: checked(x))(jnp.asarray(-2.0)).block_until_ready()
 
 
+def test_uncommitted_frees_a_stored_programs_output():
+    """A call of an exported program commits its outputs (`jit`'s, for inputs none of which
+    is committed, are not); `uncommitted` gives the same values, dtype and sharding,
+    uncommitted."""
+    x = jnp.arange(3.0)
+    exported = jax.export.export(jax.jit(lambda x: 2.0 * x))(x)
+    y = jax.jit(exported.call)(x)
+    assert y.committed and not jax.jit(lambda x: 2.0 * x)(x).committed
+    free = _compat.uncommitted(y)
+    assert not free.committed and free.sharding == y.sharding and free.dtype == y.dtype
+    np.testing.assert_array_equal(free, [0.0, 2.0, 4.0])
+
+
 def test_only_compat_reaches_into_internals():
     pattern = re.compile(
         r"jax\._src|diffrax\._|equinox\._|\._value\b|\._name_to_item|"

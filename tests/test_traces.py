@@ -132,6 +132,10 @@ SCRIPT = textwrap.dedent("""
     for name, tr in (("one", one), ("plain", plain), ("lanes", lanes)):
         for i, leaf in enumerate(jax.tree_util.tree_leaves(tr)):
             out[f"{name}{i}"] = np.asarray(leaf)
+    # A stored program's outputs are free to move, as `jit`'s are: they mix with the lane
+    # solve's, which lives on every device.
+    assert not any(x.committed for x in jax.tree_util.tree_leaves(one))
+    out["mixed"] = np.asarray(lanes.ys.omega[0] - one.ys.omega)
     np.savez(sys.argv[2], **out)
     print(json.dumps(_traces.stats))
 """)

@@ -296,12 +296,16 @@ def _entry(where, k, fn, args, arrays):
     return entry
 
 
+def _as_they_are(arrays):
+    return arrays
+
+
 def _placement(exported):
     """How to place the inputs of a stored program: as they are for one device; for a
     program over several (the lane solver's devices), replicated over the same first
     devices, as `jit` placed them when it was traced."""
     if exported.nr_devices == 1:
-        return lambda arrays: arrays
+        return _as_they_are
     replicated = jax.sharding.NamedSharding(mesh(jax.devices()[: exported.nr_devices]), WHOLE)
     return lambda arrays: [jax.device_put(x, replicated) for x in arrays]
 
@@ -336,7 +340,11 @@ def cached(fn, options: dict = COMPILER_OPTIONS):
             exported, out_tree = entry
             _LOADED[k] = (jit(exported.call, options), out_tree, _placement(exported))
         run, out_tree, place = _LOADED[k]
-        return jax.tree_util.tree_unflatten(out_tree, run(*place(arrays)))
+        outs = run(*place(arrays))
+        if place is _as_they_are and not any(x.committed for x in arrays):
+            # committed by the stored program's call, where `jitted`'s would not be
+            outs = [_compat.uncommitted(x) for x in outs]
+        return jax.tree_util.tree_unflatten(out_tree, outs)
 
     return call
 
