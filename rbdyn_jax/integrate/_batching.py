@@ -103,12 +103,7 @@ class Lanes(AbstractBatching):
     layout: str | None = None
 
     def __check_init__(self):
-        for name in ("lanes", "devices"):
-            v = getattr(self, name)
-            if v is not None and (
-                isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < 1
-            ):
-                raise ValueError(f"`{name}` must be a positive int or None, got {v!r}.")
+        _check_counts(self, "lanes", "devices")
         if self.layout is not None and self.layout not in LAYOUTS:
             raise ValueError(f"`layout` must be one of {LAYOUTS} or None, got {self.layout!r}.")
 
@@ -121,10 +116,9 @@ class Lanes(AbstractBatching):
                 f"`Lanes` {reason}; `batching=Vmap()` takes any solver, "
                 "controller and adjoint diffeqsolve takes."
             )
-        # A solve whose times or tolerances are traced checks them at run time: on one
-        # device, since a check raising on one of several devices aborts the process.
-        as_nan = _lane_solved.checks_nan(model, y0s, ts, solver, controller)
-        mesh = _mesh(self.devices if as_nan else 1)
+        as_nan, mesh, (model, y0s, ts, controller) = _over_devices(
+            _lane_solved, self.devices, model, y0s, ts, solver, controller
+        )
         platform = mesh.devices.flat[0].platform
         layout = self.layout or default_layout(platform)
         n = jax.tree_util.tree_leaves(y0s)[0].shape[0]
@@ -139,8 +133,6 @@ class Lanes(AbstractBatching):
         # for concrete times and tolerances), with the cache of traced programs on: the
         # loop is stored alone, and the caller's trace holds the stored program.
         stored = as_nan and not top_level() and traces.directory() is not None
-        if mesh.devices.size > 1:
-            model, y0s, ts, controller = on_mesh((model, y0s, ts, controller), mesh)
         return _lane_solved(
             model,
             y0s,
@@ -202,9 +194,7 @@ class Kernel(AbstractBatching):
             raise ValueError(f"`block` must be a power of two or None, got {b!r}.")
         if self.interpret is not None and not isinstance(self.interpret, bool):
             raise ValueError(f"`interpret` must be a bool or None, got {self.interpret!r}.")
-        d = self.devices
-        if d is not None and (isinstance(d, bool) or not isinstance(d, numbers.Integral) or d < 1):
-            raise ValueError(f"`devices` must be a positive int or None, got {d!r}.")
+        _check_counts(self, "devices")
 
     def solve(
         self, model, y0s, ts, *, solver, controller, adjoint, max_steps, dt0, model_axes
@@ -215,21 +205,15 @@ class Kernel(AbstractBatching):
         gpu = platform() == "gpu"
         interpret = (not gpu) if self.interpret is None else self.interpret
         run = kernel_interpreted if interpret else kernel_compiled
-        # As `Lanes`: one device where the solve checks its times or tolerances at run time
-        # (a check raising on one of several devices aborts the process), and where JAX's
-        # default device is set (the platform followed is that device's).
+        # One device where JAX's default device is set: the platform followed is its.
         devices = self.devices
-        if not run.checks_nan(model, y0s, ts, solver, controller):
+        if devices is None and jax.config.jax_default_device is not None:
             devices = 1
-        elif devices is None and jax.config.jax_default_device is not None:
-            devices = 1
-        mesh = _mesh(devices)
+        _, mesh, (model, y0s, ts, controller) = _over_devices(
+            run, devices, model, y0s, ts, solver, controller
+        )
         n = jax.tree_util.tree_leaves(y0s)[0].shape[0]
         block = kernel_block(self.block, -(-n // mesh.devices.size), gpu)
-        if mesh.devices.size > 1:
-            model, y0s, ts, controller = on_mesh((model, y0s, ts, controller), mesh)
-        else:
-            mesh = None
         return run(
             model, y0s, ts, solver, controller, max_steps, dt0, model_axes, block, interpret, mesh
         )
@@ -316,6 +300,26 @@ def default_batching(
     ):
         return Kernel()
     return Vmap() if step_refuse(solver, controller, adjoint) is not None else Lanes()
+
+
+def _check_counts(strategy, *names):
+    """A `ValueError` unless each field `names` of `strategy` is a positive int or None."""
+    for name in names:
+        v = getattr(strategy, name)
+        if v is not None and (isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < 1):
+            raise ValueError(f"`{name}` must be a positive int or None, got {v!r}.")
+
+
+def _over_devices(program, devices, model, y0s, ts, solver, controller):
+    """How a lane solve or a kernel (`program`) runs over `devices` local devices (`None`:
+    all): whether it is traced with its checks as NaN, the mesh, and the inputs placed on
+    it (`on_mesh`). One device where the solve checks its times or tolerances at run time,
+    since a check raising on one of several devices aborts the process."""
+    as_nan = program.checks_nan(model, y0s, ts, solver, controller)
+    mesh = _mesh(devices if as_nan else 1)
+    if mesh.devices.size > 1:
+        model, y0s, ts, controller = on_mesh((model, y0s, ts, controller), mesh)
+    return as_nan, mesh, (model, y0s, ts, controller)
 
 
 def _mesh(devices) -> jax.sharding.Mesh:
