@@ -260,8 +260,9 @@ def stage_samples(ts, mask, frac: float) -> np.ndarray:
     times up to the fraction `frac` of its span, `t0 + frac (t1 − t0)`, every sample at
     `frac = 1` (a span's rounding is allowed for, whatever the times' sign)."""
     ts, mask = np.asarray(ts), np.asarray(mask)
-    t0 = np.array([t[m][0] for t, m in zip(ts, mask)])
-    t1 = np.array([t[m][-1] for t, m in zip(ts, mask)])
+    rows = np.arange(ts.shape[0])
+    t0 = ts[rows, np.argmax(mask, axis=1)]  # each record's first and last sample
+    t1 = ts[rows, ts.shape[1] - 1 - np.argmax(mask[:, ::-1], axis=1)]
     span = t1 - t0
     return ts <= (t0 + frac * span + 1e-12 * span)[:, None]
 
