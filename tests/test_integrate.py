@@ -686,6 +686,23 @@ def test_not_a_model(fn, model):
         fn(model, y0_for(fn), TS)
 
 
+def test_simulate_refuses_a_batch_of_states():
+    """`simulate` takes one trajectory: a batch of states there would be one coupled system,
+    its error norm over the whole batch, and is refused pointing to `simulate_batch`."""
+    with pytest.raises(ValueError, match=r"one trajectory.*\(4, 3\), \(4, 4\).*simulate_batch"):
+        rb.simulate(gen_model(), state(W0S, Q0S), TS)
+    with pytest.raises(ValueError, match="one trajectory"):  # a scalar leaf
+        rb.simulate(gen_model(), rb.State(jnp.asarray(1.0), jnp.asarray(Q0)), TS)
+
+
+@SIMULATORS
+def test_a_list_in_the_state_is_named(fn):
+    """A list in a state's field would be taken apart into scalars: refused by name."""
+    y0 = y0_for(fn)
+    with pytest.raises(ValueError, match=r"`y0s?\.omega` is a list.*jnp\.asarray"):
+        fn(gen_model(), rb.State(np.asarray(y0.omega).tolist(), y0.quat), TS)
+
+
 @pytest.mark.parametrize(
     "batching", [None, rb.Lanes(), rb.Kernel(interpret=True)], ids=["default", "Lanes", "Kernel"]
 )

@@ -130,6 +130,33 @@ def _prepare(model, y0, ts, stepsize_controller, rtol, atol, max_steps, solver=N
 _solved = Program(solve, validated=checked_before_tracing)
 
 
+def array_fields(y0, name):
+    """Refuse a state whose fields are lists or tuples, which a solve would take apart into
+    scalars (the leaves of a pytree)."""
+    if isinstance(y0, eqx.Module):
+        for field, value in vars(y0).items():
+            if isinstance(value, list | tuple):
+                raise ValueError(
+                    f"`{name}.{field}` is a {type(value).__name__}: give the state's fields "
+                    f"as arrays, e.g. `jnp.asarray({field})`."
+                )
+
+
+def one_state(y0):
+    """Refuse a `y0` that is not one trajectory's state: its fields must be arrays and every
+    leaf a vector. A batch of states in `simulate` would be integrated as one coupled
+    system, with one step size and one error norm over the whole batch, which dilutes each
+    trajectory's error by the batch's size: a `ValueError` points to `simulate_batch`."""
+    array_fields(y0, "y0")
+    shapes = [np.shape(x) for x in jax.tree_util.tree_leaves(y0)]
+    if any(len(s) != 1 for s in shapes):
+        raise ValueError(
+            "`y0` must be one trajectory's state, every leaf a vector "
+            f"(`State(omega=(3,), quat=(4,))`); got shapes {shapes}. Solve a batch of "
+            "initial states with `simulate_batch`."
+        )
+
+
 def batch_size(model, y0s, model_axes) -> int:
     """The number of trajectories in a batch: the leading axis every leaf of `y0s` carries,
     which the arrays `model_axes` maps must carry along their axis too. A `ValueError`
@@ -181,7 +208,8 @@ def simulate(
     **Arguments:**
 
     - `model`: a rigid-body model (`RigidBody`, `RelativeRigidBody`, …).
-    - `y0`: its initial state (`State(omega, quat)` for the quaternion models); its
+    - `y0`: its initial state, one trajectory's (`State(omega, quat)` of arrays of shapes
+      (3,) and (4,) for the quaternion models; a batch is `simulate_batch`'s); its
       quaternion (γ in the Poisson form) is normalised first.
     - `ts`: strictly increasing output times; the solve runs from `ts[0]` to `ts[-1]`.
     - `solver`, `adjoint`: diffrax objects, passed through unchanged (`adjoint=None`, the
@@ -206,6 +234,7 @@ def simulate(
 
     **Returns:** a `Trajectory`.
     """
+    one_state(y0)
     ts, controller, max_steps = _prepare(
         model, y0, ts, stepsize_controller, rtol, atol, max_steps, solver, dt0
     )
@@ -259,6 +288,7 @@ def simulate_batch(
     **Returns:** a `Trajectory` with a leading batch axis on every leaf (including `ts`,
     `stats` and `result`).
     """
+    array_fields(y0s, "y0s")
     ts, controller, max_steps = _prepare(
         model, y0s, ts, stepsize_controller, rtol, atol, max_steps, solver, dt0
     )
