@@ -107,6 +107,21 @@ def test_npz_of_euler_angles_per_trajectory_times_and_a_mask(tmp_path, record):
     assert_same(one, Observations(ts[:1], euler=angles[:1], seq="XYZ", mask=mask[:1]))
 
 
+def test_a_csv_written_by_pandas_with_its_index_column_reads_as_without(tmp_path, record):
+    """`DataFrame.to_csv`'s default writes the index first under an empty name: that column
+    is ignored, as any column that is no field's (here also a named one)."""
+    pd = pytest.importorskip("pandas")
+    w, q = record
+    rows = [[k, TS[i], *w[k, i], *q[k, i]] for k in range(K) for i in range(N)]
+    names = ["trajectory", "t", "wx", "wy", "wz", "qw", "qx", "qy", "qz"]
+    table = pd.DataFrame(rows, columns=names).assign(sensor="imu")
+    table.to_csv(tmp_path / "indexed.csv")  # the index under an empty header
+    assert (tmp_path / "indexed.csv").read_text().startswith(",trajectory,t,")
+    got = Observations.from_file(tmp_path / "indexed.csv")
+    assert_same(got, Observations.from_file(_csv(tmp_path / "plain.csv", rows)))
+    assert_same(got, Observations(np.broadcast_to(TS, (K, N)), omega=w, quat=q))
+
+
 def test_csv_round_trip_pads_records_of_different_lengths(tmp_path, record):
     w, q = record
     lengths = (N, N - 1, N - 3)

@@ -1,7 +1,9 @@
 """Observation files: the arrays of `Observations.from_file` read from an NPZ archive, a CSV
 table, or a dataset xarray opens (a sweep store, a netCDF file)."""
 
+import csv
 import pathlib
+import warnings
 
 import numpy as np
 
@@ -67,13 +69,20 @@ def _npz(p: pathlib.Path, seq: str) -> tuple[dict, str]:
 
 
 def _csv(p: pathlib.Path) -> dict:
+    with open(p, newline="", encoding="utf-8", errors="replace") as f:
+        header = next(csv.reader(f), [])
+    # A column with no name (the index column `pandas.DataFrame.to_csv` writes first) is
+    # read and ignored, as any column that is no field's.
+    names = [h.strip() or f"unnamed_{i}" for i, h in enumerate(header)]
+    if "t" not in names:
+        raise ValueError(f"{p}: the header must name a `t` column, got {tuple(names)}")
     try:
-        table = np.genfromtxt(p, delimiter=",", names=True)
+        with warnings.catch_warnings():  # no rows: said below
+            warnings.simplefilter("ignore", UserWarning)
+            table = np.genfromtxt(p, delimiter=",", skip_header=1, names=names)
     except ValueError as e:  # rows of different lengths, say
         raise ValueError(f"{p}: not a CSV table of numbers ({e})") from e
-    names = table.dtype.names or ()
-    if "t" not in names:
-        raise ValueError(f"{p}: the header must name a `t` column, got {names}")
+    names = table.dtype.names
     table = np.atleast_1d(table)  # a single row reads as a 0-d record
     if table.size == 0:
         raise ValueError(f"{p}: no rows under the header")

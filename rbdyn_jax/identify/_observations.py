@@ -208,7 +208,8 @@ class Observations(eqx.Module):
           optionally `sigma_omega`, `sigma_quat`, `mask`; any other array is a `ValueError`;
         - `.csv`: a header naming a `t` column and `wx, wy, wz` and/or `qw, qx, qy, qz`,
           optionally a `trajectory` column (one trajectory per value; trajectories of
-          different lengths are padded and masked);
+          different lengths are padded and masked); other columns (pandas' unnamed index
+          column, say) are ignored;
         - anything else xarray opens (a sweep store, a netCDF file) with `omega` and/or
           `quat` over `trajectory` (or `sampled_trajectory`) and `time`; only the
           successful trajectories where it has a `status`.
