@@ -169,6 +169,32 @@ def test_resume_needs_a_store(tmp_path):
         sweep.verify(tmp_path)
 
 
+def test_a_store_creation_that_fails_leaves_nothing_and_keeps_the_old_store(
+    reference, copy, monkeypatch
+):
+    """A creation that fails midway (here a full disk at the third array) removes what it
+    had made, and a store it was to replace (`overwrite=True`) is still whole."""
+    from rbdyn_jax.sweep import _store
+
+    made, create = [], _store._create_array
+
+    def full_disk(*args, **kw):
+        made.append(args[1])
+        if len(made) == 3:
+            raise OSError(28, "No space left on device")
+        return create(*args, **kw)
+
+    monkeypatch.setattr(_store, "_create_array", full_disk)
+    for out, kw in ((copy.with_name("new.zarr"), {}), (copy, {"overwrite": True})):
+        made.clear()
+        with pytest.raises(OSError, match="No space left"):
+            _run(out, **kw)
+        assert len(made) == 3
+        assert sorted(p.name for p in out.parent.iterdir()) == ["copy.zarr"]
+    assert sweep.verify(copy).complete
+    assert_same(_all(copy), _all(reference))
+
+
 def test_store_metadata_say_what_is_not_solved(reference):
     """The fill values are what a reader of the store sees where nothing was written."""
     g = zarr.open_group(str(reference), mode="r")

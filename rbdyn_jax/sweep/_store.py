@@ -393,7 +393,11 @@ def _prepare_store(
     path = pathlib.Path(loc.url)
     tmp = path.with_name(path.name + ".partial")
     shutil.rmtree(tmp, ignore_errors=True)
-    _create_store(_Location.of(tmp), sc, n, chunk, seed, lanes)
+    try:
+        _create_store(_Location.of(tmp), sc, n, chunk, seed, lanes)
+    except BaseException:  # a full disk, an interrupt: nothing left behind
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
     if overwrite:
         shutil.rmtree(plots_dir(path), ignore_errors=True)
     shutil.rmtree(path, ignore_errors=True)
