@@ -673,7 +673,7 @@ def test_tolerances_positive(fn, name, value):
 
 
 @SIMULATORS
-@pytest.mark.parametrize("max_steps", [0, -5, 2.5, None])
+@pytest.mark.parametrize("max_steps", [0, -5, 2.5, None, 2**31])
 def test_max_steps_positive_int(fn, max_steps):
     with pytest.raises(ValueError, match="`max_steps`"):
         fn(gen_model(), y0_for(fn), TS, max_steps=max_steps)

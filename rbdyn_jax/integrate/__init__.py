@@ -63,6 +63,7 @@ from ._batching import (
 )
 from ._lie_poisson import ORDERS as SPLITTING_ORDERS, LiePoissonSplitting as LiePoissonSplitting
 from ._simulate import (
+    MAX_STEPS as MAX_STEPS,
     default_tolerance as default_tolerance,
     make_controller as make_controller,
     min_rtol as min_rtol,
@@ -79,6 +80,7 @@ from ._splittable import fixed_steps as fixed_steps
 
 __all__ = [
     "COMPILER_OPTIONS",
+    "MAX_STEPS",
     "RESULTS",
     "SPLITTING_ORDERS",
     "AbstractBatching",

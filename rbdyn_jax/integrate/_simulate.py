@@ -27,6 +27,9 @@ DEFAULT_TOL = 1e-8  # rtol and atol of the default PIDController
 # below a few units the step-size controller compares an error estimate made of rounding
 # with a tolerance it cannot resolve, and steps shrink until `max_steps` (float32: 9.5e-7).
 RTOL_EPS = 8
+# The most steps a solve may take: its step counters are int32 where JAX's 64-bit types
+# are off (a float32 solve).
+MAX_STEPS = 2**31 - 1
 
 
 def min_rtol(dtype) -> float:
@@ -116,8 +119,12 @@ def _prepare(model, y0, ts, stepsize_controller, rtol, atol, max_steps, solver=N
         t = np.asarray(ts)  # NumPy: concrete even while a caller's function is traced
         if not np.all(np.isfinite(t)) or np.any(np.diff(t) <= 0):
             raise ValueError("`ts` must be finite and strictly increasing.")
-    if not isinstance(max_steps, numbers.Integral) or isinstance(max_steps, bool) or max_steps < 1:
-        raise ValueError(f"`max_steps` must be a positive int, got {max_steps!r}.")
+    if (
+        not isinstance(max_steps, numbers.Integral)
+        or isinstance(max_steps, bool)
+        or not 1 <= max_steps <= MAX_STEPS
+    ):
+        raise ValueError(f"`max_steps` must be an int in 1..{MAX_STEPS}, got {max_steps!r}.")
     if isinstance(solver, LiePoissonSplitting):  # fixed steps, its models only
         stepsize_controller = fixed_step_controller(
             model, ts, stepsize_controller, rtol, atol, dt0, max_steps
