@@ -19,6 +19,7 @@ import numpy as np
 
 from .._catalogue import SCENARIO_DIR, list_scenarios
 from ..integrate import (
+    MAX_STEPS,
     RESULTS,
     SPLITTING_ORDERS,
     LiePoissonSplitting,
@@ -178,6 +179,8 @@ class Scenario:
         t1 = float(_number(tt["t1"], "time.t1"))
         if not t1 > t0:
             raise _fail("time.t1", f"a time after t0 = {t0}", tt["t1"])
+        if not np.isfinite(t1 - t0):
+            raise _fail("time.t1", f"a time a finite span after t0 = {t0}", tt["t1"])
         n_times = int(_number(tt["n"], "time.n", integer=True))
         if n_times < 2:
             raise _fail("time.n", "an integer ≥ 2 (output times, linspace(t0, t1, n))", tt["n"])
@@ -250,6 +253,8 @@ class Scenario:
             max_steps = int(
                 _number(s.get("max_steps", 16384), "solver.max_steps", integer=True, positive=True)
             )
+        if max_steps > MAX_STEPS:  # a step counter is int32 in float32
+            raise _fail("solver.max_steps", f"an integer ≤ {MAX_STEPS}", max_steps)
 
         o = _table(d.get("outputs", {}), "outputs", {"summaries", "trajectories"})
         trajectories = _trajectories(o.get("trajectories", "all"), "outputs.trajectories")
