@@ -80,6 +80,13 @@ def minimal(kind: str = "rigid_body", torques=(), frame=None) -> dict:
         ),
         (lambda d: d["solver"].update(rtol=-1e-8), "solver.rtol", "positive"),
         (lambda d: d["solver"].update(max_steps=10.5), "solver.max_steps", "integer"),
+        (lambda d: d["solver"].update(max_steps=10**20), "solver.max_steps", "≤ 2147483647"),
+        (lambda d: d["time"].update(t0=-1e308, t1=1e308), "time.t1", "finite span"),
+        (
+            lambda d: d["model"].update(torques=[{"kind": "restoring_moment", "k": 1, "eps": 2}]),
+            "model.torques[0].eps",
+            "only with `coeffs`",
+        ),
         (lambda d: d["time"].update(n=1), "time.n", "≥ 2"),
         (lambda d: d["time"].update(t1=-1.0), "time.t1", "after t0"),
         (lambda d: d["initial"].update(omega={"dist": "gaussian"}), "initial.omega.dist", "one of"),
@@ -373,6 +380,31 @@ def test_each_distribution_centre():
 def draws(sc: Scenario, n: int, seed: int = 0) -> dict:
     idx = jnp.arange(n)
     return jax.jit(jax.vmap(lambda i: sc.sample(sc.dists, jax.random.key(seed), i)))(idx)
+
+
+@pytest.mark.parametrize(
+    "euler",
+    [
+        {"dist": "normal", "mean": [10.0, 40.0, -20.0], "std": 5.0},
+        {"dist": "uniform", "low": [0.0, 10.0, 20.0], "high": 30.0},
+        {"dist": "lognormal", "median": [10.0, 40.0, 20.0], "sigma": 0.5},
+    ],
+    ids=["normal", "uniform", "lognormal"],
+)
+def test_euler_angles_in_degrees_draw_the_attitudes_of_the_same_angles_in_radians(euler):
+    """`degrees = true` converts the angles (means, spreads, bounds, medians), not a
+    log-normal's σ, which is a spread of log(angle) and has no unit."""
+    deg = np.pi / 180.0
+    rad = {
+        k: v if k in ("dist", "sigma") else (np.asarray(v) * deg).tolist() for k, v in euler.items()
+    }
+    attitude = {k: small() for k in ("deg", "rad")}
+    attitude["deg"]["initial"]["attitude"] = {"euler": euler, "degrees": True}
+    attitude["rad"]["initial"]["attitude"] = {"euler": rad}
+    q = {k: draws(Scenario.from_dict(d), 64)["initial.attitude"] for k, d in attitude.items()}
+    # the same angles up to the rounding of the conversion (a few ulps of an angle ≤ 1 rad)
+    np.testing.assert_allclose(q["deg"], q["rad"], rtol=0, atol=1e-14)
+    assert float(jnp.std(q["rad"][:, 0])) > 0.01  # the draws spread
 
 
 def test_uniform_so3_matches_scipy_random_rotations():

@@ -99,6 +99,12 @@ def _restoring_moment(p):
     return RestoringMoment(p["k"], p.get("eps"))
 
 
+def _restoring_moment_check(t, path):
+    _exactly_one(k="constant", coeffs="K(τ) polynomial")(t, path)
+    if "k" in t and "eps" in t:  # a constant k does not read τ = ε t
+        raise _fail(f"{path}.eps", "only with `coeffs` (a constant `k` has no slow time)", t["eps"])
+
+
 def _gravity_gradient(p):
     if "eps" in p:
         return GravityGradient(p["eps"])
@@ -121,7 +127,7 @@ TORQUES: dict[str, Kind] = {
         RestoringMoment,
         {"k": _quantity_param(), "coeffs": Param(_coeffs), "eps": _quantity_param()},
         build=_restoring_moment,
-        check=_exactly_one(k="constant", coeffs="K(τ) polynomial"),
+        check=_restoring_moment_check,
     ),
     "gravity_gradient": Kind(
         GravityGradient,

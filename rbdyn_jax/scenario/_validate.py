@@ -22,6 +22,7 @@ from ._distributions import (
     DispersedInertia,
     EulerAttitude,
     Fixed,
+    LogNormal,
     UniformSO3,
 )
 
@@ -143,8 +144,11 @@ def _attitude(x, path) -> AbstractDistribution:
     if not isinstance(degrees, bool):
         raise _fail(f"{path}.degrees", "true or false", degrees)
     angles = _quantity(t["euler"], f"{path}.euler", (3,))
-    if degrees:  # every leaf (value, mean, std, low, high) is an angle
+    if degrees:  # every leaf is an angle (value, mean, std, low, high, median) but σ
+        sigma = angles.sigma if isinstance(angles, LogNormal) else None  # of log(angle)
         angles = jax.tree_util.tree_map(lambda a: a * (np.pi / 180.0), angles)
+        if sigma is not None:
+            angles = eqx.tree_at(lambda d: d.sigma, angles, sigma)
     return EulerAttitude(angles, seq)
 
 
