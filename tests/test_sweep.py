@@ -245,9 +245,18 @@ def test_resume_refuses_a_different_run(reference_run, tmp_path):
 
 def test_run_argument_errors(tmp_path):
     sc = Scenario.from_dict(small())
-    for kw in ({"chunk": 0}, {"lanes": -1}, {"seed": -2}, {"devices": 99}):
-        with pytest.raises(ValueError):
+    bad = (
+        {"chunk": 0},
+        {"lanes": -1},
+        {"seed": -2},
+        {"seed": 2**32},  # jax.random.key would keep its low 32 bits without 64-bit types
+        {"devices": 99},
+        {"devices": 1.5},
+    )
+    for kw in bad:
+        with pytest.raises(ValueError, match=f"`{next(iter(kw))}`"):
             sweep.run(sc, 4, tmp_path / "e.zarr", **kw)
+        assert not (tmp_path / "e.zarr").exists()  # refused before a store is made
     with pytest.raises(ScenarioError, match="no scenario file"):
         sweep.run("no_such_scenario", 4, tmp_path / "e.zarr")
 
@@ -441,6 +450,19 @@ def test_summarize_through_dask_equals_numpy(failing_run, rows):
         assert row["std"] == pytest.approx(x.std(ddof=1), rel=1e-12)
         assert (row["min"], row["max"]) == (x.min(), x.max())
         assert [row["q05"], row["q50"], row["q95"]] == list(np.quantile(x, [0.05, 0.5, 0.95]))
+
+
+def test_summarize_keys_every_quantile_asked_for(failing_run):
+    """Each quantile under its own percentile key, fractional percents with their decimals;
+    quantiles outside [0, 1] or sharing a key are refused."""
+    g = zarr.open_group(str(failing_run), mode="r")
+    x = g["max_abs_omega"][:][g["status"][:] == 0]
+    qs = (0.001, 0.5, 0.9951, 1.0)
+    row = sweep.summarize(failing_run, quantiles=qs)["summaries"]["max_abs_omega"]
+    assert [row[k] for k in ("q0.1", "q50", "q99.51", "q100")] == list(np.quantile(x, qs))
+    for bad in ((0.5, 1.5), (-0.1,), (0.5, 0.5)):
+        with pytest.raises(ValueError, match="`quantiles`"):
+            sweep.summarize(failing_run, quantiles=bad)
 
 
 def test_summarize_approximates_quantiles_of_a_large_store(failing_run, monkeypatch):

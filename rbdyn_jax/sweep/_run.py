@@ -201,7 +201,7 @@ def run(
     **Arguments:**
 
     - `scenario`: a `Scenario`, a shipped scenario name or a TOML path.
-    - `n`: number of trajectories; `seed`: the random seed.
+    - `n`: number of trajectories; `seed`: the random seed, 0 ≤ seed < 2³².
     - `chunk`: trajectories solved and written at a time, and the store's chunk along
       `trajectory` (memory ∝ chunk). `None` (default): 1024 on a CPU; on a GPU the largest
       power of two whose footprint fits the device's memory, at most 2²⁰ per device
@@ -215,7 +215,9 @@ def run(
       lane takes the next trajectory as soon as its own has finished). `None` (default): 64
       on a CPU; on a GPU those `simulate_batch` takes for a device's share of the chunk,
       solved in one block (`chunking`). On a CPU results are bitwise identical for any
-      `chunk`, `devices` and `client` at the same `lanes`. On a GPU backend a scenario
+      `chunk`, `devices` and `client` at the same `lanes` of 16 or more (with fewer,
+      XLA may compile the lanes unrolled and a trajectory's last bits depend on its
+      lane: the module's docstring). On a GPU backend a scenario
       whose model the Pallas kernel runs is solved by it (`Kernel`, as `simulate_batch`'s
       default), which has no lanes to set: `lanes` is then recorded but unused, and the
       results are bitwise identical for any `chunk`.
@@ -262,8 +264,10 @@ def run(
             continue
         if isinstance(v, bool) or not isinstance(v, int | np.integer) or v < 1:
             raise ValueError(f"`{name}` must be a positive integer, got {v!r}.")
-    if isinstance(seed, bool) or not isinstance(seed, int | np.integer) or seed < 0:
-        raise ValueError(f"`seed` must be a non-negative integer, got {seed!r}.")
+    if isinstance(seed, bool) or not isinstance(seed, int | np.integer) or not 0 <= seed < 2**32:
+        # `jax.random.key` keeps a larger seed's low 32 bits where 64-bit types are off
+        # (seed 2³² would draw seed 0's trajectories) and overflows at 2⁶³ where they are on.
+        raise ValueError(f"`seed` must be an integer in 0..2**32 - 1, got {seed!r}.")
     # Python ints from here: they are written into the store's attributes (JSON)
     n, seed = int(n), int(seed)
     chunk, lanes = (None if v is None else int(v) for v in (chunk, lanes))
@@ -273,12 +277,18 @@ def run(
         )
         all_devices = jax.devices()
         devices = len(all_devices) if devices is None else devices
-        if isinstance(devices, bool) or not 1 <= devices <= len(all_devices):
+        if (
+            isinstance(devices, bool)
+            or not isinstance(devices, int | np.integer)
+            or not 1 <= devices <= len(all_devices)
+        ):
             raise ValueError(
                 f"`devices` must be in 1..{len(all_devices)} (jax.devices()), got {devices!r}."
             )
     else:
-        if devices is not None and (isinstance(devices, bool) or devices < 1):
+        if devices is not None and (
+            isinstance(devices, bool) or not isinstance(devices, int | np.integer) or devices < 1
+        ):
             raise ValueError(f"`devices` must be a positive integer, got {devices!r}.")
         _check_workers(client, sc.dtype, n)
 
