@@ -24,6 +24,13 @@ def open_dataset(store: str | pathlib.Path, *, storage_options: dict | None = No
 _EXACT_ROWS = 1 << 25  # quantiles exact (in memory, 8 bytes a row) up to this many values
 
 
+def quantile_key(q: float) -> str:
+    """The key of quantile `q` in `summarize`'s rows: its percentile, `q05` for 0.05,
+    `q100` for 1, and as many decimals as it has otherwise (`q0.1`, `q99.51`)."""
+    p = round(100 * float(q), 10)
+    return f"q{round(p):02d}" if p == round(p) else f"q{p:g}"
+
+
 def summarize(
     store: str | pathlib.Path,
     quantiles=(0.05, 0.5, 0.95),
@@ -42,8 +49,15 @@ def summarize(
     merged from per-block quantiles (`dask.array.percentile`).
 
     **Returns:** `{"n", "status": {name: count}, "summaries": {name: {count, mean, std,
-    min, qNN…, max}}, "scenario", "complete"}`.
+    min, qNN…, max}}, "scenario", "complete"}`, each quantile under its percentile
+    (`q05` for 0.05; `q0.1` for 0.001).
     """
+    qs = np.atleast_1d(np.asarray(quantiles, float))
+    if qs.ndim != 1 or not np.all((qs >= 0) & (qs <= 1)):
+        raise ValueError(f"`quantiles` must be numbers in [0, 1], got {quantiles!r}.")
+    keys = [quantile_key(q) for q in qs]
+    if len(set(keys)) != len(keys):
+        raise ValueError(f"`quantiles` must be distinct percentiles, got {quantiles!r}.")
     found = check(store, storage_options=storage_options)
     with reading(store, storage_options):
         stats = _summarize(store, quantiles, rows, storage_options)
@@ -91,7 +105,7 @@ def _summarize(store, quantiles, rows, storage_options) -> dict:
             row.update(
                 mean=float(mean), std=float(std) if count > 1 else 0.0, min=float(lo), max=float(hi)
             )
-            row.update({f"q{round(100 * q):02d}": float(v) for q, v in zip(quantiles, qs)})
+            row.update({quantile_key(q): float(v) for q, v in zip(quantiles, qs)})
         stats[name] = row
     return {
         "n": int(status.size),
