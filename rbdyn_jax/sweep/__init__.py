@@ -18,8 +18,12 @@ that size), and the chunk is sized from the device's memory (`chunking`). On a C
 the block shape is fixed and every drawn quantity enters as a runtime argument (the output
 times and tolerances, the same for every trajectory, are constants of the program), the
 results are **bitwise identical for any chunk size, any number of devices and any number
-of Dask workers** at a given `lanes` (tested at 4, 16 and 64 lanes; at 8, with XLA's while
-loops compiled whole, a trajectory's last bits can depend on its lane within the block).
+of Dask workers** at a given `lanes` of 16 or more (tested at 16). With fewer lanes XLA may
+compile a loop over the lanes unrolled (every while loop is compiled whole:
+`configure_xla`), and one lane's arithmetic can then differ from another's in its last bits
+(seen at 3, 4, 6 and 8 lanes on an AVX-512 CPU): a trajectory's results depend on its lane
+within the block, so on the chunking, and a repaired store agrees with an uninterrupted run
+to round-off, not bitwise.
 On a GPU they are so through the kernel for any chunk (its program's arithmetic per lane
 is fixed; tested on a CPU with the kernel in interpret mode), and through the lanes for a
 given chunk and lanes.
