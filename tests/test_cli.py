@@ -424,6 +424,11 @@ def test_sweep_exit_status_when_trajectories_fail(tmp_path, capsys, case, no_cac
     if case == "all":
         assert code == cli.EXIT_ALL_FAILED == 4 and np.all(status != 0)
         assert "40 of 40 trajectories failed" in err
+        # the plots: the status counts only, and the note says why
+        assert cli.main(["plot", str(out)]) == 0
+        printed = capsys.readouterr().out
+        assert "status.png" in printed and "trajectories.png" not in printed.split("note:")[0]
+        assert "no trajectory whose states the store keeps succeeded" in printed
     else:
         assert code == cli.EXIT_SOME_FAILED == 3 and 0 < np.sum(status != 0) < 40
     assert "raise [solver] max_steps (now" in err

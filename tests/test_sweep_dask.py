@@ -129,6 +129,16 @@ def test_cli_on_a_running_scheduler(client, reference, tmp_path, capsys):
     assert_same(load(reference), load(out))
 
 
+def test_cli_names_a_scheduler_it_cannot_use(tmp_path, capsys):
+    """An address Dask cannot parse: one line naming it, status 2, no store."""
+    out = tmp_path / "x.zarr"
+    argv = ["sweep", "torque_free_flip", "--n", "4", "--out", str(out), "--scheduler", "nonsense"]
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("rbdyn sweep: no Dask scheduler at nonsense:") and "Traceback" not in err
+    assert not out.exists()
+
+
 @pytest.mark.parametrize("keep", ["none", 8])
 def test_workers_keep_the_states_asked_for(client, reference, tmp_path, keep):
     """Tasks writing a store of no states (the chunk chosen for a worker's devices: 1024 on

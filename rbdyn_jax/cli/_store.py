@@ -55,6 +55,11 @@ def plot_command(args) -> int:
                 'sweep with trajectories = "none"); sweep with --trajectories all or K '
                 "to plot them"
             )
+        elif not any(str(f).endswith("trajectories.png") for f in files):
+            print(
+                "note: no trajectories.png or polhodes.png: no trajectory whose states the "
+                "store keeps succeeded (status.png counts the outcomes)"
+            )
         elif not any(str(f).endswith("polhodes.png") for f in files):
             print(
                 "note: no polhodes.png: this scenario's torque does not conserve the "

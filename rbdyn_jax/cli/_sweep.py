@@ -68,7 +68,13 @@ def sweep_command(args) -> int:
         # Float32 throughout (its arrays are float32 explicitly): no 64-bit types needed,
         # and a float32 sweep gives the same bits with them on or off.
         jax.config.update("jax_enable_x64", False)
-    client, cluster = _cluster(args)
+    try:
+        client, cluster = _cluster(args)
+    except (OSError, ValueError, TypeError) as e:  # an address Dask cannot parse or reach
+        if args.scheduler is None:
+            raise
+        print(f"rbdyn sweep: no Dask scheduler at {args.scheduler}: {e}", file=sys.stderr)
+        return EXIT_USAGE
     print(f"rbdyn sweep: {scenario.name} — {scenario.description}")
     if client is None:
         devices = jax.devices()
