@@ -195,6 +195,16 @@ def test_a_store_creation_that_fails_leaves_nothing_and_keeps_the_old_store(
     assert_same(_all(copy), _all(reference))
 
 
+def test_overwrite_through_a_link_replaces_the_store_it_names(copy):
+    """`out` a symbolic link to a store: `overwrite=True` replaces that store, and the link
+    stays (the new store could not take the link's place: 'Not a directory')."""
+    link = copy.with_name("link.zarr")
+    link.symlink_to(copy)
+    _run(link, overwrite=True)
+    assert link.is_symlink() and sweep.verify(link).complete
+    assert sorted(p.name for p in copy.parent.iterdir()) == ["copy.zarr", "link.zarr"]
+
+
 def test_store_metadata_say_what_is_not_solved(reference):
     """The fill values are what a reader of the store sees where nothing was written."""
     g = zarr.open_group(str(reference), mode="r")

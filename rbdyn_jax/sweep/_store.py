@@ -390,7 +390,7 @@ def _prepare_store(
         loc.remove()
         _create_store(loc, sc, n, chunk, seed, lanes)
         return lanes
-    path = pathlib.Path(loc.url)
+    path = pathlib.Path(loc.url).resolve()  # a link to a store: the store it names
     tmp = path.with_name(path.name + ".partial")
     shutil.rmtree(tmp, ignore_errors=True)
     try:
