@@ -5,6 +5,7 @@ shipped scenarios against their first integrals. The scenarios themselves (schem
 samplers, summaries) are tested in test_scenario.py.
 """
 
+import gc
 import os
 import signal
 import subprocess
@@ -723,6 +724,39 @@ def test_trajectory_bytes_of_the_default_scenario():
     assert sweep.trajectory_bytes(sc.with_settings(trajectories="none"))[1] == 72
     assert sweep.trajectory_bytes(sc.with_settings(trajectories=100))[1] == 72
     assert sweep.trajectory_bytes(sc.with_settings(trajectories=10))[1] == 260
+
+
+@pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")
+def test_an_interrupt_python_ignored_still_stops_the_sweep(tmp_path):
+    """Ctrl-C whose `KeyboardInterrupt` is raised inside a garbage-collector callback (JAX
+    registers one), where Python prints "Exception ignored" and goes on: the sweep stops
+    after the region it was writing, as for any Ctrl-C, instead of running to the end."""
+    fired = []
+
+    def collecting(phase, info):  # the interrupt arrives while the collector runs
+        if phase == "start" and not fired:
+            fired.append(phase)
+            signal.raise_signal(signal.SIGINT)
+
+    def progress(p):
+        if p.done >= 6 and not fired:
+            gc.callbacks.append(collecting)
+            gc.collect()
+            assert fired  # and the KeyboardInterrupt was swallowed: we are still here
+
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)
+    out = tmp_path / "i.zarr"
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            sweep.run(
+                Scenario.from_dict(small()), N, out, chunk=6, seed=3, lanes=16, progress=progress
+            )
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    finally:
+        signal.signal(signal.SIGINT, before)
+        if collecting in gc.callbacks:
+            gc.callbacks.remove(collecting)
+    assert np.sum(zarr.open_group(str(out), mode="r")["status"][:] >= 0) == 6
 
 
 def test_an_interrupt_waits_for_the_region_being_written():

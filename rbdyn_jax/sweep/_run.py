@@ -95,6 +95,33 @@ def _interrupt_held():
             signal.raise_signal(signal.SIGINT)
 
 
+@contextlib.contextmanager
+def _interrupts_kept():
+    """Ctrl-C (SIGINT) raises `KeyboardInterrupt` as Python's own handler does, and is also
+    kept: where Python ignored the exception (raised inside a garbage-collector callback,
+    which JAX registers, Python prints "Exception ignored" and goes on), `check()` raises
+    it again between regions. Only in the main thread, with a handler Python installed."""
+    main = threading.current_thread() is threading.main_thread()
+    if not main or signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
+        yield lambda: None
+        return
+    kept = []
+
+    def handler(signum, frame):
+        kept.append(signum)
+        raise KeyboardInterrupt
+
+    def check():
+        if kept:
+            raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGINT, handler)
+    try:
+        yield check
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
 def _solve_region(g, runner: _Runner, key, start: int, stop: int) -> tuple[int, int]:
     """Solve and write the trajectories of `start:stop` still marked not run; the region's
     counts of done and of failed trajectories afterwards."""
@@ -338,13 +365,16 @@ def run(
         key = jax.random.key(seed)
         # The devices solve a region while this thread writes the one before.
         solving = None
-        for region in todo:
-            launched = (region, _launch_region(g, runner, key, *region[:2]))
+        with _interrupts_kept() as interrupted:
+            for region in todo:
+                launched = (region, _launch_region(g, runner, key, *region[:2]))
+                if solving is not None:
+                    report(solving[0], _finish_region(g, solving[1]))
+                    interrupted()
+                solving = launched
             if solving is not None:
                 report(solving[0], _finish_region(g, solving[1]))
-            solving = launched
-        if solving is not None:
-            report(solving[0], _finish_region(g, solving[1]))
+                interrupted()
     else:
         _run_on_dask(
             client,
