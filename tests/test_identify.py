@@ -179,6 +179,24 @@ def test_torque_free_scale_detected_and_fixed(free_truth):
     np.testing.assert_allclose(Jm, Jf, atol=1e-6 * np.max(se))
 
 
+def test_a_fit_none_of_whose_solves_succeeds_is_not_converged(free_truth):
+    """Every solve runs out of steps (at the guess too): no point was accepted, so the fit
+    reports no loss (NaN), is not converged, says why, and returns the guess (at the fixed scale)."""
+    guess = rb.RigidBody(jnp.asarray(J_GUESS))
+    res = idf.fit(
+        guess,
+        noisy(*free_truth, seed=3),
+        optimizer=idf.LevenbergMarquardt(steps=3),
+        scale=idf.TraceScale(float(np.trace(J_TRUE))),
+        max_steps=5,
+    )
+    assert not res.converged and not np.isfinite(float(res.loss))
+    assert any(n.startswith("No solve succeeded") for n in res.notes), res.notes
+    assert not np.any(np.isfinite(np.asarray(res.loss_history)))
+    J = np.asarray(res.model.inertia)  # the guess, at the scale fixed
+    np.testing.assert_allclose(J / np.trace(J), J_GUESS / np.trace(J_GUESS), rtol=1e-12)
+
+
 def test_scale_classes():
     J = jnp.asarray(J_TRUE)
     for scale in (idf.TraceScale(9), idf.MomentScale(2, 1.0)):

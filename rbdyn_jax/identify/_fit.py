@@ -232,7 +232,13 @@ def _result(
     if "inertia" in stderr and not scale_ok:
         stderr["inertia"] = np.full((3, 3), np.inf)
     converged = bool(np.isfinite(float(out.loss)) and float(out.decrement) < optimizer.tol)
-    if not converged:
+    if not np.isfinite(float(out.loss)):
+        notes.append(
+            "No solve succeeded, at the starting point nor at any point tried (a solve "
+            "ran out of max_steps, or met a non-finite state): raise max_steps, or check "
+            "the guess and the initial states."
+        )
+    elif not converged:
         notes.append(
             f"Not converged after {optimizer.steps} steps: Gauss–Newton decrement "
             f"{float(out.decrement):.3g} ≥ tol = {optimizer.tol:g}."

@@ -152,10 +152,10 @@ class LevenbergMarquardt(AbstractOptimizer):
             return s, Iterate(loss=s.loss, inertia=objective.inertia(s.x))
 
         m = objective.num_residuals
-        init = LMState(
-            x=x0,
-            r=jnp.zeros(m, x0.dtype),
-            jacobian=jnp.zeros((m, x0.size), x0.dtype),
+        init = LMState(  # NaN until a trial is accepted: a fit none of whose solves
+            x=x0,  # succeeds ends with NaN residuals and loss, not converged
+            r=jnp.full(m, jnp.nan, x0.dtype),
+            jacobian=jnp.full((m, x0.size), jnp.nan, x0.dtype),
             loss=jnp.asarray(jnp.inf, x0.dtype),
             damping=jnp.asarray(self.damping, x0.dtype),
             trial=x0,
