@@ -181,7 +181,8 @@ def test_torque_free_scale_detected_and_fixed(free_truth):
 
 def test_a_fit_none_of_whose_solves_succeeds_is_not_converged(free_truth):
     """Every solve runs out of steps (at the guess too): no point was accepted, so the fit
-    reports no loss (NaN), is not converged, says why, and returns the guess (at the fixed scale)."""
+    reports no loss (NaN), is not converged, says why, and returns the guess (at the
+    fixed scale)."""
     guess = rb.RigidBody(jnp.asarray(J_GUESS))
     res = idf.fit(
         guess,
