@@ -422,6 +422,15 @@ def test_simulate_throw_switch():
     )
     with pytest.raises(eqx.EquinoxRuntimeError, match=re.escape(message)):
         jax.block_until_ready(jitted(y0))
+
+    # … and under `jax.grad` outside `jit` (the codes traced for differentiation)
+    def loss(w, fn=rb.simulate, q=Q0):
+        return fn(gen_model(), state(w, q), TS, rtol=1e-8, atol=1e-8, throw=True).ys.omega.sum()
+
+    with pytest.raises(eqx.EquinoxRuntimeError, match=re.escape(message)):
+        jax.grad(loss)(jnp.asarray(y0.omega))
+    with pytest.raises(eqx.EquinoxRuntimeError, match=re.escape(message)):
+        jax.grad(loss)(jnp.asarray(W0S).at[1, 0].set(np.nan), rb.simulate_batch, Q0S)
     traj = rb.simulate(gen_model(), y0, TS, rtol=1e-8, atol=1e-8)
     assert traj.result == rb.RESULTS.nonfinite_state
     assert np.all(np.isnan(traj.ys.omega))

@@ -84,4 +84,7 @@ def thrown(traj: Trajectory) -> Trajectory:
         # the process when a host callback raises in a program over several devices, so
         # the check runs on one.
         traj = jax.device_put(traj, jax.local_devices()[0])
-    return traj.result.error_if(traj, jnp.any(traj.result != RESULTS.successful))
+    # The codes take no derivative: under `jax.grad` outside `jit` they are traced for
+    # differentiation, and the check's reduction has no derivative rule.
+    result = jax.tree_util.tree_map(jax.lax.stop_gradient, traj.result)
+    return result.error_if(traj, jnp.any(result != RESULTS.successful))
