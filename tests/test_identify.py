@@ -288,6 +288,13 @@ def test_fit_argument_errors():
     model = rb.RigidBody(jnp.asarray(J_TRUE))
     with pytest.raises(ValueError, match="`params`"):
         idf.fit(model, data, params=("mass",))
+    with pytest.raises(ValueError, match="got 'mass'"):  # a name, not its letters
+        idf.fit(model, data, params="mass")
+    for rcond in (-1.0, 0.0, 1.0, "1e-9"):
+        with pytest.raises(ValueError, match="`rcond`"):
+            idf.fit(model, data, rcond=rcond)
+    with pytest.raises(ValueError, match=r"`y0` must be a State\(omega, quat\), got tuple"):
+        idf.fit(model, data, y0=(W_OK[:1, 0], np.array([[1.0, 0, 0, 0]])))
     for scale in (("trace", 1.0), ("moment", 0, 1.0), 1.0):
         with pytest.raises(
             ValueError,

@@ -2,6 +2,7 @@
 reads the result (`FitResult`)."""
 
 import dataclasses
+import numbers
 from collections.abc import Callable, Sequence
 
 import diffrax
@@ -91,7 +92,8 @@ def fit(
       docs/physics.md#log-cholesky-parametrisation),
       `"torque"` (the array leaves of `model.torque`, or those `torque_where(torque)` picks,
       as the `where` of `eqx.tree_at`), `"initial_conditions"` (ω0 and a rotation-vector
-      correction δ of q0 = q0_guess ⊗ exp(δ), per trajectory). Not free: held at the guess.
+      correction δ of q0 = q0_guess ⊗ exp(δ), per trajectory), or one such name alone.
+      Not free: held at the guess.
     - `y0`: initial guesses `State(omega (K, 3), quat (K, 4))` at `data.ts[:, 0]`; default:
       the first observed ω (zeros when ω is not observed) and the first observed attitude
       (identity when attitude is not observed), of each trajectory.
@@ -106,7 +108,7 @@ def fit(
       threshold on the Gauss–Newton decrement (Levenberg–Marquardt stops early once it is
       reached).
     - `rcond`: eigenvalues of JᵀJ below `rcond` × the largest count as ill-determined
-      directions.
+      directions (0 < rcond < 1).
     - `solver`, `stepsize_controller`, `max_steps`: passed to `simulate`. `rtol`, `atol`:
       shorthand for `stepsize_controller=diffrax.PIDController(rtol, atol)`, each
       defaulting to 1e-10; giving both a controller and a tolerance is a `ValueError`.
@@ -144,6 +146,12 @@ def fit(
             "identify.Optax(tx, ...) (an optax transformation wrapped), got "
             f"{type(optimizer).__name__}."
         )
+    if isinstance(params, str):  # one name, not its letters
+        params = (params,)
+    if isinstance(rcond, bool) or not isinstance(rcond, numbers.Real) or not 0 < rcond < 1:
+        raise ValueError(f"`rcond` must be a number in (0, 1), got {rcond!r}.")
+    if y0 is not None and not isinstance(y0, State):
+        raise ValueError(f"`y0` must be a State(omega, quat), got {type(y0).__name__}.")
     controller = make_controller(
         stepsize_controller, rtol, atol, default_tol=DEFAULT_TOL, dtype=data.ts.dtype
     )
