@@ -256,6 +256,8 @@ def test_mismatched_shapes():
         idf.Observations(T_OK, omega=W_OK, sigma_omega=np.ones(4))
     with pytest.raises(ValueError, match="at least one"):
         idf.Observations(T_OK)
+    with pytest.raises(ValueError, match="`omega` must be real, got dtype complex128"):
+        idf.Observations(T_OK, omega=W_OK + 1e-3j)  # not cast, dropping the imaginary part
 
 
 def test_non_unit_quaternion():

@@ -15,6 +15,8 @@ _UNIT_TOL = 1e-6  # |q| within this of 1: renormalised silently
 
 
 def _as_np(x, name):
+    if np.iscomplexobj(x):  # a cast would drop the imaginary part
+        raise ValueError(f"`{name}` must be real, got dtype {np.asarray(x).dtype}.")
     try:
         a = np.asarray(x, dtype=float)
     except (TypeError, ValueError) as e:
