@@ -10,7 +10,8 @@
   strategy, with gradients through the forward sensitivities equal to reverse mode's;
 - failure isolation in a batch (one non-finite initial state, one trajectory that runs out
   of steps) and the `throw=` switch;
-- no retracing when only values change (a trace-counting torque);
+- no retracing when only values change (a trace-counting torque), the first step and
+  the step bounds included;
 - gradients of a loss on a heavy-top-like body (restoring moment k(τ, ψ) of
   docs/physics.md#equations-of-motion with `PolynomialSinPsi`, plus a body torque) w.r.t.
   log-Cholesky inertia parameters and the restoring-moment parameters, against central finite
@@ -496,6 +497,18 @@ def test_no_recompile_when_only_values_change(caplog):
             rb.simulate(m, y, t, rtol=rtol, atol=atol)
 
     assert compiles(caplog, values_change) == 0
+
+    # The first step and the controller's step bounds are values too.
+    def pid(dtmax):
+        return diffrax.PIDController(rtol=1e-8, atol=1e-8, dtmin=1e-9, dtmax=dtmax)
+
+    rb.simulate(model, y0, ts, dt0=0.01, stepsize_controller=pid(0.5))
+
+    def bounds_change():
+        for dt0, dtmax in ((0.02, 0.3), (0.005, 1.0)):
+            rb.simulate(model, y0, ts, dt0=dt0, stepsize_controller=pid(dtmax))
+
+    assert compiles(caplog, bounds_change) == 0
     # Another model structure (another torque type) is compiled anew.
     other = rb.RigidBody(jnp.asarray(J_GEN), rb.GravityGradient(jnp.asarray(0.3)))
     assert compiles(caplog, lambda: rb.simulate(other, y0, ts)) >= 1

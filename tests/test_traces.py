@@ -28,7 +28,7 @@ def solve_args(model=None, y0=None, ts=TS, solver=None, max_steps=4096, rtol=1e-
     """The arguments `simulate` hands its compiled solve."""
     model = rb.RigidBody(J) if model is None else model
     y0 = rb.State(jnp.array([0.3, -1.0, 0.5]), jnp.array([1.0, 0, 0, 0])) if y0 is None else y0
-    ts, controller, max_steps = _simulate._prepare(model, y0, ts, None, rtol, 1e-8, max_steps)
+    ts, controller, max_steps, dt0 = _simulate._prepare(model, y0, ts, None, rtol, 1e-8, max_steps)
     return (
         model,
         y0,
@@ -37,7 +37,7 @@ def solve_args(model=None, y0=None, ts=TS, solver=None, max_steps=4096, rtol=1e-
         controller,
         diffrax.RecursiveCheckpointAdjoint(),
         max_steps,
-        None,
+        dt0,
     )
 
 

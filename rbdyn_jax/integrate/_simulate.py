@@ -72,8 +72,9 @@ def make_controller(
     what `dtype` resolves: `default_tolerance`); giving both is a `ValueError`. A PID
     controller's tolerances are checked (positive scalars; a concrete `rtol` at least
     `min_rtol(dtype)`, which refuses rtol < 9.5e-7 in float32) and made arrays of `dtype`
-    (JAX's default float for `None`), so that a compiled program taking the controller
-    reuses itself for new values, which may also be traced.
+    (JAX's default float for `None`), and so are its `dtmin` and `dtmax` where given, so
+    that a compiled program taking the controller reuses itself for new values, which may
+    also be traced.
 
     `simulate` and `simulate_batch` call it on their arguments; call it yourself to hold a
     controller in your own compiled function (as `identify.fit` does)."""
@@ -106,6 +107,13 @@ def make_controller(
                 "in float64 (`jax.config.update('jax_enable_x64', True)`, float64 inputs)."
             )
         stepsize_controller = eqx.tree_at(lambda c: (c.rtol, c.atol), stepsize_controller, tols)
+        # Its step bounds too, where given: another bound reuses the compiled solve.
+        bounds = {
+            name: _tolerance(getattr(stepsize_controller, name), name, dtype)
+            for name in ("dtmin", "dtmax")
+            if getattr(stepsize_controller, name) is not None
+        }
+        stepsize_controller = dataclasses.replace(stepsize_controller, **bounds)
     return stepsize_controller
 
 
@@ -130,8 +138,11 @@ def _prepare(model, y0, ts, stepsize_controller, rtol, atol, max_steps, solver=N
             model, ts, stepsize_controller, rtol, atol, dt0, max_steps
         )
         rtol = atol = None
-    controller = make_controller(stepsize_controller, rtol, atol, dtype=solve_dtype(model, y0, ts))
-    return ts, controller, int(max_steps)
+    dtype = solve_dtype(model, y0, ts)
+    controller = make_controller(stepsize_controller, rtol, atol, dtype=dtype)
+    if dt0 is not None:  # an array: another first step reuses the compiled solve
+        dt0 = _tolerance(dt0, "dt0", dtype)
+    return ts, controller, int(max_steps), dt0
 
 
 _solved = Program(solve, validated=checked_before_tracing)
@@ -209,8 +220,8 @@ def simulate(
 ) -> Trajectory:
     """Integrate `model` from `y0` at `ts[0]`, saving the state at every time of `ts`.
 
-    Compiled once per model *structure*: new parameter values, initial conditions, times
-    or tolerances reuse the compiled solve.
+    Compiled once per model *structure*: new parameter values, initial conditions, times,
+    tolerances, first steps or step bounds reuse the compiled solve.
 
     **Arguments:**
 
@@ -232,8 +243,9 @@ def simulate(
       solve runs in the dtype of `ts`, the model's arrays and `y0` together; a concrete
       `rtol` finer than it resolves is refused (`min_rtol`: below 9.5e-7 in float32).
     - `max_steps`: the most steps the solver may take.
-    - `dt0`: initial step; `None` takes 0.01 (in the unit of `ts`), what `diffeqsolve`
-      takes. For `LiePoissonSplitting`, the fixed step (required).
+    - `dt0`: initial step (a positive scalar; another value reuses the compiled solve);
+      `None` takes 0.01 (in the unit of `ts`), what `diffeqsolve` takes. For
+      `LiePoissonSplitting`, the fixed step (required).
     - `throw`: default `False`: the outcome is returned in `Trajectory.result`
       (`RESULTS.successful`, `max_steps_reached`, `nonfinite_state`, …), as
       `simulate_batch` returns it per trajectory. `True` raises a runtime error when the
@@ -242,7 +254,7 @@ def simulate(
     **Returns:** a `Trajectory`.
     """
     one_state(y0)
-    ts, controller, max_steps = _prepare(
+    ts, controller, max_steps, dt0 = _prepare(
         model, y0, ts, stepsize_controller, rtol, atol, max_steps, solver, dt0
     )
     adjoint = diffrax.RecursiveCheckpointAdjoint() if adjoint is None else adjoint
@@ -296,7 +308,7 @@ def simulate_batch(
     `stats` and `result`).
     """
     array_fields(y0s, "y0s")
-    ts, controller, max_steps = _prepare(
+    ts, controller, max_steps, dt0 = _prepare(
         model, y0s, ts, stepsize_controller, rtol, atol, max_steps, solver, dt0
     )
     if batching is not None and not isinstance(batching, AbstractBatching):
