@@ -772,6 +772,21 @@ def test_integer_initial_states_are_the_floats_they_hold(batching):
     assert ints.ys.omega.dtype == jnp.float64
 
 
+@pytest.mark.parametrize("batching", [None, rb.Vmap()], ids=["default", "Vmap"])
+def test_float32_times_of_a_float64_solve_are_returned_in_float64(batching):
+    """The solve runs in the dtype of its inputs together: float32 output times beside a
+    float64 model and state give the float64 solve of the same times, `ts` included."""
+    ts32, ts64 = np.asarray(TS, np.float32), np.asarray(TS, np.float32).astype(np.float64)
+    one = rb.simulate(gen_model(), state(W0, Q0), ts32)
+    assert one.ts.dtype == jnp.float64
+    np.testing.assert_array_equal(
+        one.ys.omega, rb.simulate(gen_model(), state(W0, Q0), ts64).ys.omega
+    )
+    many = rb.simulate_batch(gen_model(), state(W0S, Q0S), ts32, batching=batching)
+    assert many.ts.dtype == jnp.float64
+    np.testing.assert_array_equal(many.ts[0], ts64)
+
+
 # ---------------------------------------------------------------------------------------
 # 9. Initial states and models that cannot be integrated.
 

@@ -139,6 +139,7 @@ def _prepare(model, y0, ts, stepsize_controller, rtol, atol, max_steps, solver=N
         )
         rtol = atol = None
     dtype = solve_dtype(model, y0, ts)
+    ts = ts.astype(dtype)  # exact: the solve's dtype is at least the times'
     controller = make_controller(stepsize_controller, rtol, atol, dtype=dtype)
     if dt0 is not None:  # an array: another first step reuses the compiled solve
         dt0 = _tolerance(dt0, "dt0", dtype)
