@@ -179,6 +179,34 @@ def test_torque_free_scale_detected_and_fixed(free_truth):
     np.testing.assert_allclose(Jm, Jf, atol=1e-6 * np.max(se))
 
 
+def test_scale_value_and_damping_are_inputs_of_the_compiled_fit(free_truth, monkeypatch):
+    """A new `TraceScale` value or Levenberg–Marquardt `damping` reuses the compiled fit
+    (the fit is not traced again), and the new values reach it: its loss history is that of
+    a fit traced with them (`steps` differs, so it is traced anew), to round-off; and with
+    no torque the data fix J only up to scale, so doubling the trace held doubles the
+    fitted J (to the optimiser's convergence, 1e-6 of the trace)."""
+    data = noisy(*free_truth, seed=3)
+    guess = rb.RigidBody(jnp.asarray(J_GUESS))
+    trace = float(np.trace(J_TRUE))
+    first = idf.fit(guess, data, optimizer=LM12, scale=idf.TraceScale(trace))
+    doubled = idf.TraceScale(2 * trace)
+    fresh = idf.fit(guess, data, optimizer=idf.LevenbergMarquardt(13, damping=0.1), scale=doubled)
+    traced = []
+    residuals = idf.residuals
+    monkeypatch.setattr(
+        _problem, "residuals", lambda *a, **k: traced.append(1) or residuals(*a, **k)
+    )
+    reused = idf.fit(guess, data, optimizer=idf.LevenbergMarquardt(12, damping=0.1), scale=doubled)
+    assert not traced
+    np.testing.assert_allclose(reused.loss_history, fresh.loss_history[:13], rtol=1e-9)
+    # λ = 0.1 and λ = 1e-3 take different first steps (loss 4.6e4 and 6.7e4 after them).
+    assert abs(float(reused.loss_history[1]) / float(first.loss_history[1]) - 1) > 0.1
+    assert first.converged and reused.converged
+    J1, J2 = np.asarray(first.model.inertia), np.asarray(reused.model.inertia)
+    np.testing.assert_allclose(np.trace(J2), 2 * trace, rtol=1e-12)
+    np.testing.assert_allclose(J2, 2 * J1, atol=1e-6 * trace)
+
+
 def test_a_fit_none_of_whose_solves_succeeds_is_not_converged(free_truth):
     """Every solve runs out of steps (at the guess too): no point was accepted, so the fit
     reports no loss (NaN), is not converged, says why, and returns the guess (at the

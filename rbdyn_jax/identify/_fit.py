@@ -121,8 +121,9 @@ def fit(
 
     The whole fit (starting point, optimisation loop, covariance and standard errors) is one
     compiled program (`eqx.filter_jit`, `lax.scan` over the steps); a second fit of the same
-    structure and sizes reuses it, also with other values of the optimiser's `tol` and of a
-    `PIDController`'s tolerances (passed as arrays). With JAX's persistent compilation cache
+    structure and sizes reuses it, also with other values of the optimiser's `tol`, of
+    Levenberg–Marquardt's `damping`, of the scale fix's `value` and of a `PIDController`'s
+    tolerances (passed as arrays). With JAX's persistent compilation cache
     configured (`jax_compilation_cache_dir`), a later process loads the fit's traced and
     compiled program from it instead of tracing and compiling it again (with `Optax` only
     where the cache can describe its transformation exactly, else it is traced).
@@ -183,19 +184,28 @@ def fit(
     if "torque" in params and not jax.tree_util.tree_leaves(torque_dyn):
         raise ValueError("`params` names 'torque' but the model's torque has no array leaves.")
 
-    # The optimiser's `tol` as an input of the compiled fit: another value reuses it.
-    tol = jnp.asarray(optimizer.tol, data.ts.dtype)
+    # The optimiser's numbers and the scale fix's value are inputs of the compiled fit:
+    # other values reuse it.
+    dtype = data.ts.dtype
+    inputs = ("tol", "damping") if isinstance(optimizer, LevenbergMarquardt) else ("tol",)
     cfg = Config(
         solver=solver,
         stepsize_controller=controller,
         max_steps=int(max_steps),
-        scale=scale,
-        optimizer=eqx.tree_at(lambda o: o.tol, optimizer, tol),
+        scale=None if scale is None else _as_inputs(scale, ("value",), dtype),
+        optimizer=_as_inputs(optimizer, inputs, dtype),
         torque_static=torque_static,
         params=tuple(sorted(set(params))),
     )
     out = run(model, y0, torque_dyn, data, cfg)
     return _result(out, params, scale, optimizer, rcond)
+
+
+def _as_inputs(module: eqx.Module, names: tuple[str, ...], dtype) -> eqx.Module:
+    """`module` with its float fields `names` as arrays of `dtype` (inputs of a compiled
+    program, where floats would be part of its structure)."""
+    where = lambda m: tuple(getattr(m, n) for n in names)  # noqa: E731
+    return eqx.tree_at(where, module, tuple(jnp.asarray(getattr(module, n), dtype) for n in names))
 
 
 def _torque_parts(torque, torque_where: Callable | None) -> tuple[PyTree, PyTree]:

@@ -32,8 +32,8 @@ class Config(eqx.Module):
     solver: diffrax.AbstractSolver  # of every simulation
     stepsize_controller: diffrax.AbstractStepSizeController  # PID tolerances as arrays
     max_steps: int = eqx.field(static=True)  # solver steps per trajectory
-    scale: AbstractScale | None  # the user's fix of the scale of J, if any
-    optimizer: AbstractOptimizer  # its `tol` as an array of the data's dtype
+    scale: AbstractScale | None  # the user's fix of the scale of J, if any (value an array)
+    optimizer: AbstractOptimizer  # `tol` (and `damping`) as arrays of the data's dtype
     torque_static: PyTree  # the torque's parts that are not free (`eqx.partition`)
     params: tuple[str, ...] = eqx.field(static=True)  # which of `fit`'s `params` are free
 
