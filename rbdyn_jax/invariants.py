@@ -97,7 +97,9 @@ def angular_momentum_inertial(model: AbstractRigidBody, traj: Trajectory) -> Flo
 def area_integral(model: AbstractRigidBody, traj: Trajectory) -> Float[Array, " n"]:
     """Area integral `(J ω)·γ`: the angular momentum about the parent z-axis, conserved
     under torques symmetric about it (heavy top, gravity gradient;
-    docs/physics.md#torque-and-integrals)."""
+    docs/physics.md#torque-and-integrals) where that axis is fixed in space: an absolute
+    model, or a relative one whose frame turns about its z-axis. In a frame whose z-axis
+    turns (a circular orbit's) it changes with the frame, and is no integral."""
     kin = _kinematics(model, traj)
     return jnp.einsum("ij,nj,ni->n", model.inertia, kin.omega, kin.gamma, precision=HIGHEST)
 
