@@ -300,6 +300,22 @@ def test_heavy_top_first_integrals_and_precession(rng):
     np.testing.assert_allclose(rate, mg * l / (C * r0), rtol=0.05)
 
 
+def test_area_integral_in_a_turning_frame():
+    """The area integral (J ω)·γ of a heavy top described in a turning frame: the angular
+    momentum about the frame's z-axis, an integral where that axis is fixed in space (the
+    frame turning about it: drift ≤ `SOLVE_TOL`, as for the absolute top) and not where it
+    turns (about x: the frame's turn carries the axis across L, an O(1) change)."""
+    J = jnp.array([[2.0, 0.05, 0.0], [0.05, 3.0, 0.02], [0.0, 0.02, 4.0]])
+    top = gravity(weight=2.0, com=(0.0, 0.1, 0.5))
+    y0 = rb.State(jnp.array([0.3, -0.5, 1.2]), jnp.array([0.9, 0.1, -0.3, 0.2]) / jnp.sqrt(0.95))
+    drift = {}
+    for axis in (2, 0):
+        rate = jnp.zeros(3).at[axis].set(0.7)
+        model = rb.RelativeRigidBody(J, rb.ConstantRate(rate), top)
+        drift[axis] = rel_drift(invariant("area_integral", model, solve(model, y0, 5.0)))
+    assert drift[2] <= SOLVE_TOL and drift[0] > 0.1, drift
+
+
 # ------------------------------------------------------------------------------------------
 # 5. Newtonian field (docs/physics.md#gravity-gradient), and the three state forms agree
 # ------------------------------------------------------------------------------------------
