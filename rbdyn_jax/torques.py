@@ -18,6 +18,7 @@ from collections.abc import Callable
 
 import equinox as eqx
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from . import rotation
@@ -184,7 +185,10 @@ class PolynomialSinPsi(eqx.Module):
     eps: Float[Array, ""]
 
     def __init__(self, coeffs: Float[ArrayLike, " n"], eps: Float[ArrayLike, ""]):
-        self.coeffs = check_trailing(coeffs, (jnp.shape(coeffs)[-1],), "coeffs")
+        shape = np.shape(coeffs)
+        if not shape:
+            raise ValueError("`coeffs` must have shape (*batch, n): a polynomial's coefficients.")
+        self.coeffs = check_trailing(coeffs, shape[-1:], "coeffs")
         self.eps = check_trailing(eps, (), "eps")
 
     def K(self, tau):

@@ -301,3 +301,11 @@ def test_energy_refuses_a_torque_with_no_potential(name):
     )
     with pytest.raises(ValueError, match=f"{name} has no potential energy"):
         jax.eval_shape(rb.invariants.energy, model, traj)
+
+
+def test_a_polynomial_needs_its_coefficients():
+    """`PolynomialSinPsi` refuses a scalar `coeffs` by name: a polynomial's coefficients
+    are a vector (the last axis), not a number."""
+    with pytest.raises(ValueError, match="`coeffs` must have shape"):
+        rb.PolynomialSinPsi(1.0, 0.1)
+    assert rb.PolynomialSinPsi([1.0], 0.1).K(2.0) == 1.0
