@@ -377,7 +377,8 @@ def _k(tau, psi):
 def test_the_default_takes_the_kernel_only_on_a_gpu_backend():
     """`simulate_batch`'s default (`default_batching`): `Kernel` on a GPU backend (faked
     here: the choice reads the backend's name) where it can run the solve; `Lanes` on a
-    CPU, or on a GPU for a field with no form on rows; `Vmap` for an implicit solver."""
+    CPU, or on a GPU for a field with no form on rows or an error norm of the user's;
+    `Vmap` for an implicit solver."""
     from rbdyn_jax.integrate._batching import default_batching
 
     y0s, pid = initial_states(4), rb.integrate.make_controller(rtol=RTOL, atol=RTOL)
@@ -399,6 +400,12 @@ def test_the_default_takes_the_kernel_only_on_a_gpu_backend():
     assert chosen(rb.RigidBody(J, _Looped()), "gpu") is rb.Lanes
     assert chosen(rb.RigidBody(J), "gpu", solver=diffrax.Kvaerno5()) is rb.Vmap
     assert type(default_batching(diffrax.Tsit5(), pid, None, backend="gpu")) is rb.Lanes
+    # an error norm of the user's, which may not run on rows (this one indexes: a gather)
+    own = eqx.tree_at(lambda c: c.norm, pid, lambda y: jnp.abs(y.omega[jnp.array([0, 2])]).max())
+    assert (
+        type(default_batching(diffrax.Tsit5(), own, None, rb.RigidBody(J), y0s, None, "gpu"))
+        is rb.Lanes
+    )
 
 
 def test_a_default_device_on_a_cpu_takes_the_cpus_strategy(monkeypatch):

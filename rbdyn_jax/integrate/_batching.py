@@ -2,6 +2,7 @@
 and the default that picks the faster one."""
 
 import abc
+import dataclasses
 import functools
 import math
 import numbers
@@ -283,19 +284,27 @@ def default_lanes(
     return max(1, min(cap, max(min(share, MIN_LANES), math.ceil(share / PER_LANE))))
 
 
+# diffrax's error norm, `PIDController`'s default (the kernel runs it on rows).
+DEFAULT_NORM = next(
+    f.default for f in dataclasses.fields(diffrax.PIDController) if f.name == "norm"
+)
+
+
 def default_batching(
     solver, controller, adjoint, model=None, y0s=None, model_axes=None, backend=None
 ) -> AbstractBatching:
     """The default strategy: on a GPU (`backend`, default the platform of JAX's default
     device: `jax.default_device` where set, else the default backend), `Kernel()` where it
-    can run the solve (`model` and `y0s` given, and its field runs on rows of lanes); else
-    `Lanes()` where the lane solver can run it; else `Vmap()`."""
+    can run the solve (`model` and `y0s` given, its field runs on rows of lanes, and the
+    controller measures errors with diffrax's own norm: one of the user's may not run on
+    rows); else `Lanes()` where the lane solver can run it; else `Vmap()`."""
     backend = platform() if backend is None else backend
     if (
         backend == "gpu"
         and model is not None
         and y0s is not None
         and step_refuse(solver, controller, adjoint) is None
+        and getattr(controller, "norm", DEFAULT_NORM) is DEFAULT_NORM
         and field_refuse(model, y0s, model_axes) is None
     ):
         return Kernel()
