@@ -43,6 +43,20 @@ def check_trailing(x: ArrayLike, trailing: tuple[int, ...], name: str) -> Array:
     return x
 
 
+def check_scalar(x: ArrayLike, name: str) -> Array:
+    """Return `x` as a float array of shape `()`, else `ValueError`. A model's scalar
+    parameter takes no batch axes in its constructor: a 3-vector would broadcast against
+    the vectors it multiplies and give a wrong field without an error. A batch of models
+    is built by `eqx.filter_vmap` over the constructor, which sees one scalar."""
+    x = as_float_array(x, name)
+    if x.ndim:
+        raise ValueError(
+            f"`{name}` must be a scalar, got shape {tuple(x.shape)} (for a batch of models, "
+            "build them with `eqx.filter_vmap` over the constructor)."
+        )
+    return x
+
+
 def check_batch(x: ArrayLike, name: str) -> Array:
     """A `*batch` array of scalars (any shape) as a float array."""
     return as_float_array(x, name)

@@ -19,7 +19,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
 from . import rotation
-from ._checks import check_trailing
+from ._checks import check_scalar, check_trailing
 from ._vector import parse_seq
 
 
@@ -141,7 +141,7 @@ class CircularOrbit(AbstractFrame):
     quat0: Float[Array, "4"]
 
     def __init__(self, n: Float[ArrayLike, ""], quat0: Float[ArrayLike, "4"] | None = None):
-        self.n = check_trailing(n, (), "n")
+        self.n = check_scalar(n, "n")
         self.quat0 = _quat0(quat0, self.n.dtype)
 
     def __call__(self, t):

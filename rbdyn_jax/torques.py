@@ -22,7 +22,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from . import rotation
-from ._checks import as_float_array, check_trailing
+from ._checks import as_float_array, check_scalar, check_trailing
 from ._vector import cross, matvec  # written out: fast on CPU (`_vector` says why)
 from .dynamics import transport_moment
 from .state import Kinematics
@@ -155,7 +155,7 @@ class UniformGravity(AbstractConservativeTorque):
     com: Float[Array, "3"]
 
     def __init__(self, weight: Float[ArrayLike, ""], com: Float[ArrayLike, "3"]):
-        self.weight = check_trailing(weight, (), "weight")
+        self.weight = check_scalar(weight, "weight")
         self.com = check_trailing(com, (3,), "com")
 
     def __call__(self, kin, inertia):
@@ -189,7 +189,7 @@ class PolynomialSinPsi(eqx.Module):
         if not shape:
             raise ValueError("`coeffs` must have shape (*batch, n): a polynomial's coefficients.")
         self.coeffs = check_trailing(coeffs, shape[-1:], "coeffs")
-        self.eps = check_trailing(eps, (), "eps")
+        self.eps = check_scalar(eps, "eps")
 
     def K(self, tau):
         return jnp.polyval(self.coeffs[::-1], tau)
@@ -222,10 +222,10 @@ class RestoringMoment(AbstractConservativeTorque):
     eps: Float[Array, ""]
 
     def __init__(self, k, eps: Float[ArrayLike, ""] | None = None):
-        self.k = k if callable(k) else check_trailing(k, (), "k")
+        self.k = k if callable(k) else check_scalar(k, "k")
         if eps is None:
             eps = getattr(k, "eps", 1.0)
-        self.eps = check_trailing(eps, (), "eps")
+        self.eps = check_scalar(eps, "eps")
 
     def __call__(self, kin, inertia):
         lever = jnp.cross(kin.gamma, _e_z(kin.gamma))  # sinθ (cos φ, −sin φ, 0)
@@ -259,7 +259,7 @@ class GravityGradient(AbstractConservativeTorque):
     eps: Float[Array, ""]
 
     def __init__(self, eps: Float[ArrayLike, ""]):
-        self.eps = check_trailing(eps, (), "eps")
+        self.eps = check_scalar(eps, "eps")
 
     @classmethod
     def from_orbit_rate(cls, n: Float[ArrayLike, ""]) -> "GravityGradient":

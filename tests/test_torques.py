@@ -309,3 +309,36 @@ def test_a_polynomial_needs_its_coefficients():
     with pytest.raises(ValueError, match="`coeffs` must have shape"):
         rb.PolynomialSinPsi(1.0, 0.1)
     assert rb.PolynomialSinPsi([1.0], 0.1).K(2.0) == 1.0
+
+
+def test_a_scalar_parameter_takes_no_batch_axes():
+    """A scalar parameter given as a vector is refused by name: a 3-vector `weight` would
+    broadcast against the lever and scale the torque per component, a wrong torque with no
+    error. A batch of models is built by `eqx.filter_vmap`, whose constructor sees one
+    scalar: that batch solves as each model alone does (1e-12: the same steps)."""
+    J = jnp.diag(jnp.array([2.0, 3.0, 4.0]))
+    v = jnp.array([1.0, 2.0, 3.0])
+    for make, name in (
+        (lambda: rb.UniformGravity(v, jnp.array([0.0, 0.0, 1.0])), "weight"),
+        (lambda: rb.GravityGradient(v), "eps"),
+        (lambda: rb.RestoringMoment(v), "k"),
+        (lambda: rb.RestoringMoment(1.0, eps=v), "eps"),
+        (lambda: rb.PolynomialSinPsi(jnp.array([1.0]), v), "eps"),
+        (lambda: rb.CircularOrbit(jnp.array([0.5])), "n"),
+    ):
+        with pytest.raises(ValueError, match=f"`{name}` must be a scalar, got shape"):
+            make()
+    ts = jnp.linspace(0.0, 2.0, 3)
+    y0 = rb.State(jnp.array([0.3, -0.5, 1.2]), jnp.array([1.0, 0.0, 0.0, 0.0]))
+    models = eqx.filter_vmap(lambda e: rb.RigidBody(J, rb.GravityGradient(e)))(v)
+    batch = rb.simulate_batch(
+        models,
+        jax.tree_util.tree_map(lambda x: jnp.stack([x] * 3), y0),
+        ts,
+        model_axes=0,
+        rtol=1e-10,
+        atol=1e-10,
+    )
+    for i, e in enumerate(v):
+        one = rb.simulate(rb.RigidBody(J, rb.GravityGradient(e)), y0, ts, rtol=1e-10, atol=1e-10)
+        np.testing.assert_allclose(batch.ys.omega[i], one.ys.omega, rtol=0, atol=1e-12)
