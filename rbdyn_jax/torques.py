@@ -18,7 +18,6 @@ from collections.abc import Callable
 
 import equinox as eqx
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from . import rotation
@@ -185,10 +184,9 @@ class PolynomialSinPsi(eqx.Module):
     eps: Float[Array, ""]
 
     def __init__(self, coeffs: Float[ArrayLike, " n"], eps: Float[ArrayLike, ""]):
-        shape = np.shape(coeffs)
-        if not shape:
+        self.coeffs = as_float_array(coeffs, "coeffs")
+        if not self.coeffs.ndim:
             raise ValueError("`coeffs` must have shape (*batch, n): a polynomial's coefficients.")
-        self.coeffs = check_trailing(coeffs, shape[-1:], "coeffs")
         self.eps = check_scalar(eps, "eps")
 
     def K(self, tau):
