@@ -9,7 +9,7 @@ and per-trajectory models (`model_axes=0`), a relative model in a moving frame (
 time-dependent right-hand side), Tsit5 and Dopri5 (different interpolants), more
 trajectories than lanes (refilling), failure isolation (a non-finite start, a trajectory out
 of steps), results independent of the batch order and of the lane a trajectory ran in,
-gradients in both modes (forward sensitivities) against reverse mode through
+gradients in both modes (forward sensitivities) against diffrax's forward mode through
 `diffeqsolve` and finite differences, a forward-over-reverse Hessian against diffrax's forward
 mode, w.r.t. inertia, per-trajectory parameters, initial
 states and output times (and a jvp that runs one loop, writing its saved values without
@@ -42,6 +42,15 @@ from rbdyn_jax.integrate._lane_system import Plain
 def batching(lanes, layout=None):
     """The lane solver with `lanes` lanes, or the vmapped `diffeqsolve` for `None`."""
     return rb.Vmap() if lanes is None else rb.Lanes(lanes, layout=layout)
+
+
+def reference_adjoint(lanes):
+    """The adjoint beside `batching(lanes)`: none for the lane solver (it takes none), and
+    for the vmapped `diffeqsolve` diffrax's forward mode, through which the reference
+    derivatives are taken by `jax.jacfwd`. Forward mode differentiates the same discrete
+    solve as reverse mode (the step sizes are not differentiated), and its program
+    compiles in about a third of the time of reverse mode's checkpointed loop."""
+    return None if lanes is not None else diffrax.ForwardMode()
 
 
 LAYOUTS = ("cpu", "array")
@@ -206,15 +215,22 @@ def test_failures_stay_in_their_lane(layout):
 def test_failed_trajectories_leave_the_gradient_of_the_others_alone():
     """A NaN start and a trajectory out of steps (its unsaved rows stay inf), masked out of
     the loss by their codes: reverse mode through the lanes must give the others'
-    gradient, finite, equal to the default path's (its symmetric part, w.r.t. a raw J),
-    not inf · 0 = NaN in every shared parameter."""
+    gradient, finite, equal to diffrax's forward mode through the vmapped `diffeqsolve`
+    (its symmetric part, w.r.t. a raw J), not inf · 0 = NaN in every shared parameter."""
     y0s = initial_states()
     omega = y0s.omega.at[2].set(jnp.nan).at[7].set(jnp.array([0.0, 400.0, 1.0]))
     y0s = rb.State(omega, y0s.quat)
 
     def loss(J, lanes):
         tr = rb.simulate_batch(
-            rb.RigidBody(J), y0s, TS, rtol=RTOL, atol=RTOL, max_steps=300, batching=batching(lanes)
+            rb.RigidBody(J),
+            y0s,
+            TS,
+            rtol=RTOL,
+            atol=RTOL,
+            max_steps=300,
+            batching=batching(lanes),
+            adjoint=reference_adjoint(lanes),
         )
         ok = (tr.result == rb.RESULTS.successful)[:, None, None]
         return jnp.sum(jnp.sin(jnp.where(ok, tr.ys.omega, 0.0))) + jnp.sum(
@@ -222,19 +238,20 @@ def test_failed_trajectories_leave_the_gradient_of_the_others_alone():
         )
 
     lanes = jax.grad(loss)(J, LANES)
-    plain = jax.grad(loss)(J, None)
+    plain = jax.jacfwd(loss)(J, None)
     assert np.all(np.isfinite(plain))
     sym = 0.5 * (plain + plain.T)
     np.testing.assert_allclose(lanes, sym, rtol=0, atol=1e-10 * float(jnp.max(jnp.abs(sym))))
 
 
-def test_gradients_in_both_modes_match_reverse_mode_and_finite_differences():
+def test_gradients_in_both_modes_match_diffrax_forward_mode_and_finite_differences():
     """d/dθ of a batched loss, θ the log-Cholesky inertia parameters: `jax.jacfwd` and
-    `jax.grad` through the lane solver (its forward sensitivities) vs `jax.grad` through the
-    vmapped `diffeqsolve` (reverse mode) and vs central differences. The sensitivities are
-    integrated by the same Runge–Kutta steps as the states, which makes them the exact
-    derivative of the discrete solve (Runge–Kutta methods commute with linearisation), and
-    neither path differentiates the step sizes: the three agree to round-off. The finite
+    `jax.grad` through the lane solver (its forward sensitivities) vs `jax.jacfwd` through
+    the vmapped `diffeqsolve` (diffrax's forward mode) and vs central differences. The
+    sensitivities are integrated by the same Runge–Kutta steps as the states, which makes
+    them the exact derivative of the discrete solve (Runge–Kutta methods commute with
+    linearisation), and neither path differentiates the step sizes: the three agree to
+    round-off. The finite
     differences (h = 1e-6 on O(1) θ, solves at rtol 1e-11) carry O(h²) + rtol/h ≈ 1e-5
     relative error. The loss reads the attitude too, whose sensitivities take another
     path (quaternion kinematics). The lanes' loss builds its model with `with_log_cholesky`,
@@ -254,21 +271,29 @@ def test_gradients_in_both_modes_match_reverse_mode_and_finite_differences():
             model = rb.RigidBody(rb.inertia.from_log_cholesky(theta))
         else:
             model = rb.with_log_cholesky(rb.RigidBody(J), theta)
-        tr = rb.simulate_batch(model, y0s, ts, rtol=1e-11, atol=1e-11, batching=batching(lanes))
+        tr = rb.simulate_batch(
+            model,
+            y0s,
+            ts,
+            rtol=1e-11,
+            atol=1e-11,
+            batching=batching(lanes),
+            adjoint=reference_adjoint(lanes),
+        )
         return jnp.sum((tr.ys.omega - obs.omega) ** 2) + jnp.sum((tr.ys.quat - obs.quat) ** 2)
 
     fwd = jax.jit(jax.jacfwd(lambda th: loss(th, LANES)))(theta0)
     grad_lanes = jax.jit(jax.grad(lambda th: loss(th, LANES)))
     rev_lanes = grad_lanes(theta0)
-    rev = jax.jit(jax.grad(lambda th: loss(th, None)))
+    plain = jax.jit(jax.jacfwd(lambda th: loss(th, None)))
     # The caller's whole gradient program holds no host callback, so JAX's persistent
     # cache can store it; the constructor's run-time inertia checks are callbacks.
     assert host_callbacks(grad_lanes.trace(theta0).jaxpr) == []
-    assert host_callbacks(rev.trace(theta0).jaxpr) != []
-    rev = rev(theta0)
-    assert float(jnp.max(jnp.abs(rev))) > 1e-2  # a real gradient, not round-off
+    assert host_callbacks(plain.trace(theta0).jaxpr) != []
+    plain = plain(theta0)
+    assert float(jnp.max(jnp.abs(plain))) > 1e-2  # a real gradient, not round-off
     for g in (fwd, rev_lanes):
-        np.testing.assert_allclose(g, rev, rtol=1e-9, atol=1e-12 * float(jnp.max(jnp.abs(rev))))
+        np.testing.assert_allclose(g, plain, rtol=1e-9, atol=1e-12 * float(jnp.max(jnp.abs(plain))))
     f = jax.jit(lambda th: loss(th, LANES))
     h = 1e-6
     fd = np.array(
@@ -332,17 +357,23 @@ def _sensitivity_solve(theta, heavy, lanes):
     model = rb.with_log_cholesky(heavy_top(1.0) if heavy else rb.RigidBody(J), theta)
     y0s = initial_states(6, seed=2)
     return rb.simulate_batch(
-        model, y0s, SENSITIVITY_TS, rtol=1e-11, atol=1e-11, batching=batching(lanes)
+        model,
+        y0s,
+        SENSITIVITY_TS,
+        rtol=1e-11,
+        atol=1e-11,
+        batching=batching(lanes),
+        adjoint=reference_adjoint(lanes),
     )
 
 
 @pytest.fixture(scope="module")
-def free_body_reverse_mode():
-    """Reverse mode through the vmapped `diffeqsolve` of the free body's losses on ω and
-    on the attitude, in one program (the references of the cases reading them)."""
+def free_body_forward_mode():
+    """Diffrax's forward mode through the vmapped `diffeqsolve` of the free body's losses
+    on ω and on the attitude, in one program (the references of the cases reading them)."""
     theta0 = rb.inertia.to_log_cholesky(J)
     parts = jax.jit(
-        jax.jacrev(
+        jax.jacfwd(
             lambda th: jnp.stack(
                 [_read(_sensitivity_solve(th, False, None), r) for r in ("omega", "quat")]
             )
@@ -357,8 +388,8 @@ def test_a_loss_integrates_the_sensitivities_it_reads(reads, request):
     the 42 columns of six inertia parameters): JAX's dead-code elimination, which `jit`
     runs before lowering, leaves the caller's program with the sensitivities' solve of ω's
     group (`_cheapest`). A loss that reads the attitude runs the whole state's; so does a
-    heavy top's loss on ω (gravity couples ω̇ to q). Every gradient matches reverse mode
-    through the vmapped `diffeqsolve` to round-off (the same steps, tolerance as in the
+    heavy top's loss on ω (gravity couples ω̇ to q). Every gradient matches diffrax's
+    forward mode through the vmapped `diffeqsolve` to round-off (the same steps, tolerance as in the
     test above)."""
     heavy = reads == "omega_heavy_top"
     theta0 = rb.inertia.to_log_cholesky(J)
@@ -370,12 +401,14 @@ def test_a_loss_integrates_the_sensitivities_it_reads(reads, request):
     assert carried == ({0} if reads == "omega" else {0, 1})
     assert len(call.params["programs"]) == (1 if heavy else 2)
     if heavy:
-        rev = jax.jit(jax.grad(lambda th: _read(_sensitivity_solve(th, True, None), read)))(theta0)
+        ref = jax.jit(jax.jacfwd(lambda th: _read(_sensitivity_solve(th, True, None), read)))(
+            theta0
+        )
     else:
-        rev = request.getfixturevalue("free_body_reverse_mode")[reads]
-    assert float(jnp.max(jnp.abs(rev))) > 1e-2
+        ref = request.getfixturevalue("free_body_forward_mode")[reads]
+    assert float(jnp.max(jnp.abs(ref))) > 1e-2
     np.testing.assert_allclose(
-        grad(theta0), rev, rtol=1e-9, atol=1e-12 * float(jnp.max(jnp.abs(rev)))
+        grad(theta0), ref, rtol=1e-9, atol=1e-12 * float(jnp.max(jnp.abs(ref)))
     )
 
 
@@ -419,10 +452,10 @@ def test_hessian_forward_over_reverse_through_the_lanes():
 def test_gradients_for_per_trajectory_models_initial_states_and_times():
     """Reverse mode through the lane solver, per-trajectory heavy tops (`model_axes=0`),
     w.r.t. each top's weight, the initial rates and attitudes (unnormalised: the solve
-    normalises them, and so must the derivative), against reverse mode through the vmapped
-    `diffeqsolve`: round-off, as above. W.r.t. the output times the two differ by design:
-    the lane solver gives f(tᵢ, y(tᵢ)) and, for t0, the variational solution of −f(t0, y0);
-    `diffeqsolve` differentiates its interpolant. Both approximate the exact derivative
+    normalises them, and so must the derivative), against diffrax's forward mode through
+    the vmapped `diffeqsolve`: round-off, as above. W.r.t. the output times the two differ
+    by design: the lane solver gives f(tᵢ, y(tᵢ)) and, for t0, the variational solution of
+    −f(t0, y0); `diffeqsolve` differentiates its interpolant. Both approximate the exact derivative
     within the local error of a step at rtol 1e-11, ~1e-8 relative: the times are checked
     to 1e-6, and t0's against central differences (h = 1e-5: O(h²) + rtol/h ≈ 1e-6)."""
     y0s = initial_states()
@@ -441,12 +474,13 @@ def test_gradients_for_per_trajectory_models_initial_states_and_times():
             atol=tol,
             model_axes=0,
             batching=batching(lanes),
+            adjoint=reference_adjoint(lanes),
         )
         return jnp.sum(jnp.sin(tr.ys.omega)) + jnp.sum(tr.ys.quat[..., 1:] ** 2)
 
     args = (weights, y0s.omega, q0, ts)
     lanes = jax.jit(jax.grad(lambda *a: loss(*a, LANES), argnums=(0, 1, 2, 3)))(*args)
-    plain = jax.jit(jax.grad(lambda *a: loss(*a, None), argnums=(0, 1, 2, 3)))(*args)
+    plain = jax.jit(jax.jacfwd(lambda *a: loss(*a, None), argnums=(0, 1, 2, 3)))(*args)
     for name, a, b in zip(("weight", "omega0", "quat0"), lanes[:3], plain[:3]):
         scale = float(jnp.max(jnp.abs(b)))
         assert scale > 1e-2, name
@@ -463,10 +497,11 @@ def test_gradients_for_per_trajectory_models_initial_states_and_times():
 def test_inertia_gradients_are_taken_on_symmetric_tensors():
     """The lane solver differentiates an inertia along the six symmetric directions (its
     sensitivities: six columns, not nine), and counts a tangent by its symmetric part. The
-    gradient w.r.t. a raw J is then the symmetric part of reverse mode through
-    `diffeqsolve`, (g + gᵀ)/2, whose two off-diagonal halves each see one element; along
-    any symmetric direction the two agree. Shared and per-trajectory inertias; the torque
-    (a gravity gradient, ε γ × J γ) reads the inertia too."""
+    gradient w.r.t. a raw J is then the symmetric part of the derivative through
+    `diffeqsolve` (diffrax's forward mode), (g + gᵀ)/2, whose two off-diagonal halves each
+    see one element; along any symmetric direction the two agree. Shared and
+    per-trajectory inertias; the torque (a gravity gradient, ε γ × J γ) reads the inertia
+    too."""
     y0s = initial_states()
     scale = np.random.default_rng(3).uniform(0.9, 1.1, size=(N, 3))
     Js = jnp.asarray(np.sqrt(scale)[:, :, None] * np.asarray(J)[None] * np.sqrt(scale)[:, None, :])
@@ -479,12 +514,19 @@ def test_inertia_gradients_are_taken_on_symmetric_tensors():
             else rb.RigidBody(J, orbit)
         )
         tr = rb.simulate_batch(
-            body, y0s, TS, rtol=RTOL, atol=RTOL, model_axes=axes, batching=batching(lanes)
+            body,
+            y0s,
+            TS,
+            rtol=RTOL,
+            atol=RTOL,
+            model_axes=axes,
+            batching=batching(lanes),
+            adjoint=reference_adjoint(lanes),
         )
         return jnp.sum(jnp.sin(tr.ys.omega)) + jnp.sum(tr.ys.quat[..., 1:] ** 2)
 
     for J_, axes in ((J, None), (Js, 0)):
-        plain = jax.grad(loss)(J_, None, axes)
+        plain = jax.jacfwd(loss)(J_, None, axes)
         lanes = jax.grad(loss)(J_, LANES, axes)
         sym = 0.5 * (plain + jnp.swapaxes(plain, -1, -2))
         assert float(jnp.max(jnp.abs(plain - sym))) > 1e-2  # plain's halves differ
@@ -510,17 +552,24 @@ class PrincipalBody(rb.AbstractRigidBody):
 
 def test_an_inertia_that_is_not_a_tensor_takes_ordinary_columns():
     """Only a 3×3 `inertia` is differentiated along symmetric directions; principal moments
-    (shape (3,)) take one column each, and equal reverse mode through `diffeqsolve`."""
+    (shape (3,)) take one column each, and equal diffrax's forward mode through
+    `diffeqsolve`."""
     y0s = initial_states()
 
     def loss(moments, lanes):
         tr = rb.simulate_batch(
-            PrincipalBody(moments), y0s, TS, rtol=RTOL, atol=RTOL, batching=batching(lanes)
+            PrincipalBody(moments),
+            y0s,
+            TS,
+            rtol=RTOL,
+            atol=RTOL,
+            batching=batching(lanes),
+            adjoint=reference_adjoint(lanes),
         )
         return jnp.sum(jnp.sin(tr.ys.omega))
 
     moments = jnp.array([2.0, 3.0, 4.0])
-    plain = jax.grad(loss)(moments, None)
+    plain = jax.jacfwd(loss)(moments, None)
     np.testing.assert_allclose(
         jax.grad(loss)(moments, LANES), plain, rtol=0, atol=1e-10 * float(jnp.max(jnp.abs(plain)))
     )
