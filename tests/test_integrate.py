@@ -327,22 +327,22 @@ def test_gradient_through_batched_models_with_a_function_leaf():
     """The forward sensitivities of a batch of models with a non-array leaf (`restoring`),
     through the lane solver (the rule `Kernel` shares; the forward test above runs the
     kernel on such a batch), give the gradient w.r.t. each trajectory's ε and inertia
-    scale that reverse mode through the vmapped `diffeqsolve` gives (an independent
-    method: diffrax's checkpointed adjoint). Both differentiate the same discrete solve,
+    scale that `jax.jacfwd` through the vmapped `diffeqsolve` gives (an independent
+    method: diffrax's forward mode). Both differentiate the same discrete solve,
     so they agree to round-off (measured ≤ 1.1e-11 relative, the kernel's too); 1e-9
     leaves room for the two summation orders over a few hundred steps at rtol 1e-10."""
 
-    def loss(params, batching):
+    def loss(params, batching, adjoint=None):
         eps, scale = params
         models = eqx.filter_vmap(lambda J, e: rb.RigidBody(J, rb.RestoringMoment(restoring, e)))(
             jnp.asarray(JS) * scale[:, None, None], eps
         )
-        tr = batch(models, state(W0S, Q0S), model_axes=0, batching=batching)
+        tr = batch(models, state(W0S, Q0S), model_axes=0, batching=batching, adjoint=adjoint)
         return jnp.sum(tr.ys.omega[:, -1] ** 2) + jnp.sum(tr.ys.quat[:, -1, 1:] ** 2)
 
     params = (jnp.asarray(EPS), jnp.ones(B))
     got = jax.grad(loss)(params, rb.Lanes())
-    ref = jax.grad(loss)(params, rb.Vmap())
+    ref = jax.jacfwd(loss)(params, rb.Vmap(), diffrax.ForwardMode())
     for g, r in zip(got, ref):
         assert np.min(np.abs(r)) > 1e-3  # every trajectory's ε and scale move its end state
         np.testing.assert_allclose(g, r, rtol=1e-9)

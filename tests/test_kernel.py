@@ -318,15 +318,16 @@ def test_a_derivative_with_no_form_on_rows_makes_the_default_take_lanes(monkeypa
     """A field whose values run on rows but whose derivative does not (a `custom_jvp` rule
     with a while loop): the kernel refuses its gradient by name; the default on a GPU
     (faked) takes `Lanes` for it, so that `jax.grad` through the
-    default call works, equal to reverse mode through `Vmap` (the same discrete solve:
-    measured 6e-16 relative; bound 1e-9 as the lane solver's own gradient tests)."""
+    default call works, equal to diffrax's forward mode through `Vmap` (the same discrete
+    solve: measured 6e-16 relative; bound 1e-9 as the lane solver's own gradient tests)."""
     import rbdyn_jax.integrate._batching as batching
 
     y0s, c = initial_states(4), jnp.array([0.1, 0.2, 0.3])
     kw = dict(rtol=RTOL, atol=RTOL)
 
-    def loss(c, batching=None):
-        tr = rb.simulate_batch(rb.RigidBody(J, _SoftDamping(c)), y0s, TS, batching=batching, **kw)
+    def loss(c, batching=None, adjoint=None):
+        model = rb.RigidBody(J, _SoftDamping(c))
+        tr = rb.simulate_batch(model, y0s, TS, batching=batching, adjoint=adjoint, **kw)
         return jnp.sum(tr.ys.omega[:, -1] ** 2)
 
     kernel = rb.Kernel(interpret=True)
@@ -345,7 +346,7 @@ def test_a_derivative_with_no_form_on_rows_makes_the_default_take_lanes(monkeypa
         ),
         rb.Lanes,
     )
-    got, ref = jax.grad(loss)(c), jax.grad(loss)(c, rb.Vmap())
+    got, ref = jax.grad(loss)(c), jax.jacfwd(loss)(c, rb.Vmap(), diffrax.ForwardMode())
     assert np.min(np.abs(ref)) > 1e-3
     np.testing.assert_allclose(got, ref, rtol=1e-9)
 
