@@ -66,6 +66,10 @@ CHILD = textwrap.dedent(f"""
 """)
 
 
+# The tests reading the child's run share one worker (`--dist loadgroup`): it runs once.
+SHARES_THE_CHILD = pytest.mark.xdist_group("float32_child")
+
+
 @pytest.fixture(scope="module")
 def child():
     run = subprocess.run([sys.executable, "-c", CHILD], capture_output=True, text=True, timeout=600)
@@ -96,6 +100,7 @@ def test_default_tolerance_and_the_finest_rtol_follow_the_dtype():
     assert tr.ys.omega.dtype == jnp.float64
 
 
+@SHARES_THE_CHILD
 def test_float32_solves_with_x64_off(child):
     """Against float64 at rtol = atol = 1e-6 (the float32 default): both are 1e-6-accurate
     solves per unit of time; float32 adds its rounding (ε = 1.2e-7 per operation, growing
@@ -119,6 +124,7 @@ def test_float32_solves_with_x64_off(child):
     np.testing.assert_allclose(child["simulate"], child["vmap"]["omega"][0], rtol=0, atol=1e-5)
 
 
+@SHARES_THE_CHILD
 def test_identification_in_float32(child):
     """`identify.fit` with x64 off: float32 solves at its default tolerance (1e-10, raised
     to 1e-6 in float32) recover the inertia of a heavy top from noise-free rates and

@@ -60,6 +60,8 @@ def noisy(omega, quat, seed, ts=TS):
     return idf.Observations(ts, omega=w, quat=q, sigma_omega=SIGMA_W, sigma_quat=SIGMA_Q)
 
 
+# The tests reading a module's shared truth (and the fit of the gravity data) share one
+# worker (`--dist loadgroup`): each is computed once, and the fits they compile are reused.
 @pytest.fixture(scope="module")
 def gravity_truth():
     return truth(rb.RigidBody(jnp.asarray(J_TRUE), GRAVITY))
@@ -79,6 +81,7 @@ def z_scores(res):
     return (err / np.asarray(res.stderr["inertia"]))[UPPER]
 
 
+@pytest.mark.xdist_group("identify_gravity")
 def test_recover_inertia_with_products(gravity_fit):
     res = gravity_fit
     assert res.converged and res.scale_identified and res.ill_determined == 0
@@ -94,6 +97,7 @@ def test_recover_inertia_with_products(gravity_fit):
     assert len(res.labels) == res.covariance.shape[0]
 
 
+@pytest.mark.xdist_group("identify_gravity")
 def test_every_iterate_is_physical(gravity_fit):
     Js = gravity_fit.inertia_history
     assert Js.shape == (13, 3, 3)
@@ -103,6 +107,7 @@ def test_every_iterate_is_physical(gravity_fit):
     assert hist[-1] < 2e-3 * hist[0]  # from ~1.8e5 down to the noise floor χ²/2 ≈ 180
 
 
+@pytest.mark.xdist_group("identify_gravity")
 def test_coverage_over_noise_seeds(gravity_truth):
     # Same structure and sizes: the compiled fit is reused (~0.5 s per fit).
     z = np.concatenate([z_scores(fit_gravity(noisy(*gravity_truth, seed=s))) for s in range(1, 7)])
@@ -112,6 +117,7 @@ def test_coverage_over_noise_seeds(gravity_truth):
     assert np.mean(np.abs(z) < 2.0) > 0.75
 
 
+@pytest.mark.xdist_group("identify_gravity")
 def test_batched_loss_gradient_matches_finite_differences(gravity_truth):
     data = noisy(*gravity_truth, seed=0)
     y0s = rb.State(jnp.asarray(W0), jnp.asarray(Q0))
@@ -145,6 +151,7 @@ def free_truth():
     return truth(rb.RigidBody(jnp.asarray(J_TRUE)))
 
 
+@pytest.mark.xdist_group("identify_free")
 def test_torque_free_scale_detected_and_fixed(free_truth):
     data = noisy(*free_truth, seed=3)
     guess = rb.RigidBody(jnp.asarray(J_GUESS))
@@ -179,6 +186,7 @@ def test_torque_free_scale_detected_and_fixed(free_truth):
     np.testing.assert_allclose(Jm, Jf, atol=1e-6 * np.max(se))
 
 
+@pytest.mark.xdist_group("identify_free")
 def test_scale_value_and_damping_are_inputs_of_the_compiled_fit(free_truth, monkeypatch):
     """A new `TraceScale` value or Levenberg–Marquardt `damping` reuses the compiled fit
     (the fit is not traced again), and the new values reach it: its loss history is that of
@@ -207,6 +215,7 @@ def test_scale_value_and_damping_are_inputs_of_the_compiled_fit(free_truth, monk
     np.testing.assert_allclose(J2, 2 * J1, atol=1e-6 * trace)
 
 
+@pytest.mark.xdist_group("identify_free")
 def test_a_fit_none_of_whose_solves_succeeds_is_not_converged(free_truth):
     """Every solve runs out of steps (at the guess too): no point was accepted, so the fit
     reports no loss (NaN), is not converged, says why, and returns the guess (at the
@@ -382,6 +391,7 @@ def test_optimizer_classes():
         idf.AbstractOptimizer()
 
 
+@pytest.mark.xdist_group("identify_gravity")
 def test_stepsize_controller_is_the_tolerance_shorthand(gravity_truth, monkeypatch):
     """`stepsize_controller=PIDController(rtol=r, atol=a)` is the fit `rtol=r, atol=a` gives,
     bitwise. The tolerances are inputs of the compiled fit: a fit at other tolerances reuses
@@ -408,6 +418,7 @@ def test_stepsize_controller_is_the_tolerance_shorthand(gravity_truth, monkeypat
     np.testing.assert_array_equal(by_controller.covariance, by_tol.covariance)
 
 
+@pytest.mark.xdist_group("identify_gravity")
 def test_optax_optimizer_path_descends_and_stays_physical(gravity_truth):
     """`optimizer=` runs any optax transformation (here L-BFGS) inside the compiled fit:
     the loss falls by over 10× in 20 steps (measured 178k → 1.6k from a 10 %-off diagonal
@@ -427,6 +438,7 @@ def test_optax_optimizer_path_descends_and_stays_physical(gravity_truth):
     assert np.all(np.asarray(rb.inertia.is_physical(res.model.inertia)))
 
 
+@pytest.mark.xdist_group("identify_gravity")
 def test_euler_angle_observations_equal_quaternion_ones(gravity_truth):
     """Attitude given as ZXZ angles (scipy's conversion of the true quaternions) gives the
     same observations and the same loss as the quaternions themselves."""

@@ -107,6 +107,8 @@ def numpy_rhs(J, M):
     return rhs
 
 
+# The tests reading a module fixture share a worker (`--dist loadgroup`, their
+# `xdist_group` marks): each fixture is computed once.
 @pytest.fixture(scope="module")
 def scipy_ref():
     """(ω, q) at TS by DOP853 at rtol = atol = 1e-12: itself accurate to ~1e-12 here (it
@@ -144,6 +146,7 @@ def ref_error(traj, ref):
 # 1. One trajectory.
 
 
+@pytest.mark.xdist_group("integrate_single")
 def test_simulate_returns_trajectory(gen_solves):
     rtol = 1e-10
     traj = gen_solves[rtol]
@@ -167,6 +170,7 @@ def test_simulate_returns_trajectory(gen_solves):
     assert traj.result == rb.RESULTS.successful
 
 
+@pytest.mark.xdist_group("integrate_single")
 def test_simulate_matches_scipy(gen_solves, scipy_ref):
     # Global error of an adaptive solve ≈ rtol × (error growth over 10 time units); measured
     # 8.4e-11 at rtol 1e-10. 100 × rtol is the project's bound for solver-vs-reference.
@@ -178,6 +182,7 @@ def test_simulate_matches_scipy(gen_solves, scipy_ref):
 # 2. Convergence.
 
 
+@pytest.mark.xdist_group("integrate_single")
 def test_error_shrinks_with_rtol(gen_solves, scipy_ref):
     errors = [ref_error(gen_solves[rtol], scipy_ref) for rtol in RTOLS]
     steps = [int(gen_solves[rtol].stats["num_steps"]) for rtol in RTOLS]
@@ -249,12 +254,14 @@ def assert_batch_equals_loop(bt, loop):
         assert got.result == traj.result == rb.RESULTS.successful
 
 
+@pytest.mark.xdist_group("integrate_batch")
 def test_batch_over_initial_conditions_equals_loop(clean_batch, loop_over_y0):
     steps = [int(t.stats["num_steps"]) for t in loop_over_y0]
     assert len(set(steps)) == B, steps  # the lanes really do step differently
     assert_batch_equals_loop(clean_batch, loop_over_y0)
 
 
+@pytest.mark.xdist_group("integrate_batch")
 def test_batch_over_models_equals_loop(loop_over_models):
     torque = rb.BodyTorque(jnp.asarray(M_GEN))
     models = eqx.filter_vmap(lambda J: rb.RigidBody(J, torque))(jnp.asarray(JS))
@@ -263,6 +270,7 @@ def test_batch_over_models_equals_loop(loop_over_models):
     assert_batch_equals_loop(bt, loop_over_models)
 
 
+@pytest.mark.xdist_group("integrate_batch")
 def test_batch_over_inertia_only_prefix_axes(loop_over_models):
     # Only the inertia carries a batch axis; the torque is shared (axis None).
     model = eqx.tree_at(lambda m: m.inertia, gen_model(), jnp.asarray(JS))
@@ -376,6 +384,7 @@ def assert_other_lanes_identical(bt, clean, bad):
                 np.testing.assert_array_equal(a, b)
 
 
+@pytest.mark.xdist_group("integrate_batch")
 def test_batch_isolates_nonfinite_initial_state(clean_batch):
     bad = 2
     w0s = W0S.copy()
@@ -388,6 +397,7 @@ def test_batch_isolates_nonfinite_initial_state(clean_batch):
     assert_other_lanes_identical(bt, clean_batch, bad)
 
 
+@pytest.mark.xdist_group("integrate_batch")
 def test_batch_isolates_max_steps(clean_batch):
     # Lane 1 spins 200× faster: it needs ~200× the steps and runs out of BATCH_MAX_STEPS.
     fast = 1
@@ -592,7 +602,8 @@ def top_batch_loss(p, y0s, adjoint, rtol):
     return loss_of(traj.ys)
 
 
-# Module level: each compiles once (per adjoint) and is reused by tests 6 and 7.
+# Module level: each compiles once (per adjoint) and is reused by tests 6 and 7, which
+# share one worker (`--dist loadgroup`).
 top_grad = eqx.filter_jit(jax.grad(top_loss))
 top_batch_grad = eqx.filter_jit(jax.grad(top_batch_loss))
 
@@ -617,6 +628,7 @@ def top_fd():
     [diffrax.RecursiveCheckpointAdjoint(), diffrax.BacksolveAdjoint()],
     ids=["recursive_checkpoint", "backsolve"],
 )
+@pytest.mark.xdist_group("integrate_top_gradients")
 def test_gradient_matches_finite_differences(adjoint, top_fd):
     g = top_grad(top_params(), state(TOP_W0S[0], TOP_Q0), adjoint, GRAD_RTOL)
     g = np.asarray(ravel_pytree(g)[0])
@@ -634,6 +646,7 @@ def test_gradient_matches_finite_differences(adjoint, top_fd):
     [diffrax.RecursiveCheckpointAdjoint(), diffrax.BacksolveAdjoint()],
     ids=["recursive_checkpoint", "backsolve"],
 )
+@pytest.mark.xdist_group("integrate_top_gradients")
 def test_batched_gradient_equals_sum_of_single_gradients(adjoint):
     p = top_params()
     y0s = state(TOP_W0S, np.broadcast_to(TOP_Q0, (TOP_W0S.shape[0], 4)))

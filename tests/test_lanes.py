@@ -383,6 +383,7 @@ def free_body_forward_mode():
 
 
 @pytest.mark.parametrize("reads", ["omega", "quat", "both", "omega_heavy_top"])
+@pytest.mark.xdist_group("lanes_free_body_forward_mode")  # one worker: the fixture runs once
 def test_a_loss_integrates_the_sensitivities_it_reads(reads, request):
     """A loss on a torque-free body's ω alone integrates ω's sensitivities alone (18 of
     the 42 columns of six inertia parameters): JAX's dead-code elimination, which `jit`

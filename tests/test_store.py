@@ -26,6 +26,11 @@ def _run(out, **kw):
     return sweep.run(Scenario.from_dict(small()), N, out, chunk=CHUNK, seed=SEED, lanes=LANES, **kw)
 
 
+# The tests reading the reference store share one worker (`--dist loadgroup`): it is
+# solved once.
+SHARES_THE_REFERENCE = pytest.mark.xdist_group("store_reference")
+
+
 @pytest.fixture(scope="module")
 def reference(tmp_path_factory):
     return _run(tmp_path_factory.mktemp("store") / "ref.zarr")
@@ -75,6 +80,7 @@ FAULTS = {
 
 
 @pytest.mark.parametrize("fault", FAULTS)
+@SHARES_THE_REFERENCE
 def test_each_fault_is_found_and_resume_restores_the_bits(reference, copy, fault):
     name, i, damage, held = FAULTS[fault]
     assert sweep.verify(copy).complete
@@ -205,6 +211,7 @@ def test_overwrite_through_a_link_replaces_the_store_it_names(copy):
     assert sorted(p.name for p in copy.parent.iterdir()) == ["copy.zarr", "link.zarr"]
 
 
+@SHARES_THE_REFERENCE
 def test_store_metadata_say_what_is_not_solved(reference):
     """The fill values are what a reader of the store sees where nothing was written."""
     g = zarr.open_group(str(reference), mode="r")
