@@ -186,32 +186,25 @@ def assert_same(a, b):
 
 
 def test_a_later_process_loads_the_traces_and_gets_the_same_results(tmp_path):
-    """Three fresh processes: no cache; an empty cache (the three solves are traced and
-    stored); the same cache (all three loaded, none traced). Every result bitwise equal
-    (the same program), including the per-trajectory failure codes of the lane solve; the
-    same with the cache turned off. Truncated entries (a full disk, say) are not loaded:
-    traced, used and stored anew. Then two XLA devices, over which the lane solve splits
-    its batch: stored and loaded in the same way, with the same results."""
+    """Fresh processes with JAX's cache configured: an empty cache (the three solves are
+    traced and stored); the same cache (all three loaded, none traced); the same cache with
+    the trace cache turned off (`RBDYN_JAX_TRACE_CACHE=0`: nothing loaded or stored, the
+    solves traced as without a cache). Every result bitwise equal (the same program),
+    including the per-trajectory failure codes of the lane solve. Then two XLA devices, over
+    which the lane solve splits its batch: stored and loaded in the same way, with the same
+    results."""
     cache = tmp_path / "cache"
-    ref_stats, ref = _run("none", tmp_path)
     cold_stats, cold = _run(cache, tmp_path)
     warm_stats, warm = _run(cache, tmp_path)
-    assert ref_stats == {"hits": 0, "stores": 0, "uncacheable": 0}
+    ref_stats, ref = _run(cache, tmp_path, RBDYN_JAX_TRACE_CACHE="0")
     assert cold_stats == {"hits": 0, "stores": 3, "uncacheable": 0}
     assert warm_stats == {"hits": 3, "stores": 0, "uncacheable": 0}
+    assert ref_stats == {"hits": 0, "stores": 0, "uncacheable": 0}
     assert len(list((cache / "rbdyn_jax-traces").glob("*.jaxexport"))) == 3
     assert_same(cold, ref)
     assert_same(warm, ref)
     codes = ref["lanes7"]  # `result` of the lane solve: max_steps reached for some
     assert (codes == 0).any() and (codes == rb.RESULTS.max_steps_reached._value).any()
-    off_stats, off = _run(cache, tmp_path, RBDYN_JAX_TRACE_CACHE="0")
-    assert off_stats == {"hits": 0, "stores": 0, "uncacheable": 0}
-    assert_same(off, ref)
-    for path in (cache / "rbdyn_jax-traces").glob("*.jaxexport"):
-        path.write_bytes(path.read_bytes()[:100])
-    again_stats, again = _run(cache, tmp_path)
-    assert again_stats == {"hits": 0, "stores": 3, "uncacheable": 0}
-    assert_same(again, ref)
     # Two devices: the device count is in every key (nothing loaded at first); the lane
     # solve, split over both, is stored and loaded like the others.
     two = dict(XLA_FLAGS="--xla_force_host_platform_device_count=2")
@@ -222,6 +215,34 @@ def test_a_later_process_loads_the_traces_and_gets_the_same_results(tmp_path):
     assert_same(two_warm, two_cold)
     for k in ref:  # the same trajectories as on one device, to round-off
         np.testing.assert_allclose(two_cold[k], ref[k], rtol=0, atol=1e-12, err_msg=k)
+
+
+def test_a_truncated_entry_is_traced_used_and_stored_anew(tmp_path, monkeypatch):
+    """An entry cut short (a full disk, say) is not loaded: the call traces its program,
+    gets the same result, and stores the entry anew, which is then loaded as any other."""
+    monkeypatch.setattr(_traces, "directory", lambda: tmp_path)
+
+    def fn(x, scale):
+        return jnp.sin(x) * scale
+
+    fn.__module__ = "rbdyn_jax.integrate"  # describable, as rbdyn_jax's own solves are
+    x = jnp.array([1.5, 2.0])
+    want = np.asarray(jax.jit(fn)(x, 3.0))  # traced as without the cache
+
+    def fresh_process_call():
+        """The call as a later process makes it: nothing loaded in this one yet."""
+        monkeypatch.setattr(_traces, "_LOADED", {})
+        before = dict(_traces.stats)
+        np.testing.assert_array_equal(_traces.cached(fn)(x, 3.0), want, strict=True)
+        return {k: _traces.stats[k] - before[k] for k in before}
+
+    assert fresh_process_call() == {"hits": 0, "stores": 1, "uncacheable": 0}
+    (entry,) = tmp_path.glob("*.jaxexport")
+    assert fresh_process_call() == {"hits": 1, "stores": 0, "uncacheable": 0}
+    entry.write_bytes(entry.read_bytes()[:100])
+    assert fresh_process_call() == {"hits": 0, "stores": 1, "uncacheable": 0}
+    assert fresh_process_call() == {"hits": 1, "stores": 0, "uncacheable": 0}
+    assert len(entry.read_bytes()) > 100
 
 
 def test_a_program_export_refuses_is_traced_as_without_the_cache(tmp_path, monkeypatch):
