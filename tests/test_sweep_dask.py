@@ -179,55 +179,9 @@ def test_workers_solve_a_float32_sweep_in_float32(client, tmp_path):
     assert zarr.open_group(str(out), mode="r")["omega"].dtype == np.float32
 
 
-def _executing(dask_worker) -> int:
-    return len(dask_worker.state.executing)
-
-
-def test_worker_killed_mid_chunk_loses_nothing(client, tmp_path):
-    """A worker process is killed (SIGKILL) while it solves a chunk, after other chunks
-    are written: Dask reruns its chunk, and the store equals the in-process run with every
-    trajectory counted once."""
-    d = small(time={"t1": 150.0, "n": 5}, outputs={"summaries": ["energy_drift"]})
-    sc = Scenario.from_dict(d)
-    n, chunk = 384, 32
-    out = tmp_path / "killed.zarr"
-    seen, result = [], {}
-    run = threading.Thread(
-        target=lambda: result.update(
-            path=sweep.run(
-                sc, n, out, chunk=chunk, seed=5, lanes=16, client=client, progress=seen.append
-            )
-        )
-    )
-    pids = client.run(os.getpid)
-    run.start()
-    killed = None
-    deadline = time.time() + 240
-    while run.is_alive() and time.time() < deadline and killed is None:
-        time.sleep(0.01)
-        try:
-            done = int(np.sum(zarr.open_group(str(out), mode="r")["status"][:] >= 0))
-        except Exception:  # the store is not created yet
-            continue
-        if done < chunk:
-            continue
-        for address, busy in client.run(_executing).items():
-            if busy and address in pids:
-                os.kill(pids[address], signal.SIGKILL)
-                killed = (address, done)
-                break
-    run.join(timeout=300)
-    assert killed is not None and killed[1] < n, "no worker was killed mid-run"
-    assert not run.is_alive() and result["path"] == out.absolute()
-    assert sum(p.solved_now for p in seen) == n and seen[-1].done == n
-    ref = sweep.run(sc, n, tmp_path / "ref.zarr", chunk=n, seed=5, lanes=16)
-    names = ("omega", "quat", "inertia", "status", "num_steps", "energy_drift")
-    assert_same(load(ref, names), load(out, names))
-    assert killed[0] not in client.run(os.getpid)  # that worker is gone (its nanny restarts one)
-
-
 def test_cli_local_cluster(tmp_path, reference, capsys):
-    """`--workers 2` starts its own LocalCluster of two processes."""
+    """`--workers 2` starts its own LocalCluster of two processes; one task of `N` (one
+    worker compiles): the same bits as the in-process run."""
     toml = tmp_path / "small.toml"
     toml.write_text(_toml(small()))
     out = tmp_path / "w.zarr"
@@ -240,7 +194,7 @@ def test_cli_local_cluster(tmp_path, reference, capsys):
             "--out",
             str(out),
             "--chunk",
-            "50",
+            str(N),
             "--seed",
             "3",
             "--lanes",
@@ -294,6 +248,53 @@ def test_store_by_url_through_fsspec(client, reference, tmp_path):
     sweep.to_netcdf(url, tmp_path / "u.nc")
     sweep.run(Scenario.from_dict(small()), N, url, chunk=32, seed=3, lanes=16, overwrite=True)
     assert_same(load(reference), load(tmp_path / "u.zarr"))
+
+
+def _executing(dask_worker) -> int:
+    return len(dask_worker.state.executing)
+
+
+def test_worker_killed_mid_chunk_loses_nothing(client, tmp_path):
+    """A worker process is killed (SIGKILL) while it solves a chunk, after other chunks
+    are written: Dask reruns its chunk, and the store equals the in-process run with every
+    trajectory counted once."""
+    d = small(time={"t1": 150.0, "n": 5}, outputs={"summaries": ["energy_drift"]})
+    sc = Scenario.from_dict(d)
+    n, chunk = 384, 32
+    out = tmp_path / "killed.zarr"
+    seen, result = [], {}
+    run = threading.Thread(
+        target=lambda: result.update(
+            path=sweep.run(
+                sc, n, out, chunk=chunk, seed=5, lanes=16, client=client, progress=seen.append
+            )
+        )
+    )
+    pids = client.run(os.getpid)
+    run.start()
+    killed = None
+    deadline = time.time() + 240
+    while run.is_alive() and time.time() < deadline and killed is None:
+        time.sleep(0.01)
+        try:
+            done = int(np.sum(zarr.open_group(str(out), mode="r")["status"][:] >= 0))
+        except Exception:  # the store is not created yet
+            continue
+        if done < chunk:
+            continue
+        for address, busy in client.run(_executing).items():
+            if busy and address in pids:
+                os.kill(pids[address], signal.SIGKILL)
+                killed = (address, done)
+                break
+    run.join(timeout=300)
+    assert killed is not None and killed[1] < n, "no worker was killed mid-run"
+    assert not run.is_alive() and result["path"] == out.absolute()
+    assert sum(p.solved_now for p in seen) == n and seen[-1].done == n
+    ref = sweep.run(sc, n, tmp_path / "ref.zarr", chunk=n, seed=5, lanes=16)
+    names = ("omega", "quat", "inertia", "status", "num_steps", "energy_drift")
+    assert_same(load(ref, names), load(out, names))
+    assert killed[0] not in client.run(os.getpid)  # that worker is gone (its nanny restarts one)
 
 
 def test_workers_without_64_bit_types_are_refused_before_any_task(tmp_path):
