@@ -254,27 +254,23 @@ def test_fit_command_recovers_the_inertia_from_csv(tmp_path, capsys, no_cache):
         '[outputs]\nsummaries = ["energy_drift"]\n'
     )
     out = tmp_path / "fit"
-    assert (
-        cli.main(
-            [
-                "fit",
-                str(tmp_path / "obs.csv"),
-                "--model",
-                str(tmp_path / "top.toml"),
-                "--free",
-                "inertia,ic",
-                "--sigma-omega",
-                str(sw),
-                "--sigma-quat",
-                str(sq),
-                "--steps",
-                "12",
-                "--out",
-                str(out),
-            ]
-        )
-        == 0
-    )
+    argv = [
+        "fit",
+        str(tmp_path / "obs.csv"),
+        "--model",
+        str(tmp_path / "top.toml"),
+        "--free",
+        "inertia,ic",
+        "--sigma-omega",
+        str(sw),
+        "--sigma-quat",
+        str(sq),
+        "--steps",
+        "12",
+        "--out",
+        str(out),
+    ]
+    assert cli.main(argv) == 0
     text = capsys.readouterr().out
     assert "inertia J ± stderr" in text and "2 trajectories × 16 samples" in text
     report = json.loads((out / "fit.json").read_text())
@@ -289,8 +285,9 @@ def test_fit_command_recovers_the_inertia_from_csv(tmp_path, capsys, no_cache):
     err = capsys.readouterr().err
     assert "fit.json and " in err and "already there: pass --overwrite" in err
     assert (out / "fit.json").read_bytes() == before
-    assert cli.main([*again, "--steps", "1", "--out", str(out), "--overwrite"]) in (0, 6)
-    assert (out / "fit.json").read_bytes() != before  # its own time and steps
+    # the same fit again (its program already compiled in this process), asked to replace
+    assert cli.main([*argv, "--overwrite"]) == 0
+    assert (out / "fit.json").read_bytes() != before  # its own time
     capsys.readouterr()
     # a bad file exits 2 with the reason
     (tmp_path / "bad.csv").write_text("time,wx\n0,1\n")
