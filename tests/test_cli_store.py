@@ -125,9 +125,10 @@ def test_user_errors_exit_2_with_one_message(tmp_path, no_cache, capsys):
     assert "not a sweep store" in capsys.readouterr().err
 
 
-def test_ctrl_c_exits_130_and_names_the_resume_command(tmp_path):
+def test_ctrl_c_exits_130_and_names_the_resume_command(tmp_path, no_cache):
     """SIGINT to a real `rbdyn sweep` mid-run: status 130, the solved count, the command
-    that finishes the sweep, no traceback; that command then finishes it."""
+    that finishes the sweep, no traceback; that command (run here as `rbdyn` runs it, by
+    `cli.main`) then finishes it."""
     toml = _toml(tmp_path / "slow.toml", t1=150.0)
     out = tmp_path / "i.zarr"
     # 64 chunks: the run outlasts the poll below on a loaded machine (about 0.1 s a chunk).
@@ -169,15 +170,7 @@ def test_ctrl_c_exits_130_and_names_the_resume_command(tmp_path):
     assert f"interrupted: {done} of 512 solved; finish with `" in line
     command = shlex.split(line.split("`")[1])
     assert command[0] == "rbdyn" and command[-1] == "--resume"
-    env["RBDYN_JAX_CACHE_DIR"] = ""
-    run = subprocess.run(
-        [sys.executable, "-m", "rbdyn_jax.cli", *command[1:]],
-        capture_output=True,
-        text=True,
-        env=env,
-        timeout=300,
-    )
-    assert run.returncode == 0, run.stderr[-2000:]
+    assert cli.main(command[1:]) == 0  # as the `rbdyn` command runs it
     assert np.all(zarr.open_group(str(out), mode="r")["status"][:] == 0)
 
 
