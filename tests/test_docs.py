@@ -92,6 +92,11 @@ def _build(out: pathlib.Path) -> tuple[int, str]:
     return proc.returncode, proc.stdout + proc.stderr
 
 
+# The tests reading the built site run on one pytest-xdist worker (--dist loadgroup): a
+# second worker would only wait on the lock below while the first builds.
+on_the_site = pytest.mark.xdist_group("docs_site")
+
+
 @pytest.fixture(scope="module")
 def site(tmp_path_factory) -> pathlib.Path:
     """The site built by `mkdocs build --strict` (any warning fails it: a broken link or
@@ -126,10 +131,12 @@ def _text(page: str) -> str:
     return html.unescape(re.sub(r"<[^>]+>", "", page))
 
 
+@on_the_site
 def test_strict_build(site):
     assert (site / "index.html").exists()
 
 
+@on_the_site
 def test_every_public_name_has_an_api_entry(site):
     built = "\n".join(p.read_text() for p in (site / "api").rglob("*.html"))
     ids = set(re.findall(r'id="(rbdyn_jax\.[\w.]+)"', built))
@@ -148,6 +155,7 @@ def _cli_reference():
     return module
 
 
+@on_the_site
 def test_cli_page_documents_every_subcommand(site):
     hook = _cli_reference()
     parser = hook.cli_parser()
@@ -170,6 +178,7 @@ def _section(text: str, title: str, end: str) -> str:
     return text[start : text.index(end, start + len(title))]
 
 
+@on_the_site
 def test_scenarios_page_documents_every_kind_and_key(site):
     text = _text(_page(site, "scenarios.md"))
     torques = _section(text, "Torques¶", "Frames¶")
@@ -231,6 +240,7 @@ def test_scenarios_page_examples_validate():
     assert complete >= 1
 
 
+@on_the_site
 def test_tutorials_show_their_scripts(site):
     """Each tutorial page includes the script it is about (a `--8<--` snippet), whose
     code appears on the built page."""
@@ -412,6 +422,7 @@ def _remote_literals(text: str) -> list[str]:
     ]
 
 
+@on_the_site
 def test_site_requests_nothing_off_the_machine(site):
     """No page or asset of the built site makes a request off the machine: no script, style
     sheet, font, image or frame from a CDN or Google Fonts (`theme.font: false`; the search's
@@ -462,6 +473,7 @@ def _local_file(page: pathlib.Path, site: pathlib.Path, address: str) -> pathlib
     return path
 
 
+@on_the_site
 def test_search_works_from_the_file_system(site):
     """A page opened from file:// may neither fetch a file nor start a Web Worker. Material's
     search then reads its index from search/search_index.js, which the offline plugin writes
@@ -492,6 +504,7 @@ def test_search_works_from_the_file_system(site):
         _local_file(path, site, f"{scan.config['base']}/search/search_index.js")
 
 
+@on_the_site
 def test_wide_tables_and_equations_scroll_in_their_column(site):
     """A table or display equation wider than the text column scrolls inside it (and shows it
     does), rather than running past the column's edge, where it is cut off: the performance
