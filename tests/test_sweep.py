@@ -33,6 +33,12 @@ N = 14
 # 16 lanes in the bitwise comparisons: at 8, with XLA's while loops compiled whole (the
 # import's setting), a trajectory's last bits can depend on its lane within the block
 # (the docstring of `rbdyn_jax.sweep`).
+# The tests reading a module fixture's store share a worker (`--dist loadgroup`): each
+# store is solved once, and the chunk programs compiled for it are reused.
+ON_THE_REFERENCE = pytest.mark.xdist_group("sweep_reference_run")
+ON_THE_FAILING_RUN = pytest.mark.xdist_group("sweep_failing_run")
+
+
 @pytest.fixture(scope="module")
 def reference_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("sweep") / "ref.zarr"
@@ -41,6 +47,7 @@ def reference_run(tmp_path_factory):
 
 
 @pytest.mark.parametrize("chunk", [1, 7])
+@ON_THE_REFERENCE
 def test_same_seed_same_bits_for_any_chunk(reference_run, tmp_path, chunk):
     out = sweep.run(
         Scenario.from_dict(small()), N, tmp_path / "s.zarr", chunk=chunk, seed=3, lanes=16
@@ -52,6 +59,7 @@ def test_same_seed_same_bits_for_any_chunk(reference_run, tmp_path, chunk):
     assert not np.array_equal(load(other)["omega"], load(out)["omega"])
 
 
+@ON_THE_REFERENCE
 def test_numpy_integers_are_taken_as_ints(reference_run, tmp_path):
     """`n`, `chunk`, `seed`, `lanes` and `trajectories` as NumPy integers (a value read from
     an array, say): the same store as with Python ints, its attributes plain ints."""
@@ -69,6 +77,7 @@ def test_numpy_integers_are_taken_as_ints(reference_run, tmp_path):
     assert (attrs["n_trajectories"], attrs["seed"], attrs["trajectories"]) == (N, 3, 1)
 
 
+@ON_THE_REFERENCE
 def test_two_devices_give_the_same_bits(reference_run, tmp_path):
     """A fresh process with two XLA host devices, each taking half of every chunk."""
     code = (
@@ -84,6 +93,7 @@ def test_two_devices_give_the_same_bits(reference_run, tmp_path):
     assert_same(load(reference_run), load(tmp_path / "d2.zarr"))
 
 
+@ON_THE_REFERENCE
 def test_dataset_opens_with_xarray_and_equals_simulate(reference_run):
     ds = xr.open_zarr(reference_run)
     assert ds.omega.dims == ("trajectory", "time", "axis")
@@ -233,6 +243,7 @@ def test_resume_after_kill_equals_uninterrupted(tmp_path):
     assert zarr.open_group(str(out), mode="r").attrs["complete"]
 
 
+@ON_THE_REFERENCE
 def test_resume_refuses_a_different_run(reference_run, tmp_path):
     with pytest.raises(ValueError, match="cannot resume"):
         sweep.run(
@@ -291,6 +302,7 @@ def test_shipped_scenario_first_integrals(tmp_path, name, summary, bound):
         assert np.all(speed.max(1) <= np.sqrt(2 * Tr / lam[:, 0]) * (1 + 1e-7))
 
 
+@ON_THE_REFERENCE
 def test_resume_fills_scattered_gaps(reference_run, tmp_path):
     """Unfinished trajectories scattered inside a chunk (as after a resume with another
     chunk size) are solved and written back in contiguous runs, equal to the full run."""
@@ -331,6 +343,7 @@ def snapshot(path) -> dict:
     return {p.relative_to(path): p.read_bytes() for p in sorted(path.rglob("*")) if p.is_file()}
 
 
+@ON_THE_REFERENCE
 def test_existing_store_is_refused_untouched_and_replaced_only_when_asked(reference_run, tmp_path):
     import shutil
 
@@ -355,6 +368,7 @@ def test_existing_store_is_refused_untouched_and_replaced_only_when_asked(refere
     assert not plots.exists()  # the plots of the replaced store go with it
 
 
+@ON_THE_REFERENCE
 def test_store_carries_cf_metadata(reference_run):
     ds = xr.open_zarr(reference_run)
     for name, v in ds.variables.items():
@@ -405,6 +419,7 @@ def test_store_carries_cf_metadata(reference_run):
             assert ok, (k, a)
 
 
+@ON_THE_REFERENCE
 def test_netcdf_export_reads_back_equal(reference_run, tmp_path):
     nc = sweep.to_netcdf(reference_run, tmp_path / "s.nc")
     back = xr.open_dataset(nc, engine="netcdf4").load()
@@ -432,6 +447,7 @@ def failing_run(tmp_path_factory):
 
 
 @pytest.mark.parametrize("rows", [8, 1 << 20])  # five Dask blocks, and one
+@ON_THE_FAILING_RUN
 def test_summarize_through_dask_equals_numpy(failing_run, rows):
     g = zarr.open_group(str(failing_run), mode="r")
     status = g["status"][:]
@@ -453,6 +469,7 @@ def test_summarize_through_dask_equals_numpy(failing_run, rows):
         assert [row["q05"], row["q50"], row["q95"]] == list(np.quantile(x, [0.05, 0.5, 0.95]))
 
 
+@ON_THE_FAILING_RUN
 def test_summarize_keys_every_quantile_asked_for(failing_run):
     """Each quantile under its own percentile key, fractional percents with their decimals;
     quantiles outside [0, 1] or sharing a key are refused."""
@@ -466,6 +483,7 @@ def test_summarize_keys_every_quantile_asked_for(failing_run):
             sweep.summarize(failing_run, quantiles=bad)
 
 
+@ON_THE_FAILING_RUN
 def test_summarize_approximates_quantiles_of_a_large_store(failing_run, monkeypatch):
     """Beyond the exact limit the quantiles are Dask's, merged from per-block ones: within
     the neighbouring order statistics of the exact ones."""
@@ -496,6 +514,7 @@ PER_TRAJECTORY = (
 
 
 @pytest.mark.parametrize("keep", ["none", 3])
+@ON_THE_REFERENCE
 def test_stores_keeping_some_states_hold_the_full_stores_bits(reference_run, tmp_path, keep):
     """A store keeping no states, or every 3rd trajectory's, holds bitwise the per-trajectory
     variables of the full store of the same sweep, and its rows 0, 3, 6, … of the states;
@@ -534,6 +553,7 @@ def test_stores_keeping_some_states_hold_the_full_stores_bits(reference_run, tmp
     xr.testing.assert_identical(xr.open_dataset(nc, engine="netcdf4").load(), ds.load())
 
 
+@ON_THE_REFERENCE
 def test_resume_a_store_of_sampled_states(reference_run, tmp_path):
     """An interrupted store keeping every 3rd trajectory's states is finished by a resumed
     run into the same bits; a resume asking for other states, or another lanes, is refused,
