@@ -180,18 +180,18 @@ def test_the_devices_share_the_batch_to_the_bit():
     """`Kernel(devices=2)` deals the batch out over the two host devices (11 trajectories:
     one padded), each running the kernel on its share: every trajectory's solve is its
     own, so the values, stats and codes equal one device's to the bit, for a model per
-    trajectory and with a failing trajectory, and so does the gradient. Under
-    `jax.default_device` the kernel keeps to that device."""
+    trajectory and with a failing trajectory, and so does the gradient. The one-device
+    solve is `Kernel()` under `jax.default_device`, which the kernel keeps to."""
     n = 11
     y0s = initial_states(n)
     y0s = rb.State(y0s.omega.at[4].set(jnp.nan), y0s.quat)
     models = eqx.filter_vmap(heavy_top)(jnp.linspace(0.5, 2.0, n))
     kw = dict(rtol=RTOL, atol=RTOL, model_axes=0)
 
-    def solve(devices):
-        return rb.simulate_batch(models, y0s, TS, batching=rb.Kernel(devices=devices), **kw)
-
-    one, two = solve(1), solve(2)
+    with jax.default_device(jax.devices()[1]):
+        one = rb.simulate_batch(models, y0s, TS, batching=rb.Kernel(), **kw)
+    assert one.ys.omega.sharding.device_set == {jax.devices()[1]}
+    two = rb.simulate_batch(models, y0s, TS, batching=rb.Kernel(devices=2), **kw)
     assert len(two.ys.omega.sharding.device_set) == 2
     assert int(one.result._value[4]) == rb.RESULTS.nonfinite_state._value
     for a, b in zip(jax.tree_util.tree_leaves(one), jax.tree_util.tree_leaves(two)):
@@ -206,9 +206,6 @@ def test_the_devices_share_the_batch_to_the_bit():
     g1, g2 = jax.grad(loss)(weights, 1), jax.grad(loss)(weights, 2)
     assert np.count_nonzero(g1) == n - 1  # the failed trajectory's weight moves nothing
     np.testing.assert_array_equal(g1, g2)
-    with jax.default_device(jax.devices()[1]):
-        kept = rb.simulate_batch(models, y0s, TS, batching=rb.Kernel(), **kw)
-    assert kept.ys.omega.sharding.device_set == {jax.devices()[1]}
     for bad in (0, -1, 2.0, True):
         with pytest.raises(ValueError, match="`devices`"):
             rb.Kernel(devices=bad)
@@ -514,12 +511,14 @@ def _omega_loss(J, omega0, quat0, batching, solver=diffrax.Bosh3()):
 def test_gradients_and_jacobians_through_the_kernel():
     """`jax.grad` through the kernel w.r.t. the inertia and the initial rates: the forward
     sensitivities integrated in the kernel by the same steps, as the lane solver's, so the
-    two agree to round-off (bound 1e-9 relative, as the lane solver's own tests against
-    reverse mode). The loss reads ω alone, so the kernel integrates ω's sensitivities
+    two agree to round-off (bound 1e-9 relative, as the lane solver's own gradient tests;
+    the lanes' gradient is the sum over the trajectories of their `jax.jacfwd` of the
+    per-trajectory losses). The loss reads ω alone, so the kernel integrates ω's sensitivities
     only (`_cheapest` chooses that program: ω's group of a free body). Against central
     differences of the kernel's own solve along a random direction (a symmetric δJ and a
     δω0): h = 1e-5 on O(1) inputs at rtol 1e-11 gives O(h²) + rtol/h ≈ 1e-6 relative
-    error, bound 1e-5. `jax.jacfwd` too. Bosh3 and 4 trajectories."""
+    error, bound 1e-5. The kernel's `jax.jacfwd` of the per-trajectory losses too, against
+    the lanes'. Bosh3 and 4 trajectories."""
     from helpers import cheapest_call
 
     y0s = initial_states(4, seed=1)
@@ -533,7 +532,18 @@ def test_gradients_and_jacobians_through_the_kernel():
     carried = {k[1] for k in call.params["keys"][call.params["chosen"]] if k[0] == "S"}
     assert carried == {0}  # ω's sensitivities only
     gJ, gw = traced.lower().compile()(J, y0s.omega)
-    lJ, lw = grad(J, y0s.omega, rb.Lanes())
+
+    # `jax.jacfwd` of the per-trajectory losses: the tangents share the one sensitivities'
+    # solve. The lane solver's, summed over the trajectories, is its gradient (each loss
+    # reads its own ω0 alone).
+    def jac(batching):
+        return jax.jit(
+            jax.jacfwd(lambda J, w: _omega_loss(J, w, y0s.quat, batching), argnums=(0, 1)),
+            compiler_options=QUICK,
+        )(J, y0s.omega)
+
+    lanes = jac(rb.Lanes())
+    lJ, lw = (jnp.sum(x, axis=0) for x in lanes)
     scale = max(float(jnp.max(jnp.abs(lJ))), float(jnp.max(jnp.abs(lw))))
     assert scale > 1e-2  # a real gradient, not round-off
     for a, b in ((gJ, lJ), (gw, lw)):
@@ -548,21 +558,15 @@ def test_gradients_and_jacobians_through_the_kernel():
     exact = jnp.sum(gJ * dJ) + jnp.sum(gw * dw)
     np.testing.assert_allclose(exact, fd, rtol=1e-5)
 
-    # `jax.jacfwd` of the per-trajectory losses: the tangents share the one sensitivities'
-    # solve; equal to the lane solver's per trajectory, and summed over the trajectories
-    # the gradient above (to round-off, as above).
-    def jac(batching):
-        return jax.jit(
-            jax.jacfwd(lambda J: _omega_loss(J, y0s.omega, y0s.quat, batching)),
-            compiler_options=QUICK,
-        )(J)
-
-    kernel, lanes = jac(rb.Kernel()), jac(rb.Lanes())
-    assert kernel.shape == (4, 3, 3)
-    jscale = float(jnp.max(jnp.abs(lanes)))
-    assert jscale > 1e-2
-    np.testing.assert_allclose(kernel, lanes, rtol=1e-9, atol=1e-12 * jscale)
-    np.testing.assert_allclose(jnp.sum(kernel, axis=0), gJ, rtol=1e-9, atol=1e-12 * scale)
+    # The kernel's `jax.jacfwd`: the lane solver's per trajectory, and summed over the
+    # trajectories the gradient above (to round-off, as above).
+    kernel = jac(rb.Kernel())
+    assert kernel[0].shape == (4, 3, 3) and kernel[1].shape == (4, 4, 3)
+    for k, l, g in zip(kernel, lanes, (gJ, gw)):
+        jscale = float(jnp.max(jnp.abs(l)))
+        assert jscale > 1e-2
+        np.testing.assert_allclose(k, l, rtol=1e-9, atol=1e-12 * jscale)
+        np.testing.assert_allclose(jnp.sum(k, axis=0), g, rtol=1e-9, atol=1e-12 * scale)
 
 
 def test_gradients_for_per_trajectory_models_whole_states_and_times():
