@@ -237,8 +237,8 @@ def test_failed_trajectories_leave_the_gradient_of_the_others_alone():
             jnp.where(ok, tr.ys.quat, 0.0)[..., 1:] ** 2
         )
 
-    lanes = jax.grad(loss)(J, LANES)
-    plain = jax.jacfwd(loss)(J, None)
+    lanes = jax.jit(jax.grad(loss), static_argnums=1)(J, LANES)
+    plain = jax.jit(jax.jacfwd(loss), static_argnums=1)(J, None)
     assert np.all(np.isfinite(plain))
     sym = 0.5 * (plain + plain.T)
     np.testing.assert_allclose(lanes, sym, rtol=0, atol=1e-10 * float(jnp.max(jnp.abs(sym))))
@@ -526,9 +526,12 @@ def test_inertia_gradients_are_taken_on_symmetric_tensors():
         )
         return jnp.sum(jnp.sin(tr.ys.omega)) + jnp.sum(tr.ys.quat[..., 1:] ** 2)
 
+    # jitted whole: the callers' programs, not op-by-op compiles of the model's construction
+    plain_jac = jax.jit(jax.jacfwd(loss), static_argnums=(1, 2))
+    lanes_grad = jax.jit(jax.grad(loss), static_argnums=(1, 2))
     for J_, axes in ((J, None), (Js, 0)):
-        plain = jax.jacfwd(loss)(J_, None, axes)
-        lanes = jax.grad(loss)(J_, LANES, axes)
+        plain = plain_jac(J_, None, axes)
+        lanes = lanes_grad(J_, LANES, axes)
         sym = 0.5 * (plain + jnp.swapaxes(plain, -1, -2))
         assert float(jnp.max(jnp.abs(plain - sym))) > 1e-2  # plain's halves differ
         np.testing.assert_allclose(lanes, sym, rtol=0, atol=1e-10 * float(jnp.max(jnp.abs(sym))))
@@ -570,10 +573,9 @@ def test_an_inertia_that_is_not_a_tensor_takes_ordinary_columns():
         return jnp.sum(jnp.sin(tr.ys.omega))
 
     moments = jnp.array([2.0, 3.0, 4.0])
-    plain = jax.jacfwd(loss)(moments, None)
-    np.testing.assert_allclose(
-        jax.grad(loss)(moments, LANES), plain, rtol=0, atol=1e-10 * float(jnp.max(jnp.abs(plain)))
-    )
+    plain = jax.jit(jax.jacfwd(loss), static_argnums=1)(moments, None)
+    lanes = jax.jit(jax.grad(loss), static_argnums=1)(moments, LANES)
+    np.testing.assert_allclose(lanes, plain, rtol=0, atol=1e-10 * float(jnp.max(jnp.abs(plain))))
 
 
 _COMPILES = []  # set to a list to record the XLA compilations (a listener stays registered)
@@ -729,9 +731,10 @@ def test_the_array_layout_differentiates_as_the_cpu_layout():
         )
         return jnp.sum(jnp.sin(tr.ys.omega)) + jnp.sum(tr.ys.quat[..., 1:] ** 2)
 
-    ref = jax.grad(loss)(theta0, "cpu")
+    grad = jax.jit(jax.grad(loss), static_argnums=1)
+    ref = grad(theta0, "cpu")
     assert float(jnp.max(jnp.abs(ref))) > 1e-2
-    for g in (jax.grad(loss)(theta0, "array"), jax.jacfwd(loss)(theta0, "array")):
+    for g in (grad(theta0, "array"), jax.jit(jax.jacfwd(loss), static_argnums=1)(theta0, "array")):
         np.testing.assert_allclose(g, ref, rtol=1e-10, atol=1e-12)
 
 
