@@ -60,7 +60,6 @@ def heavy_top(weight):
 
 CASES = {
     "torque_free_tsit5": lambda: (rb.RigidBody(J), None, diffrax.Tsit5()),
-    "torque_free_dopri5": lambda: (rb.RigidBody(J), None, diffrax.Dopri5()),
     "torque_free_bosh3": lambda: (rb.RigidBody(J), None, diffrax.Bosh3()),
     "heavy_top_per_trajectory_dopri5": lambda: (
         eqx.filter_vmap(heavy_top)(jnp.linspace(0.5, 2.0, N)),
