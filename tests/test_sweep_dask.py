@@ -254,6 +254,8 @@ def _executing(dask_worker) -> int:
     return len(dask_worker.state.executing)
 
 
+# Last of the tests on the shared cluster (pytest runs a file in order): the worker its
+# nanny starts in place of the killed one compiles every program anew.
 def test_worker_killed_mid_chunk_loses_nothing(client, tmp_path):
     """A worker process is killed (SIGKILL) while it solves a chunk, after other chunks
     are written: Dask reruns its chunk, and the store equals the in-process run with every
