@@ -506,6 +506,39 @@ def test_lagrange_jit_and_vmap_over_eps():
         an.lagrange_top_first_approximation(ts, **dict(TOP, r0=jnp.ones(2)), eps=0.1, K=K_of_tau)
 
 
+@pytest.mark.parametrize(
+    "bad, which",
+    [
+        (dict(r0=0.0), "both"),
+        (dict(C=0.0), "both"),
+        (dict(C=-1.0), "both"),
+        (dict(A=0.0), "second"),
+        (dict(eps=0.0), "second"),
+        (dict(theta0=0.0), "second"),
+        (dict(theta0=np.pi), "second"),
+    ],
+)
+def test_lagrange_approximations_refuse_singular_values(bad, which):
+    """Values where the formulas divide by zero (`C r0`; `A`, `ε` and `sinθ0` in the second
+    approximation) are refused, naming the argument, instead of returning NaN or ±inf;
+    also traced, under `eqx.filter_jit`. θ0 = π in floating point has sinθ0 ≈ 1e-16, not
+    0, and is refused as well. Where a formula does not divide by it the value is
+    accepted."""
+    (name,) = bad
+    kw = dict(TOP, eps=0.02, K=K_of_tau) | bad
+    ts = jnp.linspace(0.0, 10.0, 3)
+    second = an.lagrange_top_second_approximation
+    for fn in (an.lagrange_top_first_approximation, second):
+        if which == "both" or fn is second:
+            with pytest.raises(eqx.EquinoxRuntimeError, match=f"`{name}` must"):
+                fn(ts, **kw)
+            traced = eqx.filter_jit(lambda v, fn=fn: fn(ts, **(kw | {name: v}))[0])  # noqa: B023
+            with pytest.raises(eqx.EquinoxRuntimeError, match=f"`{name}` must"):
+                traced(kw[name])
+        else:
+            assert all(np.isfinite(x).all() for x in fn(ts, **kw))
+
+
 # ---------------------------------------------------------------------------------------
 # gravity gradient, integrable case A = B = m C (docs/physics.md#the-integrable-case)
 # ---------------------------------------------------------------------------------------

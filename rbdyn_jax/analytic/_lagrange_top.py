@@ -3,6 +3,7 @@ and second approximations, with the Gauss–Legendre quadratures of `K`."""
 
 from collections.abc import Callable
 
+import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
@@ -28,6 +29,13 @@ _TimesLike = Float[ArrayLike, " n"]
 def _check_quad_order(order: int) -> None:
     if not isinstance(order, int) or isinstance(order, bool) or order < 1:
         raise ValueError(f"`quad_order` must be a positive int, got {order!r}.")
+
+
+def _checked(C: Array, r0: Array) -> tuple[Array, Array]:
+    """`C` and `r0` with their runtime checks: both approximations divide by `C r0`."""
+    C = eqx.error_if(C, ~(C > 0), "`C` must be positive.")
+    r0 = eqx.error_if(r0, r0 == 0, "`r0` must be non-zero: the approximations expand in 1/r0.")
+    return C, r0
 
 
 def _gl_rule(order: int, dtype) -> tuple[Array, Array]:
@@ -121,6 +129,9 @@ def lagrange_top_first_approximation(
     **Returns:**
 
     `(psi, theta, r)`, each of shape `(n,)`.
+
+    **Raises:** `ValueError` for a malformed argument; `equinox.EquinoxRuntimeError` (at run
+    time, also under `jit` and `vmap`) for `C ≤ 0` or `r0 = 0`.
     """
     ts = check_times(ts)
     s = _scalars(A=A, C=C, r0=r0, psi0=psi0, theta0=theta0, eps=eps, M3=M3)
@@ -132,6 +143,7 @@ def lagrange_top_first_approximation(
 
 @filter_jit
 def _first_impl(ts, C, r0, psi0, theta0, eps, M3, K, quad_order):
+    C, r0 = _checked(C, r0)
     x, w = _gl_rule(quad_order, ts.dtype)
     tau = eps * ts
     F1 = _integral_0_to(lambda u: _call_K(K, u), tau, x, w) / (C * r0)
@@ -193,6 +205,10 @@ def lagrange_top_second_approximation(
     `p0 = ψ'0 sinθ0 sinφ0`, `q0 = ψ'0 sinθ0 cosφ0`, `ψ'0 = k0 / (C r0)`, for which the
     nutation vanishes to this order). `A` is used here.
 
+    **Raises:** as the first approximation, and also for `A ≤ 0`, `eps = 0` (the mean
+    motion's `M3` term is in `τ / ε`) and `theta0` a multiple of π (to rounding: ψ is
+    undefined with the body's axis on the vertical).
+
     **Returns:**
 
     `(psi, theta, r)`, each of shape `(n,)`; `r = r0 + M3 t / C` (exact).
@@ -221,6 +237,13 @@ def lagrange_top_second_approximation(
 
 @filter_jit
 def _second_impl(ts, A_, C_, r0_, ps0, th0, eps_, M3_, ph0, p0, q0, K, quad_order):
+    C_, r0_ = _checked(C_, r0_)
+    A_ = eqx.error_if(A_, ~(A_ > 0), "`A` must be positive.")
+    eps_ = eqx.error_if(eps_, eps_ == 0, "`eps` must be non-zero: slow time is τ = ε t.")
+    # θ0 = kπ: the line of nodes, so ψ, is undefined (the nutation's 1/sinθ0); in floating
+    # point sin(π) is a rounding error, not 0.
+    vertical = jnp.abs(jnp.sin(th0)) <= jnp.finfo(th0.dtype).eps
+    th0 = eqx.error_if(th0, vertical, "`theta0` must not be a multiple of π: ψ is undefined there.")
     x, w = _gl_rule(quad_order, ts.dtype)
     Kf = lambda u: _call_K(K, u)  # noqa: E731
     Cr = C_ * r0_
