@@ -164,7 +164,9 @@ class Kernel(AbstractBatching):
       a GPU a trajectory a thread (`block` / 32 warps, 1 to 32). `None`: 128 on a GPU,
       else the batch (to the next power of two, at most 1024).
     - `interpret`: run the kernel in Pallas's interpret mode (on any platform, slowly);
-      `None`: on every platform but a GPU.
+      `None`: on every platform but a GPU. `False` lowers the kernel through Triton, for a
+      GPU: a CPU runs no such kernel (JAX's `ValueError`), though `jax.export` for CUDA
+      exports it from one.
     - `devices`: how many local devices share the batch, each running the kernel on its
       share (dealt out in turn, as `Lanes` deals it); `None`: all of them, or the one
       device JAX's `jax.default_device` names where one is set. A trajectory's solve is
