@@ -19,10 +19,12 @@ import numpy as np
 import pytest
 from helpers import load_store, small_scenario
 from scipy.linalg import expm
+from scipy.spatial.transform import Rotation
 
 import rbdyn_jax as rb
 from rbdyn_jax import sweep
 from rbdyn_jax.integrate._composition import COMPOSITIONS, MCLACHLAN_4, Scheme
+from rbdyn_jax.integrate._exact_flows import _axis_flow, _casimir_rotation
 from rbdyn_jax.scenario import SCENARIO_DIR, Scenario, ScenarioError
 
 J = np.array([[2.0, 0.05, 0.0], [0.05, 3.0, 0.02], [0.0, 0.02, 4.0]])
@@ -146,6 +148,58 @@ def _windows(ts, err):
     """The largest error over periods 10–10² and over periods 10³–10⁴."""
     p = np.asarray(ts) / PERIOD
     return err[(p >= 10) & (p <= 100)].max(), err[(p >= 1e3) & (p <= 1e4)].max()
+
+
+# Turning angles over two turns, and θ/2 within 1e-9 of π (a full turn: cos(θ/2) − 1 ≈ −2,
+# where `−sin²(θ/2) / (1 + cos(θ/2))` would divide two rounding errors).
+ANGLES = [0.0, 1e-9, 0.3, 2.0, np.pi, 2 * np.pi - 2e-9, 2 * np.pi, 2 * np.pi + 2e-9, 10.0]
+
+
+def _hamilton(q, p):
+    """`q ⊗ p` in NumPy, scalar first."""
+    w, v, a, b = q[0], q[1:], p[0], p[1:]
+    return np.concatenate([[w * a - v @ b], w * b + a * v + np.cross(v, b)])
+
+
+@pytest.mark.parametrize("i", [0, 1, 2])
+def test_an_axis_flow_turns_by_its_angle_at_any_angle(i):
+    """`_axis_flow`'s increments, added to L and q, are the turn by θ = rate L_i about the
+    principal axis i: `L ← Rot(e_i, −θ) L` (scipy's rotation) and `q ← q ⊗ (cos θ/2, sin
+    θ/2 e_i)`, to the rounding of unit-sized components (1e-15), for angles over two turns,
+    a full turn per step included."""
+    rng = np.random.default_rng(i)
+    L, q = rng.normal(size=3), rng.normal(size=4)
+    q /= np.linalg.norm(q)
+    e = np.eye(3)[i]
+    for theta in ANGLES:
+        dL, dq = _axis_flow(i, jnp.asarray(L), jnp.asarray(q), jnp.asarray(theta / L[i]))
+        new_L = L + np.array([float(dL[j]) if j in dL else 0.0 for j in range(3)])
+        np.testing.assert_allclose(
+            new_L, Rotation.from_rotvec(-theta * e).apply(L), rtol=0, atol=1e-14
+        )
+        turn = np.concatenate([[np.cos(theta / 2)], np.sin(theta / 2) * e])
+        new_q = q + np.array([float(x) for x in dq])
+        np.testing.assert_allclose(new_q, _hamilton(q, turn), rtol=0, atol=1e-15, err_msg=theta)
+
+
+def test_the_casimirs_rotation_is_exact_at_any_angle():
+    """`_casimir_rotation`'s quaternion of the turn by φ = rate |L| about L, and its
+    increment from the identity, at the same angles: `(cos φ/2, sin φ/2 L/|L|)` to 1e-15,
+    and the increment's scalar `cos φ/2 − 1` to its own rounding (relative 1e-14, against
+    `−2 sin²(φ/4)`), at a tiny angle as near a full turn; at L = 0 the identity."""
+    L = np.array([0.3, -1.2, 0.7])
+    n = np.linalg.norm(L)
+    for phi in ANGLES:
+        want = np.concatenate([[np.cos(phi / 2)], np.sin(phi / 2) * L / n])
+        rate = jnp.asarray(phi / n)
+        whole = np.array([float(x) for x in _casimir_rotation(jnp.asarray(L), rate, False)])
+        step = np.array([float(x) for x in _casimir_rotation(jnp.asarray(L), rate, True)])
+        np.testing.assert_allclose(whole, want, rtol=0, atol=1e-15, err_msg=phi)
+        np.testing.assert_allclose(step + [1, 0, 0, 0], want, rtol=0, atol=1e-15, err_msg=phi)
+        # the increment `cos φ/2 − 1` to its own rounding, small or not: −2 sin²(φ/4)
+        np.testing.assert_allclose(step[0], -2 * np.sin(phi / 4) ** 2, rtol=1e-14, atol=0)
+    zero = _casimir_rotation(jnp.zeros(3), jnp.asarray(0.5), True)
+    assert [float(x) for x in zero] == [0.0, 0.0, 0.0, 0.0]
 
 
 def test_free_body_over_ten_thousand_periods():

@@ -52,18 +52,28 @@ def _two_sum(hi, lo, d):
     return s, (hi - (s - bb)) + (b - bb)
 
 
+def _cos_minus_one(s, c):
+    """`cos x − 1` from `s = sin x`, `c = cos x`, to the rounding of its size for every x:
+    `−s² / (1 + c)` where `c ≥ 0` (no cancellation against 1 for small x), `c − 1` where
+    `c < 0` (there `1 + c` would cancel near x = π). The unselected branch's denominator is
+    kept away from 0, so that derivatives through `jnp.where` stay finite."""
+    right = c >= 0
+    return jnp.where(right, -s * s / jnp.where(right, 1.0 + c, 1.0), c - 1.0)
+
+
 def _axis_flow(i: int, L, q, rate):
     """The exact flow of `½ d_i L_i²` for a time h, with `rate = d_i h`: L and the
     attitude turn about the principal axis i by `θ = rate L_i` (L_i kept), `L ← Rot(e_i,
     −θ) L` in body components, `q ← q ⊗ (cos θ/2, sin θ/2 e_i)`. Returns the increments of
-    L (`{j: ΔL_j}`) and of q, from `cos θ − 1 = −2 sin²(θ/2)` and `cos(θ/2) − 1 =
-    −sin²(θ/2) / (1 + cos(θ/2))`: small numbers, whose rounding is small against L and q."""
+    L (`{j: ΔL_j}`) and of q, from `cos θ − 1 = −2 sin²(θ/2)` and `cos(θ/2) − 1`
+    (`_cos_minus_one`): small numbers for a small angle, whose rounding is small against L
+    and q, and accurate for any angle."""
     j, k = (i + 1) % 3, (i + 2) % 3
     half = 0.5 * rate * L[i]
     sh, ch = jnp.sin(half), jnp.cos(half)
     s, cm = 2.0 * sh * ch, -2.0 * sh * sh  # sin θ, cos θ − 1
     dL = {j: cm * L[j] + s * L[k], k: cm * L[k] - s * L[j]}
-    chm = -sh * sh / (1.0 + ch)  # cos(θ/2) − 1
+    chm = _cos_minus_one(sh, ch)  # cos(θ/2) − 1
     w, v = q[0], q[1:]
     dv = [None] * 3
     dw = chm * w - sh * v[i]
@@ -76,8 +86,7 @@ def _casimir_rotation(L, rate, increment):
     I_a`: L kept in the body, the attitude turned about it by `φ = rate |L|`, `q ← q ⊗
     (cos φ/2, sin φ/2 L/|L|)` (the identity at L = 0, with finite derivatives there).
     Returns that quaternion, or with `increment` its difference from the identity, `(cos
-    φ/2 − 1, …)`, as `_axis_flow` (for the small angle of a step; near φ = 2π the
-    increment's form loses accuracy)."""
+    φ/2 − 1, …)`, as `_axis_flow`."""
     n2 = L[0] * L[0] + L[1] * L[1] + L[2] * L[2]
     nonzero = n2 > 0
     n = jnp.sqrt(jnp.where(nonzero, n2, 1.0))
@@ -85,7 +94,7 @@ def _casimir_rotation(L, rate, increment):
     sn, c = jnp.sin(half), jnp.cos(half)
     scale = jnp.where(nonzero, sn / n, 0.5 * rate)  # sin(φ/2)/|L|
     if increment:
-        w = jnp.where(nonzero, -sn * sn / (1.0 + c), 0.0)  # cos(φ/2) − 1
+        w = jnp.where(nonzero, _cos_minus_one(sn, c), 0.0)  # cos(φ/2) − 1
     else:
         w = jnp.where(nonzero, c, 1.0)
     return [w, scale * L[0], scale * L[1], scale * L[2]]
