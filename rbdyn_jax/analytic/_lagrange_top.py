@@ -205,13 +205,13 @@ def lagrange_top_second_approximation(
     `p0 = ψ'0 sinθ0 sinφ0`, `q0 = ψ'0 sinθ0 cosφ0`, `ψ'0 = k0 / (C r0)`, for which the
     nutation vanishes to this order). `A` is used here.
 
-    **Raises:** as the first approximation, and also for `A ≤ 0`, `eps = 0` (the mean
-    motion's `M3` term is in `τ / ε`) and `theta0` a multiple of π (to rounding: ψ is
-    undefined with the body's axis on the vertical).
-
     **Returns:**
 
     `(psi, theta, r)`, each of shape `(n,)`; `r = r0 + M3 t / C` (exact).
+
+    **Raises:** as the first approximation, and also for `A ≤ 0`, `eps = 0` (the mean
+    motion's `M3` term is in `τ / ε`) and `theta0` a multiple of π (to rounding: ψ is
+    undefined with the body's axis on the vertical).
     """
     ts = check_times(ts)
     s = _scalars(A=A, C=C, r0=r0, psi0=psi0, theta0=theta0, eps=eps, M3=M3, phi0=phi0)
