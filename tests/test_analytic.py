@@ -532,7 +532,7 @@ def test_lagrange_approximations_refuse_singular_values(bad, which):
         if which == "both" or fn is second:
             with pytest.raises(eqx.EquinoxRuntimeError, match=f"`{name}` must"):
                 fn(ts, **kw)
-            traced = eqx.filter_jit(lambda v, fn=fn: fn(ts, **(kw | {name: v}))[0])  # noqa: B023
+            traced = eqx.filter_jit(lambda v, fn=fn: fn(ts, **(kw | {name: v}))[0])
             with pytest.raises(eqx.EquinoxRuntimeError, match=f"`{name}` must"):
                 traced(kw[name])
         else:

@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import load_store, small_scenario
+from helpers import load_store, random_quat, scipy_rot, small_scenario, xyzw_to_wxyz
 from scipy.linalg import expm
 from scipy.spatial.transform import Rotation
 
@@ -155,21 +155,15 @@ def _windows(ts, err):
 ANGLES = [0.0, 1e-9, 0.3, 2.0, np.pi, 2 * np.pi - 2e-9, 2 * np.pi, 2 * np.pi + 2e-9, 10.0]
 
 
-def _hamilton(q, p):
-    """`q ⊗ p` in NumPy, scalar first."""
-    w, v, a, b = q[0], q[1:], p[0], p[1:]
-    return np.concatenate([[w * a - v @ b], w * b + a * v + np.cross(v, b)])
-
-
 @pytest.mark.parametrize("i", [0, 1, 2])
 def test_an_axis_flow_turns_by_its_angle_at_any_angle(i):
     """`_axis_flow`'s increments, added to L and q, are the turn by θ = rate L_i about the
-    principal axis i: `L ← Rot(e_i, −θ) L` (scipy's rotation) and `q ← q ⊗ (cos θ/2, sin
-    θ/2 e_i)`, to the rounding of unit-sized components (1e-15), for angles over two turns,
-    a full turn per step included."""
+    principal axis i: `L ← Rot(e_i, −θ) L` and `q ← q ⊗ (cos θ/2, sin θ/2 e_i)` (scipy's
+    rotations and their product, which keeps the quaternion's sign), to the rounding of
+    unit-sized components (1e-15), for angles over two turns, a full turn per step
+    included."""
     rng = np.random.default_rng(i)
-    L, q = rng.normal(size=3), rng.normal(size=4)
-    q /= np.linalg.norm(q)
+    L, q = rng.normal(size=3), random_quat(rng)
     e = np.eye(3)[i]
     for theta in ANGLES:
         dL, dq = _axis_flow(i, jnp.asarray(L), jnp.asarray(q), jnp.asarray(theta / L[i]))
@@ -177,9 +171,9 @@ def test_an_axis_flow_turns_by_its_angle_at_any_angle(i):
         np.testing.assert_allclose(
             new_L, Rotation.from_rotvec(-theta * e).apply(L), rtol=0, atol=1e-14
         )
-        turn = np.concatenate([[np.cos(theta / 2)], np.sin(theta / 2) * e])
+        want = xyzw_to_wxyz((scipy_rot(q) * Rotation.from_rotvec(theta * e)).as_quat())
         new_q = q + np.array([float(x) for x in dq])
-        np.testing.assert_allclose(new_q, _hamilton(q, turn), rtol=0, atol=1e-15, err_msg=theta)
+        np.testing.assert_allclose(new_q, want, rtol=0, atol=1e-15, err_msg=theta)
 
 
 def test_the_casimirs_rotation_is_exact_at_any_angle():
